@@ -1,0 +1,3 @@
+pub mod clearance;
+pub mod obb;
+pub mod supervisor;

@@ -1,0 +1,190 @@
+//! Evaluating a controller in the twin: many seeded episodes on all cores, summarised.
+
+use super::Controller;
+use crate::config::cell::CellConfig;
+use crate::sim::{AssemblyEnv, EnvOptions, Outcome, PoseErrors};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+/// What one episode came to.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EpisodeReport {
+    pub index: usize,
+    pub seed: u64,
+    /// `success` or a failure code (`collision_limit`, `step_limit`, ...).
+    pub outcome: String,
+    pub steps: u32,
+    pub reward: f64,
+    pub vetoes: u32,
+    pub final_errors: PoseErrors,
+}
+
+impl EpisodeReport {
+    pub fn succeeded(&self) -> bool {
+        self.outcome == "success"
+    }
+}
+
+/// Summary of an evaluation (the JSON `celld eval --json` prints).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EvalSummary {
+    pub controller: String,
+    pub cell: String,
+    pub episodes: usize,
+    pub seed: u64,
+    pub init_pos_mm: f64,
+    pub init_ori_deg: f64,
+    pub noise_scale: f64,
+    pub successes: usize,
+    pub success_rate: f64,
+    /// Average steps over the successful episodes (null when none succeeded).
+    pub avg_steps: Option<f64>,
+    pub avg_steps_all: f64,
+    pub avg_reward: f64,
+    pub avg_vetoes: f64,
+    /// Failures counted by reason.
+    pub failures: BTreeMap<String, usize>,
+    pub wall_s: f64,
+}
+
+/// The seed of episode `index` of an evaluation seeded with `seed` (SplitMix64), so that an
+/// episode is the same whichever thread runs it and however many episodes are asked for.
+pub fn episode_seed(seed: u64, index: usize) -> u64 {
+    let mut z = seed.wrapping_add((index as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Runs one episode to its end.
+pub fn run_episode(
+    env: &mut AssemblyEnv,
+    controller: &mut dyn Controller,
+    index: usize,
+    seed: u64,
+) -> EpisodeReport {
+    controller.reset(seed ^ 0x5EED_C0DE);
+    let mut observation = match env.reset(seed) {
+        Ok(observation) => observation,
+        Err(error) => {
+            return EpisodeReport {
+                index,
+                seed,
+                outcome: format!("reset_failed: {error}"),
+                steps: 0,
+                reward: 0.0,
+                vetoes: 0,
+                final_errors: PoseErrors::default(),
+            };
+        }
+    };
+    let mut reward = 0.0;
+    let mut vetoes = 0;
+    loop {
+        let decision = controller.act(&observation);
+        let result = env
+            .step(&decision.action)
+            .expect("the loop stops when the episode ends");
+        reward += result.reward.total;
+        vetoes += u32::from(result.veto.is_some());
+        observation = result.observation;
+        if let Some(outcome) = result.outcome {
+            return EpisodeReport {
+                index,
+                seed,
+                outcome: match outcome {
+                    Outcome::Success => "success".to_string(),
+                    Outcome::Failure(reason) => reason.code().to_string(),
+                },
+                steps: env.steps(),
+                reward,
+                vetoes,
+                final_errors: result.true_errors,
+            };
+        }
+    }
+}
+
+/// Runs `episodes` episodes on all cores; `make_controller` builds one controller per worker;
+/// `on_episode` is called after each episode (for a progress bar).
+pub fn evaluate(
+    cell: &CellConfig,
+    options: EnvOptions,
+    episodes: usize,
+    seed: u64,
+    make_controller: &(dyn Fn() -> Box<dyn Controller> + Sync),
+    on_episode: &(dyn Fn(&EpisodeReport) + Sync),
+) -> (EvalSummary, Vec<EpisodeReport>) {
+    let started = Instant::now();
+    let name = make_controller().name().to_string();
+    let reports: Vec<EpisodeReport> = (0..episodes)
+        .into_par_iter()
+        .map_init(
+            || (AssemblyEnv::new(cell, options), make_controller()),
+            |(env, controller), index| {
+                let report =
+                    run_episode(env, controller.as_mut(), index, episode_seed(seed, index));
+                on_episode(&report);
+                report
+            },
+        )
+        .collect();
+    let summary = summarise(
+        cell,
+        options,
+        seed,
+        &name,
+        &reports,
+        started.elapsed().as_secs_f64(),
+    );
+    (summary, reports)
+}
+
+fn summarise(
+    cell: &CellConfig,
+    options: EnvOptions,
+    seed: u64,
+    controller: &str,
+    reports: &[EpisodeReport],
+    wall_s: f64,
+) -> EvalSummary {
+    let n = reports.len().max(1) as f64;
+    let successes: Vec<&EpisodeReport> = reports.iter().filter(|r| r.succeeded()).collect();
+    let mut failures = BTreeMap::new();
+    for report in reports.iter().filter(|r| !r.succeeded()) {
+        *failures.entry(report.outcome.clone()).or_insert(0) += 1;
+    }
+    EvalSummary {
+        controller: controller.to_string(),
+        cell: cell.name.clone(),
+        episodes: reports.len(),
+        seed,
+        init_pos_mm: options.initial.offset_mm,
+        init_ori_deg: options.initial.orientation_deg,
+        noise_scale: options.noise_scale,
+        successes: successes.len(),
+        success_rate: successes.len() as f64 / n,
+        avg_steps: (!successes.is_empty()).then(|| {
+            successes.iter().map(|r| f64::from(r.steps)).sum::<f64>() / successes.len() as f64
+        }),
+        avg_steps_all: reports.iter().map(|r| f64::from(r.steps)).sum::<f64>() / n,
+        avg_reward: reports.iter().map(|r| r.reward).sum::<f64>() / n,
+        avg_vetoes: reports.iter().map(|r| f64::from(r.vetoes)).sum::<f64>() / n,
+        failures,
+        wall_s,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn episode_seeds_differ_and_repeat() {
+        assert_eq!(episode_seed(7, 3), episode_seed(7, 3));
+        assert_ne!(episode_seed(7, 3), episode_seed(7, 4));
+        assert_ne!(episode_seed(7, 3), episode_seed(8, 3));
+    }
+}

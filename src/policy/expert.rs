@@ -1,0 +1,192 @@
+//! The scripted knowledge-guided expert (DESIGN.md §5): what a skilled operator does when guiding
+//! Segment I by hand — orientation first, then lateral alignment above the entrance, then
+//! insertion, with steps that shrink near the goal and a person's variability in step length.
+//!
+//! It stands in for the recorded human demonstrations in the twin. Each decision says which actor
+//! (position or orientation) it used and its step scale, the labels the LSTM selector learns.
+
+use super::estimate::{PoseTracker, TrackerTuning};
+use super::{Actor, Controller, Decision, clamp_components};
+use crate::config::cell::CellConfig;
+use crate::geometry::Move;
+use crate::geometry::pose::pose_from_mm_deg;
+use crate::sim::Observation;
+use nalgebra::{Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Tuning of the expert; the defaults are what the tests and the bundled results use.
+#[derive(Debug, Clone, Copy)]
+pub struct ExpertTuning {
+    /// Tilt (deg) above which the orientation is corrected before moving on, outside the bore.
+    pub tilt_tolerance_deg: f64,
+    /// Tilt tolerated once the tip is in the bore (a correction there swings the tip).
+    pub tilt_tolerance_inside_deg: f64,
+    /// Hole misalignment (deg about the axis) above which the roll is corrected.
+    pub roll_tolerance_deg: f64,
+    /// Lateral error (mm) below which insertion may start.
+    pub lateral_tolerance_mm: f64,
+    /// Height of the tip above the entrance where the lateral alignment is finished (mm).
+    pub standoff_mm: f64,
+    /// The lateral estimate's σ (mm) must be this small before insertion starts: a careful
+    /// operator looks a few more times before committing.
+    pub lateral_certainty_mm: f64,
+    /// Height of the tip above the entrance down to which Segment I may come while it is still
+    /// more than 1 mm off sideways (mm).
+    pub prestandoff_mm: f64,
+    /// Human variability: each step's length is scaled by a factor drawn from [this, 1].
+    pub min_step_factor: f64,
+}
+
+impl Default for ExpertTuning {
+    fn default() -> Self {
+        ExpertTuning {
+            tilt_tolerance_deg: 0.02,
+            tilt_tolerance_inside_deg: 0.05,
+            roll_tolerance_deg: 0.025,
+            lateral_tolerance_mm: 0.012,
+            standoff_mm: 1.0,
+            prestandoff_mm: 20.0,
+            lateral_certainty_mm: 0.009,
+            min_step_factor: 0.85,
+        }
+    }
+}
+
+pub struct Expert {
+    tuning: ExpertTuning,
+    limit_mm: f64,
+    limit_deg: f64,
+    shaft_length_mm: f64,
+    tracker: PoseTracker,
+    rng: ChaCha8Rng,
+    last_move: Option<Move>,
+}
+
+impl Expert {
+    pub fn new(cell: &CellConfig) -> Self {
+        Self::with_tuning(cell, ExpertTuning::default())
+    }
+
+    pub fn with_tuning(cell: &CellConfig, tuning: ExpertTuning) -> Self {
+        Expert {
+            tuning,
+            limit_mm: cell.steps.position_mm,
+            limit_deg: cell.steps.orientation_deg,
+            shaft_length_mm: cell.shaft.engaged_length_mm,
+            tracker: PoseTracker::new(TrackerTuning::default()),
+            rng: ChaCha8Rng::seed_from_u64(0),
+            last_move: None,
+        }
+    }
+
+    fn human_factor(&mut self) -> f64 {
+        self.rng.random_range(self.tuning.min_step_factor..=1.0)
+    }
+
+    fn decide(&mut self, p: Vector3<f64>, o: Vector3<f64>) -> Decision {
+        let t = self.tuning;
+        // P is {F}'s origin in {M}: the tip is in the bore once P_z > -L.
+        let insertion_mm = p.z + self.shaft_length_mm;
+        let inside = insertion_mm > -0.2;
+        let tilt = o.xy().norm();
+        let tilt_tolerance = if inside {
+            t.tilt_tolerance_inside_deg
+        } else {
+            t.tilt_tolerance_deg
+        };
+        if tilt > tilt_tolerance || o.z.abs() > t.roll_tolerance_deg {
+            let factor = if o.norm() > 0.2 {
+                self.human_factor()
+            } else {
+                0.9
+            };
+            let theta = clamp_components(o * factor, self.limit_deg);
+            return Decision {
+                action: Move {
+                    translation_mm: Vector3::zeros(),
+                    rotation_deg: theta,
+                },
+                actor: Some(Actor::Orientation),
+                scale: Some(theta.amax() / self.limit_deg),
+            };
+        }
+        // Centre the part of the shaft that will be in the bore after this step (its midpoint),
+        // not the shoulder: a small tilt swings the tip sideways.
+        let engaged_mm = (insertion_mm.max(0.0) + self.limit_mm).min(self.shaft_length_mm);
+        let reference = Point3::new(0.0, 0.0, -self.shaft_length_mm + engaged_mm / 2.0);
+        let off_axis = (pose_from_mm_deg(p, o).inverse() * reference).coords.xy();
+        let lateral = off_axis.norm();
+        // Height of the tip above the entrance (negative once inside).
+        let height_mm = -insertion_mm;
+        let sure = self.tracker.lateral_sd_mm() <= t.lateral_certainty_mm;
+        let mut dz = if inside || (lateral <= t.lateral_tolerance_mm && sure) {
+            // Aligned: insert (the first step crosses the entrance), shrinking near the bottom.
+            p.z
+        } else {
+            // Not aligned yet: come down, but only to the pre-standoff height while far off
+            // sideways, then to the standoff; never lower before the alignment is done.
+            let floor_mm = if lateral > 1.0 {
+                t.prestandoff_mm
+            } else {
+                t.standoff_mm
+            };
+            (floor_mm - height_mm).min(0.0)
+        };
+        let mut lateral_move = -off_axis * if inside || lateral >= 0.5 { 1.0 } else { 0.8 };
+        // Long moves come with a person's variability; short ones are placed with care.
+        if dz.abs() > 1.0 {
+            dz *= self.human_factor();
+        }
+        if lateral_move.amax() > 1.0 {
+            lateral_move *= self.human_factor();
+        }
+        let dz = dz.clamp(-self.limit_mm, self.limit_mm);
+        // Steer against the sideways drift the tracker has learned: command c such that
+        // c + drift · (c, dz) ≈ the wanted lateral move (first order).
+        let drift = self.tracker.drift();
+        let wanted = Vector3::new(lateral_move.x, lateral_move.y, dz);
+        let correction = drift * wanted;
+        let delta = Vector3::new(
+            lateral_move.x - correction.x,
+            lateral_move.y - correction.y,
+            dz,
+        );
+        let delta = clamp_components(delta, self.limit_mm);
+        Decision {
+            action: Move {
+                translation_mm: delta,
+                rotation_deg: Vector3::zeros(),
+            },
+            actor: Some(Actor::Position),
+            scale: Some(delta.amax() / self.limit_mm),
+        }
+    }
+}
+
+impl Controller for Expert {
+    fn name(&self) -> &str {
+        "expert"
+    }
+
+    fn reset(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.tracker.reset();
+        self.last_move = None;
+    }
+
+    fn act(&mut self, observation: &Observation) -> Decision {
+        let executed = if observation.last_veto.is_none() {
+            self.last_move
+        } else {
+            None
+        };
+        self.tracker.update(executed.as_ref(), observation);
+        let decision = match self.tracker.estimate() {
+            Some((p, o)) if observation.measurement_fresh => self.decide(p, o),
+            _ => Decision::hold(),
+        };
+        self.last_move = Some(decision.action);
+        decision
+    }
+}

@@ -1,0 +1,86 @@
+//! Controllers: everything that decides the next move from what the camera sees.
+//!
+//! The learned hierarchical policy and every baseline implement [`Controller`], so the twin,
+//! `celld eval` and the cell service run any of them the same way.
+
+pub mod estimate;
+pub mod eval;
+pub mod expert;
+pub mod spiral;
+pub mod visual_servo;
+
+use crate::config::cell::CellConfig;
+use crate::geometry::Move;
+use crate::sim::Observation;
+use serde::Serialize;
+
+/// Which low-level actor a decision used (the hierarchy's choice, paper §3.1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Actor {
+    Position,
+    Orientation,
+}
+
+/// One decision: the move, and when the controller has them, the actor it chose and the step
+/// scale in [0, 1] (ω3 after its sigmoid) — the labels the LSTM selector learns from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Decision {
+    pub action: Move,
+    pub actor: Option<Actor>,
+    pub scale: Option<f64>,
+}
+
+impl Decision {
+    /// A move with no hierarchy annotation.
+    pub fn plain(action: Move) -> Self {
+        Decision {
+            action,
+            actor: None,
+            scale: None,
+        }
+    }
+
+    /// Holding still (e.g. to take another capture).
+    pub fn hold() -> Self {
+        Decision::plain(Move::default())
+    }
+}
+
+/// A controller of the assembly: asked once per camera cycle for the next move.
+pub trait Controller: Send {
+    /// The name `celld eval --controller` knows it by.
+    fn name(&self) -> &str;
+    /// Starts a new episode; `seed` drives any randomness of the controller's own.
+    fn reset(&mut self, seed: u64);
+    /// The next move for what the camera now sees.
+    fn act(&mut self, observation: &Observation) -> Decision;
+}
+
+/// The controllers that need no learning, by name.
+pub const BUILTIN_CONTROLLERS: [&str; 3] = ["expert", "visual-servo", "spiral"];
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("unknown controller `{name}`; known: {known}")]
+pub struct UnknownController {
+    pub name: String,
+    pub known: String,
+}
+
+/// Builds a built-in controller for `cell` by name.
+pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, UnknownController> {
+    match name {
+        "expert" => Ok(Box::new(expert::Expert::new(cell))),
+        "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
+        "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
+        _ => Err(UnknownController {
+            name: name.to_string(),
+            known: BUILTIN_CONTROLLERS.join(", "),
+        }),
+    }
+}
+
+/// Clamps every component to ±`limit`.
+pub(crate) fn clamp_components(v: nalgebra::Vector3<f64>, limit: f64) -> nalgebra::Vector3<f64> {
+    v.map(|x| x.clamp(-limit, limit))
+}

@@ -1,0 +1,481 @@
+//! `AssemblyEnv`: one episode of the assembly in the digital twin, as `reset` / `step`.
+//!
+//! Each step is one camera cycle (4 Hz): the supervisor checks the move against the latest
+//! measurement and the robot's own belief of its pose; an allowed move is executed by the
+//! imperfect robot; the camera captures (possibly while the robot is still moving, when the move
+//! takes longer than the cycle minus the latency); the state is estimated from coded points; the
+//! reward is computed from that state. The outcome is judged on the true pose: success when the
+//! true insertion depth and hole alignment are within tolerance, failure on true contact
+//! (the robot's protective stop), on too many vetoes in a row, on leaving the workspace, or on
+//! running out of steps.
+
+use super::reward::{Ending, RewardTerms, RewardTracker};
+use super::robot::TwinRobot;
+use crate::camera::{CameraFrame, SimCamera, StateEstimator};
+use crate::collision::clearance::PartGeometry;
+use crate::collision::obb::Obb;
+use crate::collision::supervisor::{Supervisor, VetoReason, swept_clearance};
+use crate::config::cell::CellConfig;
+use crate::geometry::{CellFrames, Move, Pose, pose};
+use crate::kinematics::KinematicsError;
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::Serialize;
+
+/// Initial conditions of an episode (DESIGN.md §4, Table 5 protocol by default).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct InitialConditions {
+    /// Offset of Segment I from the mouth pose (tip centred on the entrance), in a random
+    /// direction on the outside half-space.
+    pub offset_mm: f64,
+    /// Orientation error about a random axis.
+    pub orientation_deg: f64,
+}
+
+impl InitialConditions {
+    pub fn from_cell(cell: &CellConfig) -> Self {
+        InitialConditions {
+            offset_mm: cell.episode.initial_offset_mm,
+            orientation_deg: cell.episode.initial_orientation_deg,
+        }
+    }
+}
+
+/// Why an episode failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FailureReason {
+    /// Too many supervisor vetoes in a row (the paper's 20 collision warnings).
+    CollisionLimit,
+    /// No success within the episode's step limit.
+    StepLimit,
+    /// Segment I left the workspace.
+    MotionLimit,
+    /// Real contact between the parts: the robot's protective stop.
+    Contact,
+    /// The robot could not execute a move (forward kinematics failed).
+    RobotFault,
+}
+
+impl FailureReason {
+    pub fn code(&self) -> &'static str {
+        match self {
+            FailureReason::CollisionLimit => "collision_limit",
+            FailureReason::StepLimit => "step_limit",
+            FailureReason::MotionLimit => "motion_limit",
+            FailureReason::Contact => "contact",
+            FailureReason::RobotFault => "robot_fault",
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum Outcome {
+    Success,
+    Failure(FailureReason),
+}
+
+/// What a controller sees before it decides.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Observation {
+    /// The 12-dim state of DESIGN.md §5.
+    pub state: [f64; 12],
+    /// Steps taken so far in this episode.
+    pub step: u32,
+    /// False when the last capture could not be used (the state is then the previous one).
+    pub measurement_fresh: bool,
+    /// The supervisor's veto of the previous move, if it was vetoed (a "collision warning").
+    pub last_veto: Option<VetoReason>,
+}
+
+/// True pose errors of Segment I against the goal (only the twin knows them).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct PoseErrors {
+    /// Lateral offset of the shoulder centre from the bore axis.
+    pub lateral_mm: f64,
+    /// Insertion depth minus the bore depth (negative: not deep enough).
+    pub depth_error_mm: f64,
+    /// Angle between the shaft and bore axes.
+    pub tilt_deg: f64,
+    /// Offset between matching connecting holes along the hole circle.
+    pub hole_arc_mm: f64,
+}
+
+/// The result of one step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepResult {
+    pub observation: Observation,
+    pub reward: RewardTerms,
+    /// The supervisor's veto of this step's move, if any.
+    pub veto: Option<VetoReason>,
+    /// Leg encoder readings after the step (mm).
+    pub legs_mm: [f64; 6],
+    pub done: bool,
+    pub outcome: Option<Outcome>,
+    pub true_errors: PoseErrors,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EnvError {
+    #[error("the episode is over; call reset")]
+    EpisodeOver,
+    #[error("initial pose unreachable: {0}")]
+    Unreachable(KinematicsError),
+}
+
+/// Options that are not part of the cell file.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EnvOptions {
+    /// Multiplies the camera's point noise (1 = the spec).
+    pub noise_scale: f64,
+    pub initial: InitialConditions,
+}
+
+impl EnvOptions {
+    pub fn from_cell(cell: &CellConfig) -> Self {
+        EnvOptions {
+            noise_scale: 1.0,
+            initial: InitialConditions::from_cell(cell),
+        }
+    }
+}
+
+/// The digital twin of one cell, running one episode at a time. Deterministic under a seed.
+#[derive(Debug, Clone)]
+pub struct AssemblyEnv {
+    cell: CellConfig,
+    options: EnvOptions,
+    frames: CellFrames,
+    parts: PartGeometry,
+    bore_obb: Obb,
+    supervisor: Supervisor,
+    robot: TwinRobot,
+    camera: SimCamera,
+    estimator: StateEstimator,
+    frame: CameraFrame,
+    rng: ChaCha8Rng,
+    // Episode state.
+    step: u32,
+    consecutive_vetoes: u32,
+    measured_m_f: Option<Pose>,
+    observation: Observation,
+    reward: Option<RewardTracker>,
+    outcome: Option<Outcome>,
+}
+
+impl AssemblyEnv {
+    pub fn new(cell: &CellConfig, options: EnvOptions) -> Self {
+        let frames = CellFrames::from_config(cell);
+        let parts = PartGeometry::from_config(cell);
+        AssemblyEnv {
+            camera: SimCamera::new(cell, &frames, options.noise_scale),
+            estimator: StateEstimator::new(cell, &frames),
+            supervisor: Supervisor::new(cell),
+            robot: TwinRobot::new(cell),
+            bore_obb: parts.bore_obb(),
+            parts,
+            frames,
+            cell: cell.clone(),
+            options,
+            frame: CameraFrame::default(),
+            rng: ChaCha8Rng::seed_from_u64(0),
+            step: 0,
+            consecutive_vetoes: 0,
+            measured_m_f: None,
+            observation: Observation {
+                state: [0.0; 12],
+                step: 0,
+                measurement_fresh: false,
+                last_veto: None,
+            },
+            reward: None,
+            outcome: Some(Outcome::Failure(FailureReason::StepLimit)),
+        }
+    }
+
+    pub fn cell(&self) -> &CellConfig {
+        &self.cell
+    }
+
+    pub fn options(&self) -> &EnvOptions {
+        &self.options
+    }
+
+    /// Starts a new episode with the options' initial conditions.
+    pub fn reset(&mut self, seed: u64) -> Result<Observation, EnvError> {
+        self.reset_with(seed, self.options.initial)
+    }
+
+    /// Starts a new episode: Segment I at the given offset and orientation error from the mouth
+    /// pose, drawn from `seed`.
+    pub fn reset_with(
+        &mut self,
+        seed: u64,
+        initial: InitialConditions,
+    ) -> Result<Observation, EnvError> {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+        let f_m = self.sample_initial(initial);
+        self.robot
+            .reset(self.frames.platform_for(&f_m), &mut self.rng)
+            .map_err(EnvError::Unreachable)?;
+        self.step = 0;
+        self.consecutive_vetoes = 0;
+        self.outcome = None;
+        // The cell waits for a usable frame before it starts; a few tries cover dropped points.
+        let platform = *self.robot.true_platform();
+        let mut fresh = false;
+        for _ in 0..10 {
+            fresh = self.capture(&platform, None);
+            if fresh {
+                break;
+            }
+        }
+        self.observation = Observation {
+            state: self.observation_state_or_zero(fresh),
+            step: 0,
+            measurement_fresh: fresh,
+            last_veto: None,
+        };
+        self.reward = Some(RewardTracker::new(
+            &self.cell.reward,
+            &self.observation.state,
+        ));
+        Ok(self.observation.clone())
+    }
+
+    fn observation_state_or_zero(&self, fresh: bool) -> [f64; 12] {
+        if fresh {
+            self.observation.state
+        } else {
+            [0.0; 12]
+        }
+    }
+
+    /// Executes one move (or has it vetoed) and returns what follows.
+    pub fn step(&mut self, action: &Move) -> Result<StepResult, EnvError> {
+        if self.outcome.is_some() {
+            return Err(EnvError::EpisodeOver);
+        }
+        self.step += 1;
+        let before = *self.robot.true_platform();
+        let verdict =
+            self.supervisor
+                .check(self.robot.setpoint(), self.measured_m_f.as_ref(), action);
+        let mut failure = None;
+        let mut capture_fraction = 1.0;
+        let veto = match verdict {
+            Ok(allowed) => {
+                self.consecutive_vetoes = 0;
+                match self
+                    .robot
+                    .execute(&allowed.target_platform, &allowed.legs_mm, &mut self.rng)
+                {
+                    Ok(()) => {
+                        let after = *self.robot.true_platform();
+                        let path = swept_clearance(
+                            &self.parts,
+                            &self.bore_obb,
+                            &self.frames.segment_for(&before),
+                            &self.frames.segment_for(&after),
+                        );
+                        if !path.is_clear() {
+                            failure = Some(FailureReason::Contact);
+                        }
+                        capture_fraction = self.capture_fraction(action);
+                    }
+                    Err(_) => failure = Some(FailureReason::RobotFault),
+                }
+                None
+            }
+            Err(reason) => {
+                self.consecutive_vetoes += 1;
+                Some(reason)
+            }
+        };
+        let after = *self.robot.true_platform();
+        let seen = pose::interpolate(&before, &after, capture_fraction);
+        // The part of the commanded move still to come after the capture, in {M}.
+        let remaining = (capture_fraction < 1.0).then(|| {
+            let commanded = action.as_pose();
+            pose::interpolate(&Pose::identity(), &commanded, capture_fraction).inverse() * commanded
+        });
+        let fresh = self.capture(&seen, remaining.as_ref());
+
+        let true_f_m = self.frames.segment_for(&after);
+        let errors = self.pose_errors(&true_f_m);
+        let outcome = if let Some(reason) = failure {
+            Some(Outcome::Failure(reason))
+        } else if self.is_success(&errors) {
+            Some(Outcome::Success)
+        } else if self.consecutive_vetoes >= self.cell.episode.max_consecutive_vetoes {
+            Some(Outcome::Failure(FailureReason::CollisionLimit))
+        } else if self.outside_workspace(&true_f_m, &errors) {
+            Some(Outcome::Failure(FailureReason::MotionLimit))
+        } else if self.step >= self.cell.episode.max_steps {
+            Some(Outcome::Failure(FailureReason::StepLimit))
+        } else {
+            None
+        };
+        self.outcome = outcome;
+        let ending = outcome.map(|o| match o {
+            Outcome::Success => Ending::Success,
+            Outcome::Failure(_) => Ending::Failure,
+        });
+        self.observation.step = self.step;
+        self.observation.measurement_fresh = fresh;
+        self.observation.last_veto = veto.clone();
+        let tip_in_bore = self.measured_tip_in_bore();
+        let reward = self.reward.as_mut().expect("reset before step").step(
+            &self.observation.state,
+            tip_in_bore,
+            ending,
+        );
+        Ok(StepResult {
+            observation: self.observation.clone(),
+            reward,
+            veto,
+            legs_mm: *self.robot.encoders_mm(),
+            done: outcome.is_some(),
+            outcome,
+            true_errors: errors,
+        })
+    }
+
+    /// The latest observation.
+    pub fn observation(&self) -> &Observation {
+        &self.observation
+    }
+
+    /// The episode's outcome, once it has one.
+    pub fn outcome(&self) -> Option<Outcome> {
+        self.outcome
+    }
+
+    /// The true pose of {M} in {F} (the twin's ground truth; a real cell has no such thing).
+    pub fn true_f_m(&self) -> Pose {
+        self.frames.segment_for(self.robot.true_platform())
+    }
+
+    /// True errors against the goal.
+    pub fn true_errors(&self) -> PoseErrors {
+        self.pose_errors(&self.true_f_m())
+    }
+
+    pub fn steps(&self) -> u32 {
+        self.step
+    }
+
+    /// Where the capture happens along the move just executed: the camera takes its picture
+    /// `latency_s` before the next decision, so a move longer than the cycle minus the latency
+    /// is seen part-way.
+    fn capture_fraction(&self, action: &Move) -> f64 {
+        if !self.cell.imperfections.latency {
+            return 1.0;
+        }
+        let duration = action.duration_s(self.cell.robot.speed_mm_s, self.cell.robot.speed_deg_s);
+        let available = 1.0 / self.cell.camera.rate_hz - self.cell.camera.latency_s;
+        if duration <= available {
+            1.0
+        } else {
+            (available / duration).clamp(0.0, 1.0)
+        }
+    }
+
+    /// Captures the scene with the platform at `platform`; on success updates the measurement
+    /// and the observation's state, else marks the measurement stale. A capture taken while the
+    /// robot was still moving is carried forward by the rest of the commanded move
+    /// (`remaining`, in {M}), as the cell's ingestion does with the robot's own motion; what is
+    /// left of the latency is the difference between the commanded and the true motion.
+    fn capture(&mut self, platform: &Pose, remaining: Option<&Pose>) -> bool {
+        let (w_m, w_f) = self.frames.world_poses(platform);
+        self.camera
+            .capture_into(&w_m, &w_f, &mut self.rng, &mut self.frame);
+        match self.estimator.estimate(&self.frame) {
+            Ok(mut measurement) => {
+                if let Some(remaining) = remaining {
+                    measurement.w_m *= remaining;
+                    measurement.m_f = remaining.inverse() * measurement.m_f;
+                }
+                self.observation.state = measurement.state(self.cell.hole_pitch_deg());
+                self.measured_m_f = Some(measurement.m_f);
+                true
+            }
+            Err(_) => {
+                self.measured_m_f = None;
+                false
+            }
+        }
+    }
+
+    fn measured_tip_in_bore(&self) -> bool {
+        self.measured_m_f.is_some_and(|m_f| {
+            let tip = m_f.inverse() * Point3::new(0.0, 0.0, -self.parts.shaft_length_mm);
+            tip.z < 0.0
+        })
+    }
+
+    fn pose_errors(&self, f_m: &Pose) -> PoseErrors {
+        let tip = f_m * Point3::new(0.0, 0.0, -self.parts.shaft_length_mm);
+        let axis = f_m.rotation * Vector3::z();
+        let q = f_m.rotation.quaternion();
+        // Twist about the bore axis (swing-twist decomposition), wrapped to the hole pitch.
+        let twist_deg = (2.0 * q.k.atan2(q.w)).to_degrees();
+        let pitch = self.cell.hole_pitch_deg();
+        let wrapped = (twist_deg + pitch / 2.0).rem_euclid(pitch) - pitch / 2.0;
+        PoseErrors {
+            lateral_mm: f_m.translation.vector.xy().norm(),
+            depth_error_mm: -tip.z - self.cell.bore.depth_mm,
+            tilt_deg: axis.z.clamp(-1.0, 1.0).acos().to_degrees(),
+            hole_arc_mm: self.parts.bore_radius_mm * wrapped.abs().to_radians(),
+        }
+    }
+
+    fn is_success(&self, errors: &PoseErrors) -> bool {
+        errors.depth_error_mm.abs() <= self.cell.success.depth_tolerance_mm
+            && errors.hole_arc_mm <= self.cell.success.hole_arc_tolerance_mm
+    }
+
+    fn outside_workspace(&self, f_m: &Pose, errors: &PoseErrors) -> bool {
+        f_m.translation.vector.norm() > self.cell.episode.workspace_radius_mm
+            || errors.tilt_deg > self.cell.episode.workspace_tilt_deg
+    }
+
+    /// Draws the initial pose of {M} in {F}: the mouth pose (tip centred on the entrance) moved by
+    /// `offset_mm` in a random direction of the outside half-space and turned by
+    /// `orientation_deg` about a random axis. If that would put the shaft into Segment II, it is
+    /// moved out along the bore axis until its lowest point clears the entrance face by
+    /// `initial_min_clearance_mm`.
+    fn sample_initial(&mut self, initial: InitialConditions) -> Pose {
+        let direction = random_unit(&mut self.rng);
+        let offset = Vector3::new(direction.x, direction.y, direction.z.abs()) * initial.offset_mm;
+        let axis = random_unit(&mut self.rng);
+        let rotation =
+            UnitQuaternion::from_scaled_axis(axis * initial.orientation_deg.to_radians());
+        let length = self.parts.shaft_length_mm;
+        let mut f_m = Isometry3::from_parts(
+            Translation3::from(Vector3::new(0.0, 0.0, length) + offset),
+            rotation,
+        );
+        let tip_centre = f_m * Point3::new(0.0, 0.0, -length);
+        let normal = f_m.rotation * Vector3::z();
+        let lowest =
+            tip_centre.z - self.parts.shaft_radius_mm * (1.0 - normal.z * normal.z).max(0.0).sqrt();
+        let needed = self.cell.episode.initial_min_clearance_mm;
+        if lowest < needed {
+            f_m.translation.vector.z += needed - lowest;
+        }
+        f_m
+    }
+}
+
+fn random_unit(rng: &mut impl Rng) -> Vector3<f64> {
+    loop {
+        let v = Vector3::<f64>::from_fn(|_, _| rng.sample(StandardNormal));
+        let norm = v.norm();
+        if norm > 1e-9 {
+            return v / norm;
+        }
+    }
+}

@@ -1,0 +1,14 @@
+//! The digital twin of the cell: an imperfect robot, an imperfect camera and the two parts,
+//! wrapped as a reinforcement-learning environment (paper §4.1, DESIGN.md §4).
+
+pub mod batch;
+pub mod env;
+pub mod reward;
+pub mod robot;
+
+pub use batch::BatchEnv;
+pub use env::{
+    AssemblyEnv, EnvError, EnvOptions, FailureReason, InitialConditions, Observation, Outcome,
+    PoseErrors, StepResult,
+};
+pub use reward::RewardTerms;

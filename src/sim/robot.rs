@@ -1,0 +1,171 @@
+//! The twin's robot: a 6-SPS platform whose true geometry differs from the nominal model the
+//! controller uses (kinematic calibration error), and whose legs land a little off their command
+//! (actuator resolution and a random error per move).
+//!
+//! The controller never sees the truth: it keeps a setpoint (the platform pose it has commanded,
+//! in its nominal model) and commands the leg lengths the nominal model gives for it. Like any
+//! position-controlled axis, each leg lands within its error of the commanded length; errors do
+//! not accumulate from move to move, but the calibration error bends every move the same way.
+
+use crate::config::cell::CellConfig;
+use crate::geometry::Pose;
+use crate::kinematics::{KinematicsError, StewartGeometry};
+use nalgebra::Vector3;
+use rand::Rng;
+use rand_distr::StandardNormal;
+
+#[derive(Debug, Clone)]
+pub struct TwinRobot {
+    nominal: StewartGeometry,
+    truth: StewartGeometry,
+    calibration_error_mm: f64,
+    resolution_mm: f64,
+    leg_error_sd_mm: f64,
+    /// True platform pose in {O}.
+    true_platform: Pose,
+    /// The commanded platform pose, in the nominal model.
+    setpoint: Pose,
+    encoders_mm: [f64; 6],
+}
+
+impl TwinRobot {
+    pub fn new(cell: &CellConfig) -> Self {
+        let nominal = StewartGeometry::from_config(&cell.robot);
+        let home = nominal.home_pose();
+        let imperfect = &cell.imperfections;
+        TwinRobot {
+            truth: nominal.clone(),
+            calibration_error_mm: if imperfect.calibration_error {
+                imperfect.calibration_error_mm
+            } else {
+                0.0
+            },
+            resolution_mm: if imperfect.execution_error {
+                imperfect.leg_resolution_mm
+            } else {
+                0.0
+            },
+            leg_error_sd_mm: if imperfect.execution_error {
+                imperfect.leg_error_sd_mm
+            } else {
+                0.0
+            },
+            encoders_mm: nominal.leg_lengths_mm(&home),
+            nominal,
+            true_platform: home,
+            setpoint: home,
+        }
+    }
+
+    /// Starts an episode with the platform truly at `true_platform`; draws a new calibration error
+    /// (each joint centre displaced uniformly within a ball of the configured radius).
+    pub fn reset(
+        &mut self,
+        true_platform: Pose,
+        rng: &mut impl Rng,
+    ) -> Result<(), KinematicsError> {
+        let mut draw = || random_in_ball(rng, self.calibration_error_mm);
+        let base: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
+        let platform: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
+        self.truth = self.nominal.with_joint_offsets(&base, &platform);
+        self.true_platform = true_platform;
+        let legs = self.truth.leg_lengths_mm(&true_platform);
+        self.encoders_mm = legs.map(|l| quantize(l, self.resolution_mm));
+        self.setpoint = self
+            .nominal
+            .forward(&self.encoders_mm, &true_platform)?
+            .pose;
+        Ok(())
+    }
+
+    /// Moves to the setpoint `target` whose nominal leg lengths are `command_mm`. The legs land at
+    /// the command rounded to the actuator resolution plus a random error; the true pose follows
+    /// from the true geometry (forward kinematics warm-started from the last true pose).
+    pub fn execute(
+        &mut self,
+        target: &Pose,
+        command_mm: &[f64; 6],
+        rng: &mut impl Rng,
+    ) -> Result<(), KinematicsError> {
+        let mut actual = [0.0; 6];
+        for (leg, command) in actual.iter_mut().zip(command_mm) {
+            let noise: f64 = rng.sample(StandardNormal);
+            *leg = quantize(*command, self.resolution_mm) + self.leg_error_sd_mm * noise;
+        }
+        self.true_platform = self.truth.forward(&actual, &self.true_platform)?.pose;
+        self.encoders_mm = actual.map(|l| quantize(l, self.resolution_mm));
+        self.setpoint = *target;
+        Ok(())
+    }
+
+    pub fn true_platform(&self) -> &Pose {
+        &self.true_platform
+    }
+
+    pub fn setpoint(&self) -> &Pose {
+        &self.setpoint
+    }
+
+    pub fn encoders_mm(&self) -> &[f64; 6] {
+        &self.encoders_mm
+    }
+}
+
+fn quantize(value: f64, resolution: f64) -> f64 {
+    if resolution > 0.0 {
+        (value / resolution).round() * resolution
+    } else {
+        value
+    }
+}
+
+/// A point uniformly distributed in a ball of `radius` (mm).
+fn random_in_ball(rng: &mut impl Rng, radius: f64) -> Vector3<f64> {
+    if radius == 0.0 {
+        return Vector3::zeros();
+    }
+    let direction = Vector3::<f64>::from_fn(|_, _| rng.sample(StandardNormal)).normalize();
+    direction * radius * rng.random::<f64>().cbrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn perfect_robot_goes_where_commanded() {
+        let mut cell = CellConfig::reference();
+        cell.imperfections.calibration_error = false;
+        cell.imperfections.execution_error = false;
+        let mut robot = TwinRobot::new(&cell);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let home = robot.nominal.home_pose();
+        robot.reset(home, &mut rng).unwrap();
+        let target = home * Pose::translation(3.0, -2.0, 1.0);
+        let legs = robot.nominal.leg_lengths_mm(&target);
+        robot.execute(&target, &legs, &mut rng).unwrap();
+        let error = robot.true_platform().translation.vector - target.translation.vector;
+        assert!(error.norm() < 1e-9, "error {error}");
+        assert_eq!(robot.setpoint(), &target);
+    }
+
+    #[test]
+    fn calibration_error_moves_the_truth_off_the_setpoint() {
+        let cell = CellConfig::reference();
+        let mut robot = TwinRobot::new(&cell);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let home = robot.nominal.home_pose();
+        robot.reset(home, &mut rng).unwrap();
+        let target = home * Pose::translation(0.0, 0.0, -40.0);
+        let legs = robot.nominal.leg_lengths_mm(&target);
+        robot.execute(&target, &legs, &mut rng).unwrap();
+        let truth_error =
+            (robot.true_platform().translation.vector - target.translation.vector).norm();
+        // Joints off by up to 0.5 mm: the true pose is off by a fraction of a millimetre or so.
+        assert!(
+            truth_error > 1e-3 && truth_error < 3.0,
+            "truth error {truth_error}"
+        );
+    }
+}
