@@ -3,7 +3,7 @@
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;
-use assembly_cell::policy::{self, Controller, eval};
+use assembly_cell::policy::{self, eval};
 use assembly_cell::sim::{AssemblyEnv, BatchEnv, EnvOptions, Outcome, StepResult};
 
 fn bits(result: &StepResult) -> Vec<u64> {
@@ -129,8 +129,8 @@ fn batched_env_matches_single_episodes() {
     for _ in 0..5 {
         let results = batch.step(&vec![action; seeds.len()]);
         for (result, env) in results.iter().zip(singles.iter_mut()) {
-            let single = env.step(&action).unwrap();
-            assert_eq!(result.as_ref().unwrap(), &single);
+            // A finished episode answers None in the batch and an error on its own.
+            assert_eq!(result, &env.step(&action).ok());
         }
     }
 }

@@ -35,7 +35,7 @@ impl Default for TrackerTuning {
             measurement_sd_mm: 0.03,
             orientation_gain: 0.35,
             move_error_per_mm: 2e-3,
-            drift_prior_sd: 2e-3,
+            drift_prior_sd: 0.002,
             jump_mm: 0.5,
             jump_deg: 0.3,
         }
@@ -169,6 +169,20 @@ impl PoseTracker {
         self.lateral
             .iter()
             .map(|f| f.covariance[(0, 0)].sqrt())
+            .fold(0.0, f64::max)
+    }
+
+    /// σ of the lateral offset (mm, the larger axis) after an axial move of `dz_mm`, from what is
+    /// known now of the offset and of the drift.
+    pub fn lateral_sd_after_mm(&self, dz_mm: f64) -> f64 {
+        self.lateral
+            .iter()
+            .map(|f| {
+                let p = &f.covariance;
+                (p[(0, 0)] - 2.0 * dz_mm * p[(0, 3)] + dz_mm * dz_mm * p[(3, 3)])
+                    .max(0.0)
+                    .sqrt()
+            })
             .fold(0.0, f64::max)
     }
 

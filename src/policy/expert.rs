@@ -31,6 +31,8 @@ pub struct ExpertTuning {
     /// The lateral estimate's σ (mm) must be this small before insertion starts: a careful
     /// operator looks a few more times before committing.
     pub lateral_certainty_mm: f64,
+    /// Longest insertion step: one after which the lateral estimate's σ (mm) stays below this.
+    pub insertion_certainty_mm: f64,
     /// Height of the tip above the entrance down to which Segment I may come while it is still
     /// more than 1 mm off sideways (mm).
     pub prestandoff_mm: f64,
@@ -48,6 +50,7 @@ impl Default for ExpertTuning {
             standoff_mm: 1.0,
             prestandoff_mm: 20.0,
             lateral_certainty_mm: 0.009,
+            insertion_certainty_mm: 0.013,
             min_step_factor: 0.85,
         }
     }
@@ -120,7 +123,8 @@ impl Expert {
         // Height of the tip above the entrance (negative once inside).
         let height_mm = -insertion_mm;
         let sure = self.tracker.lateral_sd_mm() <= t.lateral_certainty_mm;
-        let mut dz = if inside || (lateral <= t.lateral_tolerance_mm && sure) {
+        let inserting = inside || (lateral <= t.lateral_tolerance_mm && sure);
+        let mut dz = if inserting {
             // Aligned: insert (the first step crosses the entrance), shrinking near the bottom.
             p.z
         } else {
@@ -141,7 +145,15 @@ impl Expert {
         if lateral_move.amax() > 1.0 {
             lateral_move *= self.human_factor();
         }
-        let dz = dz.clamp(-self.limit_mm, self.limit_mm);
+        let mut dz = dz.clamp(-self.limit_mm, self.limit_mm);
+        if inserting {
+            // Going in: no longer a step than the lateral estimate stays sure over, given what
+            // is known of the sideways drift (steps grow as the drift is learned).
+            while dz.abs() > 0.5 && self.tracker.lateral_sd_after_mm(dz) > t.insertion_certainty_mm
+            {
+                dz *= 0.7;
+            }
+        }
         // Steer against the sideways drift the tracker has learned: command c such that
         // c + drift · (c, dz) ≈ the wanted lateral move (first order).
         let drift = self.tracker.drift();
