@@ -47,9 +47,51 @@ struct EvalArgs {
     /// Multiplies the camera's point noise (0 = noiseless, 1 = the spec).
     #[arg(long, default_value_t = 1.0)]
     noise_scale: f64,
+    /// Switch imperfections of the twin off (comma-separated), to see what each one costs.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    without: Vec<Imperfection>,
     /// Print the summary as one JSON object on the last line.
     #[arg(long)]
     json: bool,
+}
+
+/// The twin's imperfections, as `--without` names them.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[value(rename_all = "snake_case")]
+enum Imperfection {
+    CameraNoise,
+    DroppedPoints,
+    Outliers,
+    Latency,
+    CalibrationError,
+    ExecutionError,
+    All,
+}
+
+impl Imperfection {
+    fn switch_off(self, cell: &mut CellConfig) {
+        let switches = &mut cell.imperfections;
+        match self {
+            Imperfection::CameraNoise => switches.camera_noise = false,
+            Imperfection::DroppedPoints => switches.dropped_points = false,
+            Imperfection::Outliers => switches.outliers = false,
+            Imperfection::Latency => switches.latency = false,
+            Imperfection::CalibrationError => switches.calibration_error = false,
+            Imperfection::ExecutionError => switches.execution_error = false,
+            Imperfection::All => {
+                for each in [
+                    Imperfection::CameraNoise,
+                    Imperfection::DroppedPoints,
+                    Imperfection::Outliers,
+                    Imperfection::Latency,
+                    Imperfection::CalibrationError,
+                    Imperfection::ExecutionError,
+                ] {
+                    each.switch_off(cell);
+                }
+            }
+        }
+    }
 }
 
 fn main() -> ExitCode {
@@ -74,7 +116,10 @@ fn load_cell(path: Option<&PathBuf>) -> Result<CellConfig> {
 }
 
 fn run_eval(args: EvalArgs) -> Result<()> {
-    let cell = load_cell(args.cell.as_ref())?;
+    let mut cell = load_cell(args.cell.as_ref())?;
+    for imperfection in &args.without {
+        imperfection.switch_off(&mut cell);
+    }
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }

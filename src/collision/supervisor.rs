@@ -54,7 +54,8 @@ impl VetoReason {
 pub struct Allowed {
     pub target_platform: Pose,
     pub legs_mm: [f64; 6],
-    /// Predicted smallest clearance along the move (mm); infinite when the parts are far apart.
+    /// Smallest clearance (mm) found along the move after its start (the end pose, the entrance
+    /// crossing and the sub-moves examined); infinite when the parts are far apart.
     pub clearance_mm: f64,
 }
 
@@ -174,4 +175,105 @@ pub fn swept_clearance(parts: &PartGeometry, bore_obb: &Obb, from: &Pose, to: &P
         };
     }
     clearance_along(parts, from, to)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Isometry3;
+
+    fn setup() -> (Supervisor, Pose) {
+        let cell = CellConfig::reference();
+        let supervisor = Supervisor::new(&cell);
+        let home = Isometry3::translation(0.0, 0.0, cell.robot.home_height_mm);
+        (supervisor, home)
+    }
+
+    /// {F} in {M} for Segment I inserted `depth` mm, `x` mm off the axis.
+    fn inserted(depth: f64, x: f64) -> Pose {
+        Isometry3::translation(x, 0.0, 60.0 - depth).inverse()
+    }
+
+    #[test]
+    fn a_move_towards_the_axis_is_allowed_and_one_into_the_wall_is_vetoed() {
+        let (supervisor, home) = setup();
+        let m_f = inserted(30.0, 0.04);
+        let allowed = supervisor
+            .check(&home, Some(&m_f), &Move::translation(-0.03, 0.0, -1.0))
+            .unwrap();
+        // From 0.04 mm off the axis (0.01 mm of the 0.05 mm radial clearance left) to 0.01 mm
+        // off (0.04 mm left): the smallest clearance seen along the way lies between.
+        let c = allowed.clearance_mm;
+        assert!((0.01 - 1e-9..=0.04 + 1e-9).contains(&c), "{c}");
+        let veto = supervisor
+            .check(&home, Some(&m_f), &Move::translation(0.02, 0.0, 0.0))
+            .unwrap_err();
+        assert_eq!(veto.code(), "collision");
+        assert!(
+            matches!(veto, VetoReason::Collision { kind: ContactKind::Wall, clearance_mm } if clearance_mm < 0.0)
+        );
+    }
+
+    #[test]
+    fn far_from_the_bore_the_clearance_is_not_computed() {
+        let (supervisor, home) = setup();
+        let m_f = Isometry3::translation(30.0, 0.0, 100.0).inverse();
+        let allowed = supervisor
+            .check(&home, Some(&m_f), &Move::translation(-5.0, 0.0, -5.0))
+            .unwrap();
+        assert_eq!(allowed.clearance_mm, f64::INFINITY);
+    }
+
+    #[test]
+    fn stale_measurement_limits_and_non_finite_values_are_vetoed() {
+        let (supervisor, home) = setup();
+        let m_f = inserted(0.0, 0.0);
+        let small = Move::translation(0.0, 0.0, -1.0);
+        assert_eq!(
+            supervisor.check(&home, None, &small),
+            Err(VetoReason::StaleMeasurement)
+        );
+        let nan = Move::translation(f64::NAN, 0.0, 0.0);
+        assert_eq!(
+            supervisor
+                .check(&home, Some(&m_f), &nan)
+                .unwrap_err()
+                .code(),
+            "non_finite"
+        );
+        let mut broken = m_f;
+        broken.translation.vector.x = f64::INFINITY;
+        assert_eq!(
+            supervisor
+                .check(&home, Some(&broken), &small)
+                .unwrap_err()
+                .code(),
+            "non_finite"
+        );
+        let veto = supervisor
+            .check(&home, Some(&m_f), &Move::rotation(0.0, 1.2, 0.0))
+            .unwrap_err();
+        assert!(
+            matches!(veto, VetoReason::StepLimit { value, limit, .. } if value == 1.2 && limit == 1.0)
+        );
+    }
+
+    #[test]
+    fn a_target_beyond_the_leg_stroke_is_vetoed_with_the_numbers() {
+        let (supervisor, home) = setup();
+        // The platform 250 mm above home: every leg is past its 1050 mm maximum.
+        let high = home * Isometry3::translation(0.0, 0.0, 250.0);
+        let m_f = Isometry3::translation(0.0, 0.0, 400.0).inverse();
+        let veto = supervisor
+            .check(&high, Some(&m_f), &Move::translation(0.0, 0.0, 1.0))
+            .unwrap_err();
+        match veto {
+            VetoReason::Kinematics(KinematicsError::LegOutOfStroke {
+                length_mm, max_mm, ..
+            }) => {
+                assert!(length_mm > max_mm && max_mm == 1050.0);
+            }
+            other => panic!("expected a stroke veto, got {other:?}"),
+        }
+    }
 }

@@ -162,96 +162,30 @@ fn solve(model: &[Point3<f64>], measured: &[Point3<f64>], mask: u64) -> Result<P
     ))
 }
 
-/// The rotation R maximising tr(Rᵀ A): U Vᵀ from A = U Σ Vᵀ with U, V proper rotations, the sign
-/// of the smallest singular value absorbing any reflection.
+/// The rotation R maximising tr(Rᵀ A) (Kabsch): U Vᵀ from the SVD A = U Σ Vᵀ, with the sign of
+/// the smallest singular direction flipped when U Vᵀ would be a reflection.
 fn proper_rotation(a: &Matrix3<f64>) -> Result<Rotation3<f64>, FitError> {
     let scale = a.amax();
     if !(scale > 0.0 && scale.is_finite()) {
         return Err(FitError::Degenerate);
     }
-    // Scale to O(1) so that the eigen solver's tolerance is relative.
-    let a = a / scale;
-    let (values, vectors) = symmetric_eigen3(&a.tr_mul(&a));
-    // The two largest eigenvalues of AᵀA: the two largest singular directions.
-    let (i1, i2) = if values[0] >= values[1] && values[0] >= values[2] {
-        (0, if values[1] >= values[2] { 1 } else { 2 })
-    } else if values[1] >= values[2] {
-        (1, if values[0] >= values[2] { 0 } else { 2 })
-    } else {
-        (2, if values[0] >= values[1] { 0 } else { 1 })
+    // Scaled to O(1) so that the degeneracy test is relative.
+    let svd = (a / scale).svd(true, true);
+    let (Some(mut u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Err(FitError::Degenerate);
     };
-    let v1: Vector3<f64> = vectors.column(i1).normalize();
-    let v2_raw: Vector3<f64> = vectors.column(i2).into_owned();
-    let v2 = (v2_raw - v1 * v1.dot(&v2_raw)).normalize();
-    let v3 = v1.cross(&v2);
-    let a1 = a * v1;
-    let s1 = a1.norm();
-    if s1.is_nan() || s1 <= 0.0 {
+    let values = svd.singular_values;
+    let (smallest, _) = values.argmin();
+    let largest = values.max();
+    let middle = values.sum() - largest - values[smallest];
+    // Collinear (or coincident) points leave a rotation about their line undetermined.
+    if middle.is_nan() || middle <= DEGENERATE_RATIO * largest {
         return Err(FitError::Degenerate);
     }
-    let u1 = a1 / s1;
-    let a2 = a * v2;
-    let a2 = a2 - u1 * u1.dot(&a2);
-    let s2 = a2.norm();
-    if s2.is_nan() || s2 <= DEGENERATE_RATIO * s1 {
-        return Err(FitError::Degenerate);
+    if (u * v_t).determinant() < 0.0 {
+        u.column_mut(smallest).neg_mut();
     }
-    let u2 = a2 / s2;
-    let u3 = u1.cross(&u2);
-    let u = Matrix3::from_columns(&[u1, u2, u3]);
-    let v = Matrix3::from_columns(&[v1, v2, v3]);
-    Ok(Rotation3::from_matrix_unchecked(u * v.transpose()))
-}
-
-/// Eigen-decomposition of a symmetric 3×3 matrix by cyclic Jacobi rotations (accurate to
-/// rounding, a handful of sweeps): eigenvalues, and eigenvectors as the matching columns.
-fn symmetric_eigen3(m: &Matrix3<f64>) -> ([f64; 3], Matrix3<f64>) {
-    let mut a = [[0.0; 3]; 3];
-    for (r, row) in a.iter_mut().enumerate() {
-        for (c, value) in row.iter_mut().enumerate() {
-            *value = m[(r, c)];
-        }
-    }
-    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    for _sweep in 0..50 {
-        let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
-        let diag = a[0][0] * a[0][0] + a[1][1] * a[1][1] + a[2][2] * a[2][2];
-        if off <= 1e-36 * diag || off == 0.0 {
-            break;
-        }
-        for (p, q, r) in [(0usize, 1usize, 2usize), (0, 2, 1), (1, 2, 0)] {
-            let apq = a[p][q];
-            if apq == 0.0 {
-                continue;
-            }
-            let theta = (a[q][q] - a[p][p]) / (2.0 * apq);
-            let t = if theta.abs() > 1e150 {
-                0.5 / theta
-            } else {
-                theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt())
-            };
-            let c = 1.0 / (t * t + 1.0).sqrt();
-            let s = t * c;
-            a[p][p] -= t * apq;
-            a[q][q] += t * apq;
-            a[p][q] = 0.0;
-            a[q][p] = 0.0;
-            let (arp, arq) = (a[r][p], a[r][q]);
-            a[r][p] = c * arp - s * arq;
-            a[p][r] = a[r][p];
-            a[r][q] = s * arp + c * arq;
-            a[q][r] = a[r][q];
-            for row in v.iter_mut() {
-                let (vp, vq) = (row[p], row[q]);
-                row[p] = c * vp - s * vq;
-                row[q] = s * vp + c * vq;
-            }
-        }
-    }
-    let vectors = Matrix3::new(
-        v[0][0], v[0][1], v[0][2], v[1][0], v[1][1], v[1][2], v[2][0], v[2][1], v[2][2],
-    );
-    ([a[0][0], a[1][1], a[2][2]], vectors)
+    Ok(Rotation3::from_matrix_unchecked(u * v_t))
 }
 
 #[cfg(test)]
@@ -329,24 +263,6 @@ mod tests {
             .determinant();
         assert!((det - 1.0).abs() < 1e-12);
         assert!(fit.max_residual_mm > 1.0);
-    }
-
-    #[test]
-    fn jacobi_eigen_decomposes() {
-        let cases = [
-            Matrix3::new(4.0, 1.0, -2.0, 1.0, 3.0, 0.5, -2.0, 0.5, 1.0),
-            Matrix3::new(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0),
-            Matrix3::new(3.5e9, 1e-3, 2.0, 1e-3, 3.5e9, 5.0, 2.0, 5.0, 3.6e5),
-            Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-            Matrix3::new(1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0),
-        ];
-        for m in cases {
-            let (values, v) = symmetric_eigen3(&m);
-            let lambda = Matrix3::from_diagonal(&Vector3::from(values));
-            let scale = m.amax().max(1.0);
-            assert!((m * v - v * lambda).amax() < 1e-14 * scale, "{m}");
-            assert!((v.transpose() * v - Matrix3::identity()).amax() < 1e-14);
-        }
     }
 
     #[test]

@@ -1,0 +1,111 @@
+//! `celld eval` end to end: the JSON summary, determinism, and clear errors for bad input.
+
+use std::process::Command;
+
+fn celld(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_celld"))
+        .args(args)
+        .output()
+        .expect("celld runs")
+}
+
+fn last_json(output: &std::process::Output) -> serde_json::Value {
+    let stdout = String::from_utf8(output.stdout.clone()).unwrap();
+    let last = stdout.lines().last().expect("some output");
+    serde_json::from_str(last).expect("the last line is JSON")
+}
+
+#[test]
+fn json_summary_has_the_promised_fields_and_repeats_under_a_seed() {
+    let args = [
+        "eval",
+        "--controller",
+        "expert",
+        "--episodes",
+        "40",
+        "--seed",
+        "3",
+        "--json",
+    ];
+    let first = celld(&args);
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
+    let summary = last_json(&first);
+    assert_eq!(summary["episodes"], 40);
+    let rate = summary["success_rate"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&rate));
+    let successes = summary["successes"].as_u64().unwrap();
+    let failures: u64 = summary["failures"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(successes + failures, 40, "{summary}");
+    for key in ["avg_steps", "avg_reward", "wall_s"] {
+        assert!(summary.get(key).is_some(), "missing {key}");
+    }
+    let mut again = last_json(&celld(&args));
+    let mut first = summary;
+    first["wall_s"] = 0.into();
+    again["wall_s"] = 0.into();
+    assert_eq!(first, again, "same seed, same summary");
+}
+
+#[test]
+fn initial_conditions_and_switches_are_applied() {
+    let output = celld(&[
+        "eval",
+        "--controller",
+        "spiral",
+        "--episodes",
+        "10",
+        "--init-pos-mm",
+        "10",
+        "--init-ori-deg",
+        "3",
+        "--noise-scale",
+        "0",
+        "--without",
+        "calibration_error,latency",
+        "--cell",
+        "cells/phi200.toml",
+        "--json",
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary = last_json(&output);
+    assert_eq!(summary["init_pos_mm"], 10.0);
+    assert_eq!(summary["init_ori_deg"], 3.0);
+    assert_eq!(summary["noise_scale"], 0.0);
+    assert_eq!(summary["cell"], "phi200");
+}
+
+fn refused(args: &[&str], needle: &str) {
+    let output = celld(args);
+    assert!(!output.status.success(), "{args:?} should fail");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains(needle), "{args:?}: {stderr}");
+}
+
+#[test]
+fn bad_input_is_refused_with_a_message() {
+    refused(
+        &["eval", "--controller", "teleport", "--episodes", "1"],
+        "unknown controller `teleport`",
+    );
+    refused(
+        &["eval", "--cell", "cells/missing.toml"],
+        "cells/missing.toml",
+    );
+    refused(&["eval", "--noise-scale=-1"], "--noise-scale");
+    refused(&["eval", "--episodes", "0"], "--episodes");
+    refused(&["eval", "--init-ori-deg", "45"], "--init-ori-deg");
+    refused(&["eval", "--without", "gravity"], "gravity");
+}
