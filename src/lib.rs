@@ -8,5 +8,6 @@ pub mod collision;
 pub mod config;
 pub mod geometry;
 pub mod kinematics;
+pub mod learning;
 pub mod policy;
 pub mod sim;

@@ -2,7 +2,8 @@
 
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
-use assembly_cell::policy::{self, eval};
+use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
+use assembly_cell::policy::{self, Controller, eval};
 use assembly_cell::sim::{EnvOptions, InitialConditions};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -24,11 +25,27 @@ struct Cli {
 enum Command {
     /// Run N episodes of a controller in the digital twin and summarise them.
     Eval(EvalArgs),
+    /// Work with hierarchical policy files.
+    #[command(subcommand)]
+    Policy(PolicyCommand),
+}
+
+#[derive(Subcommand)]
+enum PolicyCommand {
+    /// Run a policy file over one episode of states (JSON Lines, 12 numbers a line) and print
+    /// one JSON line per state: omega, actor, scale, action. For checking a policy file against
+    /// another implementation.
+    Run {
+        #[arg(long)]
+        policy: PathBuf,
+        #[arg(long)]
+        states: PathBuf,
+    },
 }
 
 #[derive(Args)]
 struct EvalArgs {
-    /// Controller: expert, visual-servo or spiral.
+    /// Controller: expert, visual-servo, spiral, or the path of a policy file (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).
@@ -95,9 +112,12 @@ impl Imperfection {
 }
 
 fn main() -> ExitCode {
+    // candle re-reads the CPU count on every matmul unless this is set (../shared/notes).
+    hierarchical::init_cpu_threads();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Eval(args) => run_eval(args),
+        Command::Policy(PolicyCommand::Run { policy, states }) => run_policy(&policy, &states),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -145,8 +165,18 @@ fn run_eval(args: EvalArgs) -> Result<()> {
             args.noise_scale
         );
     }
-    // Fail on an unknown name before any work starts.
-    policy::builtin(&args.controller, &cell).context("--controller")?;
+    // Fail on an unknown name or a bad policy file before any work starts.
+    let policy_file = controller_file(&args.controller);
+    let loaded = match &policy_file {
+        Some(path) => Some(
+            HierarchicalPolicy::from_path(path)
+                .with_context(|| format!("--controller {}", path.display()))?,
+        ),
+        None => {
+            policy::builtin(&args.controller, &cell).context("--controller")?;
+            None
+        }
+    };
     let options = EnvOptions {
         noise_scale: args.noise_scale,
         initial,
@@ -156,7 +186,12 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         ProgressStyle::with_template("{bar:40} {pos}/{len} episodes  {elapsed} (eta {eta})")
             .expect("valid template"),
     );
-    let make = || policy::builtin(&args.controller, &cell).expect("checked above");
+    let make = || -> Box<dyn Controller> {
+        match &loaded {
+            Some(policy) => Box::new(policy.clone()),
+            None => policy::builtin(&args.controller, &cell).expect("checked above"),
+        }
+    };
     let (summary, _) = eval::evaluate(&cell, options, args.episodes, args.seed, &make, &|_| {
         progress.inc(1)
     });
@@ -190,5 +225,25 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     if args.json {
         println!("{}", serde_json::to_string(&summary)?);
     }
+    Ok(())
+}
+
+/// A `--controller` value that names a policy file rather than a built-in controller.
+fn controller_file(name: &str) -> Option<PathBuf> {
+    let path = PathBuf::from(name);
+    (name.ends_with(".safetensors") || path.is_file()).then_some(path)
+}
+
+fn run_policy(policy: &PathBuf, states: &PathBuf) -> Result<()> {
+    let mut policy = HierarchicalPolicy::from_path(policy)
+        .with_context(|| format!("--policy {}", policy.display()))?;
+    let file = std::fs::File::open(states)
+        .with_context(|| format!("--states {}: cannot open", states.display()))?;
+    policy::run::run_states(
+        &mut policy,
+        std::io::BufReader::new(file),
+        std::io::stdout().lock(),
+    )
+    .with_context(|| format!("--states {}", states.display()))?;
     Ok(())
 }

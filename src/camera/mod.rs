@@ -6,9 +6,11 @@
 //! Eq. 1 (`w_m = w_c1 · c1_m`, `w_f = w_c2 · c2_f`) and forms the 12-dim state.
 
 mod estimate;
+pub mod fusion;
 mod sim;
 
 pub use estimate::{Measurement, StateEstimator};
+pub use fusion::{FusionTuning, StateFilter};
 pub use sim::{SimCamera, nominal_point_sigma_mm};
 
 use crate::geometry::fit::FitError;

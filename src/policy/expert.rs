@@ -5,7 +5,6 @@
 //! It stands in for the recorded human demonstrations in the twin. Each decision says which actor
 //! (position or orientation) it used and its step scale, the labels the LSTM selector learns.
 
-use super::estimate::{PoseTracker, TrackerTuning};
 use super::{Actor, Controller, Decision, clamp_components};
 use crate::config::cell::CellConfig;
 use crate::geometry::Move;
@@ -61,9 +60,7 @@ pub struct Expert {
     limit_mm: f64,
     limit_deg: f64,
     shaft_length_mm: f64,
-    tracker: PoseTracker,
     rng: ChaCha8Rng,
-    last_move: Option<Move>,
 }
 
 impl Expert {
@@ -77,9 +74,7 @@ impl Expert {
             limit_mm: cell.steps.position_mm,
             limit_deg: cell.steps.orientation_deg,
             shaft_length_mm: cell.shaft.engaged_length_mm,
-            tracker: PoseTracker::new(TrackerTuning::default()),
             rng: ChaCha8Rng::seed_from_u64(0),
-            last_move: None,
         }
     }
 
@@ -87,7 +82,11 @@ impl Expert {
         self.rng.random_range(self.tuning.min_step_factor..=1.0)
     }
 
-    fn decide(&mut self, p: Vector3<f64>, o: Vector3<f64>) -> Decision {
+    fn decide(&mut self, observation: &Observation) -> Decision {
+        let s = &observation.state;
+        let p = Vector3::new(s[6], s[7], s[8]);
+        let o = Vector3::new(s[9], s[10], s[11]);
+        let estimate = &observation.estimate;
         let t = self.tuning;
         // P is {F}'s origin in {M}: the tip is in the bore once P_z > -L.
         let insertion_mm = p.z + self.shaft_length_mm;
@@ -122,7 +121,7 @@ impl Expert {
         let lateral = off_axis.norm();
         // Height of the tip above the entrance (negative once inside).
         let height_mm = -insertion_mm;
-        let sure = self.tracker.lateral_sd_mm() <= t.lateral_certainty_mm;
+        let sure = estimate.lateral_sd_mm() <= t.lateral_certainty_mm;
         let inserting = inside || (lateral <= t.lateral_tolerance_mm && sure);
         let mut dz = if inserting {
             // Aligned: insert (the first step crosses the entrance), shrinking near the bottom.
@@ -149,14 +148,13 @@ impl Expert {
         if inserting {
             // Going in: no longer a step than the lateral estimate stays sure over, given what
             // is known of the sideways drift (steps grow as the drift is learned).
-            while dz.abs() > 0.5 && self.tracker.lateral_sd_after_mm(dz) > t.insertion_certainty_mm
-            {
+            while dz.abs() > 0.5 && estimate.lateral_sd_after_mm(dz) > t.insertion_certainty_mm {
                 dz *= 0.7;
             }
         }
-        // Steer against the sideways drift the tracker has learned: command c such that
+        // Steer against the sideways drift the cell's state filter has learned: command c such that
         // c + drift · (c, dz) ≈ the wanted lateral move (first order).
-        let drift = self.tracker.drift();
+        let drift = estimate.drift();
         let wanted = Vector3::new(lateral_move.x, lateral_move.y, dz);
         let correction = drift * wanted;
         let delta = Vector3::new(
@@ -183,22 +181,13 @@ impl Controller for Expert {
 
     fn reset(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
-        self.tracker.reset();
-        self.last_move = None;
     }
 
     fn act(&mut self, observation: &Observation) -> Decision {
-        let executed = if observation.last_veto.is_none() {
-            self.last_move
+        if observation.measurement_fresh {
+            self.decide(observation)
         } else {
-            None
-        };
-        self.tracker.update(executed.as_ref(), observation);
-        let decision = match self.tracker.estimate() {
-            Some((p, o)) if observation.measurement_fresh => self.decide(p, o),
-            _ => Decision::hold(),
-        };
-        self.last_move = Some(decision.action);
-        decision
+            Decision::hold()
+        }
     }
 }

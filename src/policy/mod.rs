@@ -3,19 +3,21 @@
 //! The learned hierarchical policy and every baseline implement [`Controller`], so the twin,
 //! `celld eval` and the cell service run any of them the same way.
 
-pub mod estimate;
 pub mod eval;
 pub mod expert;
+pub mod file;
+pub mod hierarchical;
+pub mod run;
 pub mod spiral;
 pub mod visual_servo;
 
 use crate::config::cell::CellConfig;
 use crate::geometry::Move;
 use crate::sim::Observation;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Which low-level actor a decision used (the hierarchy's choice, paper §3.1).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Actor {
     Position,

@@ -11,7 +11,7 @@
 
 use super::reward::{Ending, RewardTerms, RewardTracker};
 use super::robot::TwinRobot;
-use crate::camera::{CameraFrame, SimCamera, StateEstimator};
+use crate::camera::{CameraFrame, FusionTuning, SimCamera, StateEstimator, StateFilter, wrap_deg};
 use crate::collision::clearance::PartGeometry;
 use crate::collision::obb::Obb;
 use crate::collision::supervisor::{Supervisor, VetoReason, swept_clearance};
@@ -80,8 +80,13 @@ pub enum Outcome {
 /// What a controller sees before it decides.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Observation {
-    /// The 12-dim state of DESIGN.md §5.
+    /// The 12-dim state of DESIGN.md §5, from the cell's fused estimate (A from the last frame;
+    /// P and O from the state filter, see `camera::fusion`).
     pub state: [f64; 12],
+    /// The same state from the last camera frame alone.
+    pub raw_state: [f64; 12],
+    /// A snapshot of the cell's state filter: how sure it is, and the drift it has learned.
+    pub estimate: StateFilter,
     /// Steps taken so far in this episode.
     pub step: u32,
     /// False when the last capture could not be used (the state is then the previous one).
@@ -154,12 +159,13 @@ pub struct AssemblyEnv {
     robot: TwinRobot,
     camera: SimCamera,
     estimator: StateEstimator,
+    filter: StateFilter,
     frame: CameraFrame,
     rng: ChaCha8Rng,
     // Episode state.
     step: u32,
     consecutive_vetoes: u32,
-    measured_m_f: Option<Pose>,
+    estimated_m_f: Option<Pose>,
     observation: Observation,
     reward: Option<RewardTracker>,
     outcome: Option<Outcome>,
@@ -172,6 +178,7 @@ impl AssemblyEnv {
         AssemblyEnv {
             camera: SimCamera::new(cell, &frames, options.noise_scale),
             estimator: StateEstimator::new(cell, &frames),
+            filter: StateFilter::new(FusionTuning::default()),
             supervisor: Supervisor::new(cell),
             robot: TwinRobot::new(cell),
             bore_obb: parts.bore_obb(),
@@ -183,9 +190,11 @@ impl AssemblyEnv {
             rng: ChaCha8Rng::seed_from_u64(0),
             step: 0,
             consecutive_vetoes: 0,
-            measured_m_f: None,
+            estimated_m_f: None,
             observation: Observation {
                 state: [0.0; 12],
+                raw_state: [0.0; 12],
+                estimate: StateFilter::new(FusionTuning::default()),
                 step: 0,
                 measurement_fresh: false,
                 last_veto: None,
@@ -223,6 +232,7 @@ impl AssemblyEnv {
         self.step = 0;
         self.consecutive_vetoes = 0;
         self.outcome = None;
+        self.filter.reset();
         // The cell waits for a usable frame before it starts; a few tries cover dropped points.
         let platform = *self.robot.true_platform();
         let mut fresh = false;
@@ -232,25 +242,19 @@ impl AssemblyEnv {
                 break;
             }
         }
-        self.observation = Observation {
-            state: self.observation_state_or_zero(fresh),
-            step: 0,
-            measurement_fresh: fresh,
-            last_veto: None,
-        };
+        if !fresh {
+            self.observation.state = [0.0; 12];
+            self.observation.raw_state = [0.0; 12];
+        }
+        self.observation.step = 0;
+        self.observation.measurement_fresh = fresh;
+        self.observation.last_veto = None;
+        self.observation.estimate = self.filter;
         self.reward = Some(RewardTracker::new(
             &self.cell.reward,
             &self.observation.state,
         ));
         Ok(self.observation.clone())
-    }
-
-    fn observation_state_or_zero(&self, fresh: bool) -> [f64; 12] {
-        if fresh {
-            self.observation.state
-        } else {
-            [0.0; 12]
-        }
     }
 
     /// Executes one move (or has it vetoed) and returns what follows.
@@ -262,7 +266,7 @@ impl AssemblyEnv {
         let before = *self.robot.true_platform();
         let verdict =
             self.supervisor
-                .check(self.robot.setpoint(), self.measured_m_f.as_ref(), action);
+                .check(self.robot.setpoint(), self.estimated_m_f.as_ref(), action);
         let mut failure = None;
         let mut capture_fraction = 1.0;
         let veto = match verdict {
@@ -273,6 +277,7 @@ impl AssemblyEnv {
                     .execute(&allowed.target_platform, &allowed.legs_mm, &mut self.rng)
                 {
                     Ok(()) => {
+                        self.filter.predict(action);
                         let after = *self.robot.true_platform();
                         let path = swept_clearance(
                             &self.parts,
@@ -326,7 +331,8 @@ impl AssemblyEnv {
         self.observation.step = self.step;
         self.observation.measurement_fresh = fresh;
         self.observation.last_veto = veto.clone();
-        let tip_in_bore = self.measured_tip_in_bore();
+        self.observation.estimate = self.filter;
+        let tip_in_bore = self.estimated_tip_in_bore();
         let reward = self.reward.as_mut().expect("reset before step").step(
             &self.observation.state,
             tip_in_bore,
@@ -383,8 +389,9 @@ impl AssemblyEnv {
         }
     }
 
-    /// Captures the scene with the platform at `platform`; on success updates the measurement
-    /// and the observation's state, else marks the measurement stale. A capture taken while the
+    /// Captures the scene with the platform at `platform`; on success fuses the measurement into
+    /// the state filter and updates the observation's state, else marks the measurement stale
+    /// (the supervisor then vetoes any move). A capture taken while the
     /// robot was still moving is carried forward by the rest of the commanded move
     /// (`remaining`, in {M}), as the cell's ingestion does with the robot's own motion; what is
     /// left of the latency is the difference between the commanded and the true motion.
@@ -398,19 +405,27 @@ impl AssemblyEnv {
                     measurement.w_m *= remaining;
                     measurement.m_f = remaining.inverse() * measurement.m_f;
                 }
-                self.observation.state = measurement.state(self.cell.hole_pitch_deg());
-                self.measured_m_f = Some(measurement.m_f);
+                let pitch = self.cell.hole_pitch_deg();
+                self.observation.raw_state = measurement.state(pitch);
+                self.filter.update(&measurement.m_f);
+                let fused = self.filter.m_f().unwrap_or(measurement.m_f);
+                let mut state = self.observation.raw_state;
+                let o = pose::rotation_vector_deg(&fused);
+                state[6..9].copy_from_slice(fused.translation.vector.as_slice());
+                state[9..12].copy_from_slice(&[o.x, o.y, wrap_deg(o.z, pitch)]);
+                self.observation.state = state;
+                self.estimated_m_f = Some(fused);
                 true
             }
             Err(_) => {
-                self.measured_m_f = None;
+                self.estimated_m_f = None;
                 false
             }
         }
     }
 
-    fn measured_tip_in_bore(&self) -> bool {
-        self.measured_m_f.is_some_and(|m_f| {
+    fn estimated_tip_in_bore(&self) -> bool {
+        self.estimated_m_f.is_some_and(|m_f| {
             let tip = m_f.inverse() * Point3::new(0.0, 0.0, -self.parts.shaft_length_mm);
             tip.z < 0.0
         })

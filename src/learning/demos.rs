@@ -1,0 +1,189 @@
+//! Expert demonstrations: what the expert saw and did, step by step, as JSON Lines.
+//!
+//! In the real cell a person guides Segment I by hand and the camera records at 4 Hz; in the twin
+//! the scripted expert stands in (DESIGN.md §5). One line per step:
+//!
+//! ```json
+//! {"episode":0,"step":0,"state":[12 numbers],"action":[6 numbers],"actor":"position","scale":0.93}
+//! ```
+//!
+//! `state` is the 12-dim state the expert decided on, `action` the move it made (mm, deg),
+//! `actor` and `scale` its choice of actor and step size (the LSTM selector's labels). Reading
+//! refuses a bad line with its line number and stores nothing.
+
+use crate::config::cell::CellConfig;
+use crate::policy::eval::episode_seed;
+use crate::policy::{self, Actor};
+use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::io::{BufRead, Write};
+
+/// One recorded step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DemoStep {
+    pub episode: u32,
+    pub step: u32,
+    pub state: [f64; 12],
+    pub action: [f64; 6],
+    pub actor: Actor,
+    pub scale: f64,
+}
+
+/// One recorded episode, in order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DemoEpisode {
+    pub steps: Vec<DemoStep>,
+    pub succeeded: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DemoError {
+    #[error("line {line}: {reason}")]
+    BadLine { line: usize, reason: String },
+    #[error("reading demonstrations: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// Records `episodes` expert episodes in the twin (all cores, deterministic under `seed`).
+/// Vetoed steps are kept (the expert saw the state and decided); steps where the expert held
+/// still for want of a fresh frame are left out, having no label.
+pub fn record_expert(
+    cell: &CellConfig,
+    options: EnvOptions,
+    episodes: usize,
+    seed: u64,
+) -> Vec<DemoEpisode> {
+    (0..episodes)
+        .into_par_iter()
+        .map_init(
+            || {
+                (
+                    AssemblyEnv::new(cell, options),
+                    policy::builtin("expert", cell).expect("the expert exists"),
+                )
+            },
+            |(env, expert), index| {
+                let seed = episode_seed(seed, index);
+                expert.reset(seed ^ 0x5EED_C0DE);
+                let mut steps = Vec::new();
+                let Ok(mut observation) = env.reset(seed) else {
+                    return DemoEpisode {
+                        steps,
+                        succeeded: false,
+                    };
+                };
+                loop {
+                    let decision = expert.act(&observation);
+                    if let (Some(actor), Some(scale)) = (decision.actor, decision.scale) {
+                        steps.push(DemoStep {
+                            episode: index as u32,
+                            step: observation.step,
+                            state: observation.state,
+                            action: decision.action.to_array(),
+                            actor,
+                            scale,
+                        });
+                    }
+                    let result = env.step(&decision.action).expect("stepped until done");
+                    observation = result.observation;
+                    if let Some(outcome) = result.outcome {
+                        return DemoEpisode {
+                            steps,
+                            succeeded: outcome == Outcome::Success,
+                        };
+                    }
+                }
+            },
+        )
+        .collect()
+}
+
+/// Writes episodes as JSON Lines.
+pub fn write_jsonl(episodes: &[DemoEpisode], mut out: impl Write) -> std::io::Result<()> {
+    for step in episodes.iter().flat_map(|e| &e.steps) {
+        serde_json::to_writer(&mut out, step)?;
+        out.write_all(b"\n")?;
+    }
+    Ok(())
+}
+
+/// Reads JSON Lines into episodes (grouped by `episode`, in file order). Every line must parse,
+/// carry finite numbers and a scale in [0, 1]; the first bad line is reported by number.
+pub fn read_jsonl(input: impl BufRead) -> Result<Vec<DemoEpisode>, DemoError> {
+    let mut episodes: Vec<DemoEpisode> = Vec::new();
+    for (index, line) in input.lines().enumerate() {
+        let line_no = index + 1;
+        let line = line?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let step: DemoStep = serde_json::from_str(&line).map_err(|e| DemoError::BadLine {
+            line: line_no,
+            reason: e.to_string(),
+        })?;
+        if !step.state.iter().chain(&step.action).all(|v| v.is_finite()) {
+            return Err(DemoError::BadLine {
+                line: line_no,
+                reason: "state and action must be finite numbers".into(),
+            });
+        }
+        if !(0.0..=1.0).contains(&step.scale) {
+            return Err(DemoError::BadLine {
+                line: line_no,
+                reason: format!("scale {} is not in [0, 1]", step.scale),
+            });
+        }
+        match episodes.last_mut() {
+            Some(last) if last.steps.last().is_some_and(|s| s.episode == step.episode) => {
+                last.steps.push(step)
+            }
+            _ => episodes.push(DemoEpisode {
+                steps: vec![step],
+                succeeded: true,
+            }),
+        }
+    }
+    Ok(episodes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recorded_demonstrations_round_trip_through_jsonl() {
+        let cell = CellConfig::reference();
+        let episodes = record_expert(&cell, EnvOptions::from_cell(&cell), 3, 5);
+        assert_eq!(episodes.len(), 3);
+        assert!(episodes.iter().all(|e| e.steps.len() > 10));
+        assert!(
+            episodes
+                .iter()
+                .flat_map(|e| &e.steps)
+                .any(|s| s.actor == Actor::Orientation)
+        );
+        let mut bytes = Vec::new();
+        write_jsonl(&episodes, &mut bytes).unwrap();
+        let back = read_jsonl(bytes.as_slice()).unwrap();
+        assert_eq!(back.len(), 3);
+        for (a, b) in episodes.iter().zip(&back) {
+            assert_eq!(a.steps, b.steps, "exact round trip");
+        }
+    }
+
+    #[test]
+    fn a_bad_line_is_named() {
+        let good = r#"{"episode":0,"step":0,"state":[0,0,0,0,0,0,1,2,3,0,0,0],"action":[1,0,0,0,0,0],"actor":"position","scale":0.2}"#;
+        let text = format!("{good}\n{good}\n{{\"episode\":0}}\n");
+        let error = read_jsonl(text.as_bytes()).unwrap_err().to_string();
+        assert!(error.starts_with("line 3:"), "{error}");
+        let text = good.replace("0.2}", "1.5}");
+        let error = read_jsonl(text.as_bytes()).unwrap_err().to_string();
+        assert!(
+            error.contains("line 1") && error.contains("scale"),
+            "{error}"
+        );
+    }
+}

@@ -1,0 +1,878 @@
+//! The learned hierarchical policy (paper §3.1, DESIGN.md §6): an LSTM over the state sequence
+//! whose head gives ω1, ω2 (softmax: position vs orientation actor) and ω3 (step size), and two
+//! actors (Linear-ReLU-Linear-ReLU-Linear-Tanh) that each give 3 values in [-1, 1].
+//!
+//! The forward pass, fixed so that every implementation gives the same move:
+//!
+//! ```text
+//! x            = (s - obs_mean) / obs_std
+//! h, c         = LSTM step on x (PyTorch equations, gates i, f, g, o), h = c = 0 at episode start
+//! ω1, ω2, ω3   = high.head(h)
+//! p_pos, p_ori = softmax(ω1, ω2); the position actor acts if p_pos >= p_ori
+//! scale        = sigmoid(ω3)
+//! a            = actor(x)
+//! move         = position:    (a · scale · step_limit_mm, 0)
+//!                orientation: (0, a · scale · step_limit_deg)
+//! ```
+//!
+//! Two implementations read the same weights by name. Plain f32 loops run
+//! [`HierarchicalPolicy::step`] (one episode) and [`HierarchicalPolicy::step_batch`] (B episodes,
+//! on all cores): at these sizes candle's per-op overhead dominates, and the loops evaluate only
+//! the actor that acts. candle ([`HierarchicalNet`], [`HierarchicalPolicy::step_batch_candle`]) is
+//! the reference they are checked against and the model training builds on. Both match an
+//! independent numpy implementation (tests/fixtures, scripts/make_policy_fixture.py) to 1e-5.
+//! The normalisation runs in f64 (states hold values like 2000 mm), the network in f32.
+
+use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
+use super::{Actor, Controller, Decision};
+use crate::geometry::Move;
+use crate::sim::Observation;
+use candle_core::{DType, Device, Module, Tensor};
+use candle_nn::rnn::{LSTMState, RNN};
+use candle_nn::{LSTM, LSTMConfig, Linear, VarBuilder};
+use serde::Serialize;
+use std::sync::Once;
+
+/// Sets `RAYON_NUM_THREADS` (to the number of available cores) when it is unset. Without it,
+/// candle 0.11 re-reads /proc/cpuinfo on every matmul, which makes a batch-1 step several times
+/// slower. Call it at the start of `main`, before any thread is spawned and any candle call;
+/// further calls do nothing.
+pub fn init_cpu_threads() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+            let n = std::thread::available_parallelism().map_or(1, |n| n.get());
+            // SAFETY: called once, at start-up, before the program reads the environment from
+            // other threads (documented requirement of this function).
+            unsafe { std::env::set_var("RAYON_NUM_THREADS", n.to_string()) };
+        }
+    });
+}
+
+/// Sizes and step limits of a policy.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PolicyConfig {
+    /// H: the LSTM's hidden size.
+    pub hidden_size: usize,
+    /// D: the actors' hidden width.
+    pub actor_width: usize,
+    /// The position actor's output is scaled by this (mm) × scale.
+    pub step_limit_mm: f64,
+    /// The orientation actor's output is scaled by this (deg) × scale.
+    pub step_limit_deg: f64,
+}
+
+impl PolicyConfig {
+    /// Sizes from the tensors' shapes, step limits from the metadata.
+    pub fn from_file(file: &PolicyFile) -> Self {
+        PolicyConfig {
+            hidden_size: file.hidden_size(),
+            actor_width: file.actor_width(),
+            step_limit_mm: file.step_limit_mm(),
+            step_limit_deg: file.step_limit_deg(),
+        }
+    }
+}
+
+/// The result of one step of the policy.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PolicyOutput {
+    /// ω1, ω2, ω3 as the head outputs them.
+    pub omega: [f32; 3],
+    /// The actor that acted (position if p_pos >= p_ori).
+    pub actor: Actor,
+    /// sigmoid(ω3).
+    pub scale: f32,
+    /// The move `[Δx, Δy, Δz, θx, θy, θz]` (mm, deg).
+    pub action: [f64; 6],
+}
+
+impl PolicyOutput {
+    pub fn is_finite(&self) -> bool {
+        self.omega.iter().all(|v| v.is_finite())
+            && self.scale.is_finite()
+            && self.action.iter().all(|v| v.is_finite())
+    }
+
+    /// The move as the twin takes it.
+    pub fn to_move(&self) -> Move {
+        Move::from_array(self.action)
+    }
+}
+
+/// The actor choice and step scale of the fixed forward pass, from ω.
+pub fn select(omega: [f32; 3]) -> (Actor, f32) {
+    let m = omega[0].max(omega[1]);
+    let (e_pos, e_ori) = ((omega[0] - m).exp(), (omega[1] - m).exp());
+    let sum = e_pos + e_ori;
+    let (p_pos, p_ori) = (e_pos / sum, e_ori / sum);
+    let actor = if p_pos >= p_ori {
+        Actor::Position
+    } else {
+        Actor::Orientation
+    };
+    (actor, sigmoid(omega[2]))
+}
+
+/// Assembles the output from ω and both actors' outputs (only the chosen one is used).
+fn compose(
+    config: &PolicyConfig,
+    omega: [f32; 3],
+    actor: Actor,
+    scale: f32,
+    a: [f32; 3],
+) -> PolicyOutput {
+    let mut action = [0.0f64; 6];
+    let (offset, limit) = match actor {
+        Actor::Position => (0, config.step_limit_mm),
+        Actor::Orientation => (3, config.step_limit_deg),
+    };
+    for i in 0..3 {
+        action[offset + i] = a[i] as f64 * scale as f64 * limit;
+    }
+    PolicyOutput {
+        omega,
+        actor,
+        scale,
+        action,
+    }
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Normalises a state (in f64) into the network's input.
+fn normalise(state: &[f64; 12], mean: &[f64; 12], std: &[f64; 12], x: &mut [f32]) {
+    for i in 0..STATE_DIM {
+        x[i] = ((state[i] - mean[i]) / std[i]) as f32;
+    }
+}
+
+fn state_error(state: &[f64; 12]) -> Option<candle_core::Error> {
+    state.iter().position(|v| !v.is_finite()).map(|i| {
+        candle_core::Error::Msg(format!(
+            "state value {i} is {}, not a finite number",
+            state[i]
+        ))
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// candle implementation
+
+/// One actor: Linear-ReLU-Linear-ReLU-Linear-Tanh, PyTorch `nn.Sequential` names `0`, `2`, `4`.
+#[derive(Debug, Clone)]
+pub struct ActorNet {
+    l0: Linear,
+    l2: Linear,
+    l4: Linear,
+}
+
+impl ActorNet {
+    pub fn load(vb: VarBuilder, width: usize) -> candle_core::Result<Self> {
+        Ok(ActorNet {
+            l0: candle_nn::linear(STATE_DIM, width, vb.pp("0"))?,
+            l2: candle_nn::linear(width, width, vb.pp("2"))?,
+            l4: candle_nn::linear(width, ACTOR_DIM, vb.pp("4"))?,
+        })
+    }
+}
+
+impl Module for ActorNet {
+    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let x = self.l0.forward(x)?.relu()?;
+        let x = self.l2.forward(&x)?.relu()?;
+        self.l4.forward(&x)?.tanh()
+    }
+}
+
+/// The whole policy network in candle (f32), loaded by PyTorch `state_dict` names.
+#[derive(Debug, Clone)]
+pub struct HierarchicalNet {
+    lstm: LSTM,
+    head: Linear,
+    pos: ActorNet,
+    ori: ActorNet,
+    obs_mean: [f64; 12],
+    obs_std: [f64; 12],
+    config: PolicyConfig,
+    device: Device,
+}
+
+/// What [`HierarchicalNet::forward`] returns for a batch of B rows.
+#[derive(Debug, Clone)]
+pub struct NetOutput {
+    /// [B, 3]: ω1, ω2, ω3.
+    pub omega: Tensor,
+    /// [B, 3]: the position actor's output.
+    pub pos: Tensor,
+    /// [B, 3]: the orientation actor's output.
+    pub ori: Tensor,
+    /// The LSTM state after the step.
+    pub state: LSTMState,
+}
+
+impl HierarchicalNet {
+    pub fn load(vb: VarBuilder, config: &PolicyConfig) -> candle_core::Result<Self> {
+        let (h, d) = (config.hidden_size, config.actor_width);
+        let high = vb.pp("high");
+        let lstm = candle_nn::lstm(STATE_DIM, h, LSTMConfig::default(), high.pp("lstm"))?;
+        let head = candle_nn::linear(h, HEAD_DIM, high.pp("head"))?;
+        let pos = ActorNet::load(vb.pp("pos"), d)?;
+        let ori = ActorNet::load(vb.pp("ori"), d)?;
+        let to_array = |t: Tensor| -> candle_core::Result<[f64; 12]> {
+            let v = t.to_dtype(DType::F64)?.to_vec1::<f64>()?;
+            Ok(std::array::from_fn(|i| v[i]))
+        };
+        let obs_mean = to_array(vb.get(STATE_DIM, "obs_mean")?)?;
+        let obs_std = to_array(vb.get(STATE_DIM, "obs_std")?)?;
+        Ok(HierarchicalNet {
+            lstm,
+            head,
+            pos,
+            ori,
+            obs_mean,
+            obs_std,
+            config: *config,
+            device: vb.device().clone(),
+        })
+    }
+
+    pub fn config(&self) -> &PolicyConfig {
+        &self.config
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// The normalised input [B, 12] for a batch of states.
+    pub fn normalise(&self, states: &[[f64; 12]]) -> candle_core::Result<Tensor> {
+        let mut x = vec![0f32; states.len() * STATE_DIM];
+        for (s, row) in states.iter().zip(x.chunks_exact_mut(STATE_DIM)) {
+            normalise(s, &self.obs_mean, &self.obs_std, row);
+        }
+        Tensor::from_vec(x, (states.len(), STATE_DIM), &self.device)
+    }
+
+    /// One step for a batch: `x` normalised [B, 12], `state` h, c [B, H].
+    pub fn forward(&self, x: &Tensor, state: &LSTMState) -> candle_core::Result<NetOutput> {
+        let state = self.lstm.step(x, state)?;
+        let omega = self.head.forward(&state.h)?;
+        let pos = self.pos.forward(x)?;
+        let ori = self.ori.forward(x)?;
+        Ok(NetOutput {
+            omega,
+            pos,
+            ori,
+            state,
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// plain f32 implementation (batch 1)
+
+/// A dense layer y = W x + b. W is kept transposed, [in, out] (PyTorch stores [out, in]), so the
+/// product runs as a sum of scaled columns, which the compiler vectorises without reordering any
+/// reduction.
+#[derive(Debug, Clone)]
+struct Dense {
+    outputs: usize,
+    /// W transposed: column j of W (the weights of input j) at `wt[j * outputs..]`.
+    wt: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl Dense {
+    /// From PyTorch's row-major [out, in] weights.
+    fn new(w: &[f32], b: Vec<f32>, inputs: usize) -> Self {
+        let outputs = b.len();
+        assert_eq!(w.len(), inputs * outputs, "weights of a dense layer");
+        let mut wt = vec![0.0; w.len()];
+        for (o, row) in w.chunks_exact(inputs).enumerate() {
+            for (i, v) in row.iter().enumerate() {
+                wt[i * outputs + o] = *v;
+            }
+        }
+        Dense { outputs, wt, b }
+    }
+
+    fn from_linear(vb: &VarBuilder, inputs: usize, outputs: usize) -> candle_core::Result<Self> {
+        let w: Vec<f32> = vb
+            .get((outputs, inputs), "weight")?
+            .flatten_all()?
+            .to_vec1()?;
+        Ok(Dense::new(&w, vb.get(outputs, "bias")?.to_vec1()?, inputs))
+    }
+
+    /// y = W x + b.
+    fn forward(&self, x: &[f32], y: &mut [f32]) {
+        let n = self.outputs;
+        let y = &mut y[..n];
+        y.copy_from_slice(&self.b);
+        // Four columns at a time: a quarter of the loads and stores of y.
+        let mut cols = self.wt.chunks_exact(4 * n);
+        let mut xs = x.chunks_exact(4);
+        for (c, xq) in cols.by_ref().zip(xs.by_ref()) {
+            let (c0, rest) = c.split_at(n);
+            let (c1, rest) = rest.split_at(n);
+            let (c2, c3) = rest.split_at(n);
+            let (x0, x1, x2, x3) = (xq[0], xq[1], xq[2], xq[3]);
+            for i in 0..n {
+                y[i] += (c0[i] * x0 + c1[i] * x1) + (c2[i] * x2 + c3[i] * x3);
+            }
+        }
+        for (c, &xj) in cols.remainder().chunks_exact(n).zip(xs.remainder()) {
+            for (yi, wi) in y.iter_mut().zip(c) {
+                *yi += wi * xj;
+            }
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+struct PlainActor {
+    l0: Dense,
+    l2: Dense,
+    l4: Dense,
+}
+
+impl PlainActor {
+    fn load(vb: &VarBuilder, width: usize) -> candle_core::Result<Self> {
+        Ok(PlainActor {
+            l0: Dense::from_linear(&vb.pp("0"), STATE_DIM, width)?,
+            l2: Dense::from_linear(&vb.pp("2"), width, width)?,
+            l4: Dense::from_linear(&vb.pp("4"), width, ACTOR_DIM)?,
+        })
+    }
+
+    fn forward(&self, x: &[f32], s1: &mut [f32], s2: &mut [f32]) -> [f32; 3] {
+        self.l0.forward(x, s1);
+        s1.iter_mut().for_each(|v| *v = v.max(0.0));
+        self.l2.forward(s1, s2);
+        s2.iter_mut().for_each(|v| *v = v.max(0.0));
+        let mut a = [0f32; 3];
+        self.l4.forward(s2, &mut a);
+        a.map(f32::tanh)
+    }
+}
+
+/// The network as plain f32 loops, one episode (row) at a time.
+#[derive(Debug, Clone)]
+struct PlainNet {
+    hidden: usize,
+    width: usize,
+    /// [W_ih | W_hh]: [4H, 12 + H], so one matrix-vector product gives the gates.
+    w_gates: Dense,
+    head: Dense,
+    pos: PlainActor,
+    ori: PlainActor,
+    obs_mean: [f64; 12],
+    obs_std: [f64; 12],
+    config: PolicyConfig,
+}
+
+/// Working memory of the plain path (no allocation per step).
+#[derive(Debug, Clone)]
+struct Scratch {
+    /// [x (12) | h (H)]: the LSTM's input.
+    xh: Vec<f32>,
+    gates: Vec<f32>,
+    s1: Vec<f32>,
+    s2: Vec<f32>,
+}
+
+impl PlainNet {
+    fn load(vb: &VarBuilder, config: &PolicyConfig) -> candle_core::Result<Self> {
+        let (h, d) = (config.hidden_size, config.actor_width);
+        let lstm = vb.pp("high").pp("lstm");
+        let get = |shape: (usize, usize), name: &str| -> candle_core::Result<Vec<f32>> {
+            lstm.get(shape, name)?.flatten_all()?.to_vec1()
+        };
+        let w_ih = get((4 * h, STATE_DIM), "weight_ih_l0")?;
+        let w_hh = get((4 * h, h), "weight_hh_l0")?;
+        let b_ih: Vec<f32> = lstm.get(4 * h, "bias_ih_l0")?.to_vec1()?;
+        let b_hh: Vec<f32> = lstm.get(4 * h, "bias_hh_l0")?.to_vec1()?;
+        let mut w = Vec::with_capacity(4 * h * (STATE_DIM + h));
+        for (ri, rh) in w_ih.chunks_exact(STATE_DIM).zip(w_hh.chunks_exact(h)) {
+            w.extend_from_slice(ri);
+            w.extend_from_slice(rh);
+        }
+        let b = b_ih.iter().zip(&b_hh).map(|(a, b)| a + b).collect();
+        let to_array = |name: &str| -> candle_core::Result<[f64; 12]> {
+            let v: Vec<f32> = vb.get(STATE_DIM, name)?.to_vec1()?;
+            Ok(std::array::from_fn(|i| v[i] as f64))
+        };
+        Ok(PlainNet {
+            hidden: h,
+            width: d,
+            w_gates: Dense::new(&w, b, STATE_DIM + h),
+            head: Dense::from_linear(&vb.pp("high").pp("head"), h, HEAD_DIM)?,
+            pos: PlainActor::load(&vb.pp("pos"), d)?,
+            ori: PlainActor::load(&vb.pp("ori"), d)?,
+            obs_mean: to_array("obs_mean")?,
+            obs_std: to_array("obs_std")?,
+            config: *config,
+        })
+    }
+
+    fn scratch(&self) -> Scratch {
+        Scratch {
+            xh: vec![0.0; STATE_DIM + self.hidden],
+            gates: vec![0.0; 4 * self.hidden],
+            s1: vec![0.0; self.width],
+            s2: vec![0.0; self.width],
+        }
+    }
+
+    /// One step of one episode: reads h, c and writes the next ones into `h_out`, `c_out`. On an
+    /// error the caller keeps h, c (the outputs are then garbage).
+    fn step(
+        &self,
+        state: &[f64; 12],
+        (h, c): (&[f32], &[f32]),
+        (h_out, c_out): (&mut [f32], &mut [f32]),
+        s: &mut Scratch,
+    ) -> candle_core::Result<PolicyOutput> {
+        if let Some(e) = state_error(state) {
+            return Err(e);
+        }
+        let hidden = self.hidden;
+        normalise(state, &self.obs_mean, &self.obs_std, &mut s.xh[..STATE_DIM]);
+        s.xh[STATE_DIM..].copy_from_slice(h);
+        self.w_gates.forward(&s.xh, &mut s.gates);
+        // PyTorch: gates i, f, g, o; c' = f c + i g; h' = o tanh(c').
+        let (i_g, rest) = s.gates.split_at(hidden);
+        let (f_g, rest) = rest.split_at(hidden);
+        let (g_g, o_g) = rest.split_at(hidden);
+        for k in 0..hidden {
+            let c_new = sigmoid(f_g[k]) * c[k] + sigmoid(i_g[k]) * g_g[k].tanh();
+            c_out[k] = c_new;
+            h_out[k] = sigmoid(o_g[k]) * c_new.tanh();
+        }
+        if !c_out.iter().chain(h_out.iter()).all(|v| v.is_finite()) {
+            return Err(candle_core::Error::Msg(
+                "the LSTM state is not finite after this step".into(),
+            ));
+        }
+        let mut omega = [0f32; 3];
+        self.head.forward(h_out, &mut omega);
+        let (actor, scale) = select(omega);
+        let x = &s.xh[..STATE_DIM];
+        let a = match actor {
+            Actor::Position => self.pos.forward(x, &mut s.s1, &mut s.s2),
+            Actor::Orientation => self.ori.forward(x, &mut s.s1, &mut s.s2),
+        };
+        Ok(compose(&self.config, omega, actor, scale, a))
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// the policy
+
+/// One row of [`HierarchicalPolicy::step_batch`]: its state, LSTM state, and where the next
+/// LSTM state goes.
+struct BatchRow<'a> {
+    x: &'a [f64; 12],
+    h: &'a [f32],
+    c: &'a [f32],
+    h_out: &'a mut [f32],
+    c_out: &'a mut [f32],
+}
+
+/// Batches at least this large are stepped on all cores.
+const PARALLEL_BATCH: usize = 8;
+
+/// The hierarchical policy, ready to run: a single episode through [`HierarchicalPolicy::step`]
+/// (its LSTM state runs across the steps until [`HierarchicalPolicy::reset`]) or a batch of
+/// episodes through [`HierarchicalPolicy::step_batch`] with a [`BatchState`].
+#[derive(Debug, Clone)]
+pub struct HierarchicalPolicy {
+    name: String,
+    net: HierarchicalNet,
+    plain: PlainNet,
+    scratch: Scratch,
+    /// The single episode's LSTM state, and the buffers its next state is computed into.
+    h: Vec<f32>,
+    c: Vec<f32>,
+    h_next: Vec<f32>,
+    c_next: Vec<f32>,
+}
+
+impl HierarchicalPolicy {
+    /// Loads the network by PyTorch `state_dict` names from `vb` (f32, CPU).
+    pub fn load(vb: VarBuilder, config: &PolicyConfig) -> candle_core::Result<Self> {
+        let net = HierarchicalNet::load(vb.clone(), config)?;
+        let plain = PlainNet::load(&vb, config)?;
+        let h = config.hidden_size;
+        Ok(HierarchicalPolicy {
+            name: "hierarchical".to_string(),
+            net,
+            scratch: plain.scratch(),
+            plain,
+            h: vec![0.0; h],
+            c: vec![0.0; h],
+            h_next: vec![0.0; h],
+            c_next: vec![0.0; h],
+        })
+    }
+
+    /// The policy of a checked policy file, on the CPU.
+    pub fn from_file(file: &PolicyFile) -> candle_core::Result<Self> {
+        let device = Device::Cpu;
+        Self::load(file.var_builder(&device)?, &PolicyConfig::from_file(file))
+    }
+
+    /// Reads, checks and loads a policy file; the controller is named after the file's stem.
+    pub fn from_path(path: impl AsRef<std::path::Path>) -> anyhow::Result<Self> {
+        let path = path.as_ref();
+        let file = PolicyFile::from_path(path)?;
+        let policy = Self::from_file(&file)?;
+        let name = path.file_stem().map_or("hierarchical".to_string(), |s| {
+            s.to_string_lossy().into_owned()
+        });
+        Ok(policy.with_name(name))
+    }
+
+    /// Renames the controller (default "hierarchical").
+    pub fn with_name(mut self, name: impl Into<String>) -> Self {
+        self.name = name.into();
+        self
+    }
+
+    pub fn config(&self) -> &PolicyConfig {
+        &self.net.config
+    }
+
+    /// The candle network.
+    pub fn net(&self) -> &HierarchicalNet {
+        &self.net
+    }
+
+    /// Starts a new episode: h = c = 0.
+    pub fn reset(&mut self) {
+        self.h.iter_mut().for_each(|v| *v = 0.0);
+        self.c.iter_mut().for_each(|v| *v = 0.0);
+    }
+
+    /// The single episode's LSTM state (h, c).
+    pub fn lstm_state(&self) -> (&[f32], &[f32]) {
+        (&self.h, &self.c)
+    }
+
+    /// One step of the single episode. A non-finite state is refused and leaves the LSTM state
+    /// as it was; so does a step whose LSTM state would not be finite.
+    pub fn step(&mut self, state: &[f64; 12]) -> candle_core::Result<PolicyOutput> {
+        let out = self.plain.step(
+            state,
+            (&self.h, &self.c),
+            (&mut self.h_next, &mut self.c_next),
+            &mut self.scratch,
+        )?;
+        std::mem::swap(&mut self.h, &mut self.h_next);
+        std::mem::swap(&mut self.c, &mut self.c_next);
+        Ok(out)
+    }
+
+    /// A zero state for `batch` episodes.
+    pub fn batch_state(&self, batch: usize) -> BatchState {
+        BatchState::new(batch, self.net.config.hidden_size)
+    }
+
+    fn check_batch(&self, states: &[[f64; 12]], state: &BatchState) -> candle_core::Result<()> {
+        let (b, h) = (state.batch, state.hidden);
+        if states.len() != b || h != self.net.config.hidden_size {
+            return Err(candle_core::Error::Msg(format!(
+                "{} states for a batch state of {b} rows of H = {h} (policy H = {})",
+                states.len(),
+                self.net.config.hidden_size
+            )));
+        }
+        for (row, s) in states.iter().enumerate() {
+            if let Some(e) = state_error(s) {
+                return Err(candle_core::Error::Msg(format!("row {row}: {e}")));
+            }
+        }
+        Ok(())
+    }
+
+    /// One step of B episodes at once: `states[i]` is episode i's state, `state` holds their
+    /// LSTM states (updated). Rows run the same code as [`HierarchicalPolicy::step`], on all
+    /// cores for larger batches. On an error (a non-finite state in any row) no row moves on.
+    pub fn step_batch(
+        &self,
+        states: &[[f64; 12]],
+        state: &mut BatchState,
+    ) -> candle_core::Result<Vec<PolicyOutput>> {
+        use rayon::prelude::*;
+        self.check_batch(states, state)?;
+        let hidden = state.hidden;
+        let mut h_next = vec![0f32; state.h.len()];
+        let mut c_next = vec![0f32; state.c.len()];
+        let rows: Vec<BatchRow<'_>> = states
+            .iter()
+            .zip(state.h.chunks_exact(hidden))
+            .zip(state.c.chunks_exact(hidden))
+            .zip(h_next.chunks_exact_mut(hidden))
+            .zip(c_next.chunks_exact_mut(hidden))
+            .map(|((((x, h), c), h_out), c_out)| BatchRow {
+                x,
+                h,
+                c,
+                h_out,
+                c_out,
+            })
+            .collect();
+        let run = |s: &mut Scratch, r: BatchRow<'_>| {
+            self.plain.step(r.x, (r.h, r.c), (r.h_out, r.c_out), s)
+        };
+        let out: candle_core::Result<Vec<PolicyOutput>> = if rows.len() >= PARALLEL_BATCH {
+            rows.into_par_iter()
+                .map_init(|| self.plain.scratch(), run)
+                .collect()
+        } else {
+            let mut s = self.plain.scratch();
+            rows.into_iter().map(|r| run(&mut s, r)).collect()
+        };
+        let out = out?;
+        state.h = h_next;
+        state.c = c_next;
+        Ok(out)
+    }
+
+    /// [`HierarchicalPolicy::step_batch`] through candle (both actors for every row, then the
+    /// chosen one): the same results to f32 rounding. Slower on a few cores; kept as the
+    /// reference the plain path is checked against, and for GPU-style batching.
+    pub fn step_batch_candle(
+        &self,
+        states: &[[f64; 12]],
+        state: &mut BatchState,
+    ) -> candle_core::Result<Vec<PolicyOutput>> {
+        self.check_batch(states, state)?;
+        let (b, h) = (state.batch, state.hidden);
+        if b == 0 {
+            return Ok(Vec::new());
+        }
+        let device = &self.net.device;
+        let x = self.net.normalise(states)?;
+        let lstm_state = LSTMState::new(
+            Tensor::from_slice(&state.h, (b, h), device)?,
+            Tensor::from_slice(&state.c, (b, h), device)?,
+        );
+        let out = self.net.forward(&x, &lstm_state)?;
+        let all = Tensor::cat(&[&out.omega, &out.pos, &out.ori], 1)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let rows = all
+            .chunks_exact(9)
+            .map(|row| {
+                let omega = [row[0], row[1], row[2]];
+                let (actor, scale) = select(omega);
+                let a = match actor {
+                    Actor::Position => [row[3], row[4], row[5]],
+                    Actor::Orientation => [row[6], row[7], row[8]],
+                };
+                compose(&self.net.config, omega, actor, scale, a)
+            })
+            .collect();
+        let h_new: Vec<f32> = out.state.h.flatten_all()?.to_vec1()?;
+        let c_new: Vec<f32> = out.state.c.flatten_all()?.to_vec1()?;
+        if !h_new.iter().chain(&c_new).all(|v| v.is_finite()) {
+            return Err(candle_core::Error::Msg(
+                "the LSTM state is not finite after this step".into(),
+            ));
+        }
+        state.h = h_new;
+        state.c = c_new;
+        Ok(rows)
+    }
+}
+
+/// The LSTM states of B episodes for [`HierarchicalPolicy::step_batch`]; rows reset one by one
+/// as episodes finish at different times.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BatchState {
+    batch: usize,
+    hidden: usize,
+    /// [B, H] row-major.
+    h: Vec<f32>,
+    /// [B, H] row-major.
+    c: Vec<f32>,
+}
+
+impl BatchState {
+    /// B episodes at their start (h = c = 0).
+    pub fn new(batch: usize, hidden: usize) -> Self {
+        BatchState {
+            batch,
+            hidden,
+            h: vec![0.0; batch * hidden],
+            c: vec![0.0; batch * hidden],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.batch
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.batch == 0
+    }
+
+    /// Starts episode `row` afresh (h = c = 0 for that row).
+    pub fn reset_row(&mut self, row: usize) {
+        let r = row * self.hidden..(row + 1) * self.hidden;
+        self.h[r.clone()].iter_mut().for_each(|v| *v = 0.0);
+        self.c[r].iter_mut().for_each(|v| *v = 0.0);
+    }
+
+    /// Starts every episode afresh.
+    pub fn reset_all(&mut self) {
+        self.h.iter_mut().for_each(|v| *v = 0.0);
+        self.c.iter_mut().for_each(|v| *v = 0.0);
+    }
+
+    /// Row `row`'s h.
+    pub fn h(&self, row: usize) -> &[f32] {
+        &self.h[row * self.hidden..(row + 1) * self.hidden]
+    }
+
+    /// Row `row`'s c.
+    pub fn c(&self, row: usize) -> &[f32] {
+        &self.c[row * self.hidden..(row + 1) * self.hidden]
+    }
+}
+
+impl Controller for HierarchicalPolicy {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn reset(&mut self, _seed: u64) {
+        HierarchicalPolicy::reset(self);
+    }
+
+    /// The policy's move; a step that fails or is not finite holds still (a zero move).
+    fn act(&mut self, observation: &Observation) -> Decision {
+        match self.step(&observation.state) {
+            Ok(out) if out.is_finite() => Decision {
+                action: out.to_move(),
+                actor: Some(out.actor),
+                scale: Some(out.scale as f64),
+            },
+            _ => Decision::hold(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::policy::file::TENSOR_NAMES;
+
+    /// A small policy with deterministic pseudo-random weights.
+    fn tiny() -> HierarchicalPolicy {
+        let (h, d) = (4, 8);
+        let shape = |name: &str| -> Vec<usize> {
+            match name {
+                "high.lstm.weight_ih_l0" => vec![4 * h, 12],
+                "high.lstm.weight_hh_l0" => vec![4 * h, h],
+                "high.lstm.bias_ih_l0" | "high.lstm.bias_hh_l0" => vec![4 * h],
+                "high.head.weight" => vec![3, h],
+                "high.head.bias" | "pos.4.bias" | "ori.4.bias" => vec![3],
+                "pos.0.weight" | "ori.0.weight" => vec![d, 12],
+                "pos.2.weight" | "ori.2.weight" => vec![d, d],
+                "pos.4.weight" | "ori.4.weight" => vec![3, d],
+                "obs_mean" | "obs_std" => vec![12],
+                _ => vec![d],
+            }
+        };
+        let mut seed = 12345u32;
+        let tensors = TENSOR_NAMES
+            .iter()
+            .map(|&n| {
+                let s = shape(n);
+                let len = s.iter().product();
+                let data = (0..len)
+                    .map(|_| {
+                        seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+                        let u = (seed >> 8) as f32 / (1u32 << 24) as f32;
+                        if n == "obs_std" { 1.0 + u } else { u - 0.5 }
+                    })
+                    .collect();
+                (n.to_string(), s, data)
+            })
+            .collect();
+        let file = PolicyFile::new(tensors, PolicyFile::standard_metadata(5.0, 1.0)).unwrap();
+        HierarchicalPolicy::from_file(&file).unwrap()
+    }
+
+    #[test]
+    fn selection_follows_the_fixed_pass() {
+        assert_eq!(select([1.0, 1.0, 0.0]), (Actor::Position, 0.5));
+        assert_eq!(select([0.0, 0.5, 0.0]).0, Actor::Orientation);
+        assert_eq!(select([0.5, 0.0, 0.0]).0, Actor::Position);
+        assert!(select([0.0, 0.0, 200.0]).1 == 1.0 && select([0.0, 0.0, -200.0]).1 == 0.0);
+    }
+
+    #[test]
+    fn plain_and_candle_paths_agree_and_reset_restarts() {
+        init_cpu_threads();
+        let mut p = tiny();
+        let states: Vec<[f64; 12]> = (0..15)
+            .map(|t| std::array::from_fn(|i| ((t * 7 + i * 3) % 11) as f64 * 0.3 - 1.5))
+            .collect();
+        let first: Vec<PolicyOutput> = states.iter().map(|s| p.step(s).unwrap()).collect();
+        p.reset();
+        let mut batch = p.batch_state(1);
+        for (s, f) in states.iter().zip(&first) {
+            let a = p.step(s).unwrap();
+            let b = p
+                .step_batch_candle(std::slice::from_ref(s), &mut batch)
+                .unwrap()[0];
+            assert_eq!(&a, f);
+            assert_eq!(a.actor, b.actor);
+            for (x, y) in a.action.iter().zip(b.action) {
+                assert!((x - y).abs() < 1e-5, "{a:?} {b:?}");
+            }
+            assert!(a.action.iter().all(|v| v.abs() <= 5.0));
+        }
+    }
+
+    #[test]
+    fn a_non_finite_state_is_refused_and_leaves_the_episode_alone() {
+        let mut p = tiny();
+        let s = [0.25; 12];
+        let mut reference = p.clone();
+        p.step(&s).unwrap();
+        reference.step(&s).unwrap();
+        let mut bad = s;
+        bad[4] = f64::NAN;
+        assert!(
+            p.step(&bad)
+                .unwrap_err()
+                .to_string()
+                .contains("state value 4")
+        );
+        let mut batch = p.batch_state(2);
+        assert!(p.step_batch(&[s, bad], &mut batch).is_err());
+        assert_eq!(batch, p.batch_state(2));
+        assert_eq!(p.step(&s).unwrap(), reference.step(&s).unwrap());
+    }
+
+    #[test]
+    fn batch_rows_reset_alone() {
+        let p = tiny();
+        let mut b = p.batch_state(2);
+        let s = [[0.1; 12], [0.2; 12]];
+        p.step_batch(&s, &mut b).unwrap();
+        assert!(b.h(0).iter().any(|v| *v != 0.0) && b.c(1).iter().any(|v| *v != 0.0));
+        let row0 = b.h(0).to_vec();
+        b.reset_row(1);
+        assert!(b.h(1).iter().chain(b.c(1)).all(|v| *v == 0.0));
+        assert_eq!(b.h(0), row0.as_slice());
+        assert_eq!(b.len(), 2);
+    }
+}
