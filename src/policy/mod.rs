@@ -3,6 +3,7 @@
 //! The learned hierarchical policy and every baseline implement [`Controller`], so the twin,
 //! `celld eval` and the cell service run any of them the same way.
 
+pub mod dmp;
 pub mod eval;
 pub mod expert;
 pub mod file;
@@ -60,7 +61,7 @@ pub trait Controller: Send {
 }
 
 /// The controllers that need no learning, by name.
-pub const BUILTIN_CONTROLLERS: [&str; 3] = ["expert", "visual-servo", "spiral"];
+pub const BUILTIN_CONTROLLERS: [&str; 4] = ["expert", "visual-servo", "spiral", "da-dmp"];
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("unknown controller `{name}`; known: {known}")]
@@ -75,6 +76,7 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
         "expert" => Ok(Box::new(expert::Expert::new(cell))),
         "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
         "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
+        "da-dmp" => Ok(Box::new(dmp::default_dmp(cell))),
         _ => Err(UnknownController {
             name: name.to_string(),
             known: BUILTIN_CONTROLLERS.join(", "),
