@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
-use assembly_cell::policy::{self, Controller, eval};
+use assembly_cell::policy::{self, eval};
 use assembly_cell::sim::{EnvOptions, InitialConditions};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -167,15 +167,13 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     }
     // Fail on an unknown name or a bad policy file before any work starts.
     let policy_file = controller_file(&args.controller);
-    let loaded = match &policy_file {
-        Some(path) => Some(
-            HierarchicalPolicy::from_path(path)
-                .with_context(|| format!("--controller {}", path.display()))?,
-        ),
-        None => {
-            policy::builtin(&args.controller, &cell).context("--controller")?;
-            None
+    let factory: policy::ControllerFactory = match &policy_file {
+        Some(path) => {
+            let loaded = HierarchicalPolicy::from_path(path)
+                .with_context(|| format!("--controller {}", path.display()))?;
+            Box::new(move || Box::new(loaded.clone()))
         }
+        None => policy::builtin_factory(&args.controller, &cell).context("--controller")?,
     };
     let options = EnvOptions {
         noise_scale: args.noise_scale,
@@ -186,13 +184,7 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         ProgressStyle::with_template("{bar:40} {pos}/{len} episodes  {elapsed} (eta {eta})")
             .expect("valid template"),
     );
-    let make = || -> Box<dyn Controller> {
-        match &loaded {
-            Some(policy) => Box::new(policy.clone()),
-            None => policy::builtin(&args.controller, &cell).expect("checked above"),
-        }
-    };
-    let (summary, _) = eval::evaluate(&cell, options, args.episodes, args.seed, &make, &|_| {
+    let (summary, _) = eval::evaluate(&cell, options, args.episodes, args.seed, &factory, &|_| {
         progress.inc(1)
     });
     progress.finish_and_clear();

@@ -84,6 +84,25 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
     }
 }
 
+/// A factory of built-in controllers for `cell` by name, for running many episodes in parallel:
+/// anything costly to build (the DMP's demonstrations and fit) is built once and cloned.
+pub type ControllerFactory = Box<dyn Fn() -> Box<dyn Controller> + Send + Sync>;
+
+pub fn builtin_factory(
+    name: &str,
+    cell: &CellConfig,
+) -> Result<ControllerFactory, UnknownController> {
+    builtin(name, cell)?;
+    if name == "da-dmp" {
+        let fitted = dmp::default_dmp(cell);
+        return Ok(Box::new(move || Box::new(fitted.clone())));
+    }
+    let (name, cell) = (name.to_string(), cell.clone());
+    Ok(Box::new(move || {
+        builtin(&name, &cell).expect("checked above")
+    }))
+}
+
 /// Clamps every component to ±`limit`.
 pub(crate) fn clamp_components(v: nalgebra::Vector3<f64>, limit: f64) -> nalgebra::Vector3<f64> {
     v.map(|x| x.clamp(-limit, limit))
