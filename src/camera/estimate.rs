@@ -124,25 +124,31 @@ impl Measurement {
     /// rotation vector of {F} in {M} (deg), its z component wrapped into
     /// `[-pitch/2, pitch/2)` with `hole_pitch_deg` = 360 / holes.
     pub fn state(&self, hole_pitch_deg: f64) -> [f64; 12] {
-        let a_t = self.w_m.translation.vector;
-        let a_r = rotation_vector_deg(&self.w_m);
-        let p = self.m_f.translation.vector;
-        let o = rotation_vector_deg(&self.m_f);
-        [
-            a_t.x,
-            a_t.y,
-            a_t.z,
-            a_r.x,
-            a_r.y,
-            a_r.z,
-            p.x,
-            p.y,
-            p.z,
-            o.x,
-            o.y,
-            wrap_deg(o.z, hole_pitch_deg),
-        ]
+        state_vector(&self.w_m, &self.m_f, hole_pitch_deg)
     }
+}
+
+/// The 12-dim state of DESIGN.md §5 from {M} in {W} (A: translation mm, rotation vector deg) and
+/// {F} in {M} (P mm, O rotation vector deg with O_z wrapped into [-pitch/2, pitch/2)).
+pub fn state_vector(w_m: &Pose, m_f: &Pose, hole_pitch_deg: f64) -> [f64; 12] {
+    let a_t = w_m.translation.vector;
+    let a_r = rotation_vector_deg(w_m);
+    let p = m_f.translation.vector;
+    let o = rotation_vector_deg(m_f);
+    [
+        a_t.x,
+        a_t.y,
+        a_t.z,
+        a_r.x,
+        a_r.y,
+        a_r.z,
+        p.x,
+        p.y,
+        p.z,
+        o.x,
+        o.y,
+        wrap_deg(o.z, hole_pitch_deg),
+    ]
 }
 
 #[cfg(test)]

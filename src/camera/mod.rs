@@ -9,7 +9,7 @@ mod estimate;
 pub mod fusion;
 mod sim;
 
-pub use estimate::{Measurement, StateEstimator};
+pub use estimate::{Measurement, StateEstimator, state_vector};
 pub use fusion::{FusionTuning, StateFilter};
 pub use sim::{SimCamera, nominal_point_sigma_mm};
 

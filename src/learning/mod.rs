@@ -1,4 +1,7 @@
 //! Learning from demonstrations and from the twin (paper §3): datasets, behaviour cloning, the
 //! LSTM selector, TD3.
 
+pub mod bc;
+pub mod dataset;
 pub mod demos;
+pub mod selector;

@@ -1,17 +1,19 @@
 //! `AssemblyEnv`: one episode of the assembly in the digital twin, as `reset` / `step`.
 //!
-//! Each step is one camera cycle (4 Hz): the supervisor checks the move against the latest
-//! measurement and the robot's own belief of its pose; an allowed move is executed by the
-//! imperfect robot; the camera captures (possibly while the robot is still moving, when the move
-//! takes longer than the cycle minus the latency); the state is estimated from coded points; the
-//! reward is computed from that state. The outcome is judged on the true pose: success when the
+//! Each step is one camera cycle (4 Hz): the supervisor checks the move against the cell's fused
+//! estimate of the relative pose and the robot's setpoint; an allowed move is executed by the
+//! imperfect robot and predicted by the state filter; the camera captures (possibly while the
+//! robot is still moving, when the move takes longer than the cycle minus the latency); the frame
+//! is fitted and fused into the state; the reward is computed from that state. The outcome is judged on the true pose: success when the
 //! true insertion depth and hole alignment are within tolerance, failure on true contact
 //! (the robot's protective stop), on too many vetoes in a row, on leaving the workspace, or on
 //! running out of steps.
 
 use super::reward::{Ending, RewardTerms, RewardTracker};
 use super::robot::TwinRobot;
-use crate::camera::{CameraFrame, FusionTuning, SimCamera, StateEstimator, StateFilter, wrap_deg};
+use crate::camera::{
+    CameraFrame, FusionTuning, SimCamera, StateEstimator, StateFilter, state_vector,
+};
 use crate::collision::clearance::PartGeometry;
 use crate::collision::obb::Obb;
 use crate::collision::supervisor::{Supervisor, VetoReason, swept_clearance};
@@ -409,11 +411,7 @@ impl AssemblyEnv {
                 self.observation.raw_state = measurement.state(pitch);
                 self.filter.update(&measurement.m_f);
                 let fused = self.filter.m_f().unwrap_or(measurement.m_f);
-                let mut state = self.observation.raw_state;
-                let o = pose::rotation_vector_deg(&fused);
-                state[6..9].copy_from_slice(fused.translation.vector.as_slice());
-                state[9..12].copy_from_slice(&[o.x, o.y, wrap_deg(o.z, pitch)]);
-                self.observation.state = state;
+                self.observation.state = state_vector(&measurement.w_m, &fused, pitch);
                 self.estimated_m_f = Some(fused);
                 true
             }

@@ -1,0 +1,204 @@
+//! Behaviour cloning of the two actors (paper §3.2, Algorithm 2; Table 1: SGD, lr 1e-3,
+//! batch 32): each actor learns, by least squares, the direction labels of the expert's moves
+//! that used it (`dataset::StepLabels`), from the normalised state.
+//!
+//! Weights are created here, seeded, with PyTorch's default initialisation (uniform within
+//! ±1/√fan_in), because candle's CPU random generator cannot be seeded; training is then
+//! deterministic under the seed.
+
+use super::dataset::{Normaliser, StepLabels, StepLimits};
+use super::demos::DemoEpisode;
+use crate::policy::Actor;
+use crate::policy::hierarchical::ActorNet;
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{Module, Optimizer, SGD, VarBuilder, VarMap};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Behaviour-cloning settings; defaults from Table 1 of the paper.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BcConfig {
+    pub epochs: usize,
+    pub batch_size: usize,
+    pub learning_rate: f64,
+    pub seed: u64,
+}
+
+impl Default for BcConfig {
+    fn default() -> Self {
+        BcConfig {
+            epochs: 200,
+            batch_size: 32,
+            learning_rate: 1e-3,
+            seed: 0,
+        }
+    }
+}
+
+/// Adds a `Linear(inputs → outputs)` named `{prefix}.weight` [out, in] and `{prefix}.bias`, with
+/// PyTorch's default initialisation, to `varmap`.
+pub fn init_linear(
+    varmap: &VarMap,
+    prefix: &str,
+    inputs: usize,
+    outputs: usize,
+    rng: &mut impl Rng,
+) -> candle_core::Result<()> {
+    let bound = 1.0 / (inputs as f64).sqrt();
+    let mut uniform = |n: usize| -> Vec<f32> {
+        (0..n)
+            .map(|_| rng.random_range(-bound..bound) as f32)
+            .collect()
+    };
+    let weight = Tensor::from_vec(uniform(inputs * outputs), (outputs, inputs), &Device::Cpu)?;
+    let bias = Tensor::from_vec(uniform(outputs), outputs, &Device::Cpu)?;
+    let mut data = varmap.data().lock().expect("var map lock");
+    data.insert(format!("{prefix}.weight"), Var::from_tensor(&weight)?);
+    data.insert(format!("{prefix}.bias"), Var::from_tensor(&bias)?);
+    Ok(())
+}
+
+/// Adds the weights of one actor (`{prefix}.0`, `.2`, `.4`, DESIGN.md §6) of width `width`.
+pub fn init_actor(
+    varmap: &VarMap,
+    prefix: &str,
+    width: usize,
+    rng: &mut impl Rng,
+) -> candle_core::Result<()> {
+    init_linear(varmap, &format!("{prefix}.0"), 12, width, rng)?;
+    init_linear(varmap, &format!("{prefix}.2"), width, width, rng)?;
+    init_linear(varmap, &format!("{prefix}.4"), width, 3, rng)
+}
+
+/// The variables of `varmap` whose names start with `prefix`, in name order.
+pub fn vars_under(varmap: &VarMap, prefix: &str) -> Vec<Var> {
+    let data = varmap.data().lock().expect("var map lock");
+    let mut named: Vec<(&String, &Var)> =
+        data.iter().filter(|(k, _)| k.starts_with(prefix)).collect();
+    named.sort_by(|a, b| a.0.cmp(b.0));
+    named.into_iter().map(|(_, v)| v.clone()).collect()
+}
+
+/// The (normalised state, direction label) pairs of the steps that used `actor`.
+pub fn actor_samples(
+    episodes: &[DemoEpisode],
+    actor: Actor,
+    normaliser: &Normaliser,
+    limits: &StepLimits,
+) -> Vec<([f32; 12], [f32; 3])> {
+    episodes
+        .iter()
+        .flat_map(|e| &e.steps)
+        .filter(|s| s.actor == actor)
+        .map(|s| {
+            let labels = StepLabels::of(s, limits);
+            (
+                normaliser.apply(&s.state),
+                labels.direction.map(|v| v as f32),
+            )
+        })
+        .collect()
+}
+
+/// The paper's BC loss, (1/2N) Σ ‖a − aᵉ‖², of an actor over samples.
+pub fn bc_loss(actor: &ActorNet, samples: &[([f32; 12], [f32; 3])]) -> candle_core::Result<f64> {
+    let (x, y) = batch(samples, &(0..samples.len()).collect::<Vec<_>>())?;
+    loss(actor, &x, &y)?.to_scalar::<f32>().map(f64::from)
+}
+
+fn batch(
+    samples: &[([f32; 12], [f32; 3])],
+    rows: &[usize],
+) -> candle_core::Result<(Tensor, Tensor)> {
+    let mut x = Vec::with_capacity(rows.len() * 12);
+    let mut y = Vec::with_capacity(rows.len() * 3);
+    for &row in rows {
+        x.extend_from_slice(&samples[row].0);
+        y.extend_from_slice(&samples[row].1);
+    }
+    Ok((
+        Tensor::from_vec(x, (rows.len(), 12), &Device::Cpu)?,
+        Tensor::from_vec(y, (rows.len(), 3), &Device::Cpu)?,
+    ))
+}
+
+fn loss(actor: &ActorNet, x: &Tensor, y: &Tensor) -> candle_core::Result<Tensor> {
+    let n = x.dim(0)? as f64;
+    (actor.forward(x)? - y)?.sqr()?.sum_all()? / (2.0 * n)
+}
+
+/// Trains the actor `{prefix}` (already in `varmap`) on `samples` with SGD; `on_epoch(epoch,
+/// loss)` is called after each epoch with the loss over all samples. Returns the losses.
+pub fn train_actor(
+    varmap: &VarMap,
+    prefix: &str,
+    width: usize,
+    samples: &[([f32; 12], [f32; 3])],
+    config: &BcConfig,
+    on_epoch: &mut dyn FnMut(usize, f64),
+) -> candle_core::Result<Vec<f64>> {
+    if samples.is_empty() {
+        candle_core::bail!("no demonstrated steps for actor `{prefix}`");
+    }
+    let vb = VarBuilder::from_varmap(varmap, DType::F32, &Device::Cpu);
+    let actor = ActorNet::load(vb.pp(prefix), width)?;
+    let mut optimizer = SGD::new(
+        vars_under(varmap, &format!("{prefix}.")),
+        config.learning_rate,
+    )?;
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let mut order: Vec<usize> = (0..samples.len()).collect();
+    let mut losses = Vec::with_capacity(config.epochs);
+    for epoch in 0..config.epochs {
+        order.shuffle(&mut rng);
+        for rows in order.chunks(config.batch_size.max(1)) {
+            let (x, y) = batch(samples, rows)?;
+            optimizer.backward_step(&loss(&actor, &x, &y)?)?;
+        }
+        let epoch_loss = bc_loss(&actor, samples)?;
+        if !epoch_loss.is_finite() {
+            candle_core::bail!(
+                "behaviour cloning of `{prefix}` diverged at epoch {epoch} (loss {epoch_loss})"
+            );
+        }
+        on_epoch(epoch, epoch_loss);
+        losses.push(epoch_loss);
+    }
+    Ok(losses)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::cell::CellConfig;
+    use crate::learning::demos::record_expert;
+    use crate::sim::EnvOptions;
+
+    #[test]
+    fn bc_lowers_its_loss_on_expert_data_deterministically() {
+        let cell = CellConfig::reference();
+        let demos = record_expert(&cell, EnvOptions::from_cell(&cell), 8, 3);
+        let normaliser = Normaliser::fit(&demos);
+        let limits = StepLimits {
+            position_mm: 5.0,
+            orientation_deg: 1.0,
+        };
+        let samples = actor_samples(&demos, Actor::Position, &normaliser, &limits);
+        assert!(samples.len() > 100);
+        let run = || {
+            let varmap = VarMap::new();
+            let mut rng = ChaCha8Rng::seed_from_u64(1);
+            init_actor(&varmap, "pos", 32, &mut rng).unwrap();
+            let config = BcConfig {
+                epochs: 20,
+                learning_rate: 0.05,
+                ..BcConfig::default()
+            };
+            train_actor(&varmap, "pos", 32, &samples, &config, &mut |_, _| {}).unwrap()
+        };
+        let losses = run();
+        assert!(losses[losses.len() - 1] < 0.5 * losses[0], "{losses:?}");
+        assert_eq!(losses, run(), "same seed, same training");
+    }
+}
