@@ -5,3 +5,4 @@ pub mod bc;
 pub mod dataset;
 pub mod demos;
 pub mod selector;
+pub mod td3;
