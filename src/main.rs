@@ -5,7 +5,7 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
 use assembly_cell::policy::{self, eval};
 use assembly_cell::sim::{EnvOptions, InitialConditions};
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -73,7 +73,7 @@ struct EvalArgs {
 }
 
 /// The twin's imperfections, as `--without` names them.
-#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 #[value(rename_all = "snake_case")]
 enum Imperfection {
     CameraNoise,
@@ -96,14 +96,7 @@ impl Imperfection {
             Imperfection::CalibrationError => switches.calibration_error = false,
             Imperfection::ExecutionError => switches.execution_error = false,
             Imperfection::All => {
-                for each in [
-                    Imperfection::CameraNoise,
-                    Imperfection::DroppedPoints,
-                    Imperfection::Outliers,
-                    Imperfection::Latency,
-                    Imperfection::CalibrationError,
-                    Imperfection::ExecutionError,
-                ] {
+                for each in Self::value_variants().iter().filter(|v| **v != Self::All) {
                     each.switch_off(cell);
                 }
             }

@@ -1,19 +1,8 @@
 //! `celld eval` end to end: the JSON summary, determinism, and clear errors for bad input.
 
-use std::process::Command;
+mod common;
 
-fn celld(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_celld"))
-        .args(args)
-        .output()
-        .expect("celld runs")
-}
-
-fn last_json(output: &std::process::Output) -> serde_json::Value {
-    let stdout = String::from_utf8(output.stdout.clone()).unwrap();
-    let last = stdout.lines().last().expect("some output");
-    serde_json::from_str(last).expect("the last line is JSON")
-}
+use common::{celld, last_json};
 
 #[test]
 fn json_summary_has_the_promised_fields_and_repeats_under_a_seed() {

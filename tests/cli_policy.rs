@@ -1,13 +1,8 @@
 //! `celld policy run` and `celld eval --controller FILE` end to end on the PyTorch-layout fixture.
 
-use std::process::Command;
+mod common;
 
-fn celld(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_celld"))
-        .args(args)
-        .output()
-        .expect("celld runs")
-}
+use common::{celld, last_json};
 
 #[test]
 fn policy_run_reproduces_the_numpy_reference() {
@@ -64,8 +59,7 @@ fn a_policy_file_runs_as_a_controller_and_bad_files_are_refused() {
         "{}",
         String::from_utf8_lossy(&output.stderr)
     );
-    let stdout = String::from_utf8(output.stdout).unwrap();
-    let summary: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let summary = last_json(&output);
     assert_eq!(summary["episodes"], 4);
     assert_eq!(summary["controller"], "policy_small");
 

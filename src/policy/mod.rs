@@ -72,15 +72,25 @@ pub struct UnknownController {
 
 /// Builds a built-in controller for `cell` by name.
 pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, UnknownController> {
+    check_known(name)?;
     match name {
         "expert" => Ok(Box::new(expert::Expert::new(cell))),
         "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
         "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
         "da-dmp" => Ok(Box::new(dmp::default_dmp(cell))),
-        _ => Err(UnknownController {
+        _ => unreachable!("check_known lets only BUILTIN_CONTROLLERS through"),
+    }
+}
+
+/// Refuses a name that is not one of [`BUILTIN_CONTROLLERS`], without building anything.
+fn check_known(name: &str) -> Result<(), UnknownController> {
+    if BUILTIN_CONTROLLERS.contains(&name) {
+        Ok(())
+    } else {
+        Err(UnknownController {
             name: name.to_string(),
             known: BUILTIN_CONTROLLERS.join(", "),
-        }),
+        })
     }
 }
 
@@ -92,7 +102,7 @@ pub fn builtin_factory(
     name: &str,
     cell: &CellConfig,
 ) -> Result<ControllerFactory, UnknownController> {
-    builtin(name, cell)?;
+    check_known(name)?;
     if name == "da-dmp" {
         let fitted = dmp::default_dmp(cell);
         return Ok(Box::new(move || Box::new(fitted.clone())));

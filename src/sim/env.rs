@@ -4,10 +4,10 @@
 //! estimate of the relative pose and the robot's setpoint; an allowed move is executed by the
 //! imperfect robot and predicted by the state filter; the camera captures (possibly while the
 //! robot is still moving, when the move takes longer than the cycle minus the latency); the frame
-//! is fitted and fused into the state; the reward is computed from that state. The outcome is judged on the true pose: success when the
-//! true insertion depth and hole alignment are within tolerance, failure on true contact
-//! (the robot's protective stop), on too many vetoes in a row, on leaving the workspace, or on
-//! running out of steps.
+//! is fitted and fused into the state; the reward is computed from that state. The outcome is
+//! judged on the true pose: success when the true insertion depth and hole alignment are within
+//! tolerance, failure on true contact (the robot's protective stop), on too many vetoes in a row,
+//! on leaving the workspace, or on running out of steps.
 
 use super::reward::{Ending, RewardTerms, RewardTracker};
 use super::robot::TwinRobot;
