@@ -10,6 +10,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+mod cli;
+
 #[derive(Parser)]
 #[command(
     name = "celld",
@@ -28,6 +30,9 @@ enum Command {
     /// Work with hierarchical policy files.
     #[command(subcommand)]
     Policy(PolicyCommand),
+    /// Train the hierarchical policy: demonstrations, BC actors, LSTM selector, TD3.
+    #[command(subcommand)]
+    Train(cli::train::TrainCommand),
 }
 
 #[derive(Subcommand)]
@@ -111,6 +116,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Eval(args) => run_eval(args),
         Command::Policy(PolicyCommand::Run { policy, states }) => run_policy(&policy, &states),
+        Command::Train(command) => cli::train::run(command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -23,6 +23,10 @@ pub struct BcConfig {
     pub batch_size: usize,
     pub learning_rate: f64,
     pub seed: u64,
+    /// Weight of the x and y components in the position actor's loss (z weighs 1). Lateral
+    /// moves during insertion are a few µm beside a millimetre-long z step: unweighted, the
+    /// loss lets their errors through.
+    pub lateral_weight: f64,
 }
 
 impl Default for BcConfig {
@@ -32,6 +36,7 @@ impl Default for BcConfig {
             batch_size: 32,
             learning_rate: 1e-3,
             seed: 0,
+            lateral_weight: 1.0,
         }
     }
 }
@@ -103,8 +108,23 @@ pub fn actor_samples(
 
 /// The paper's BC loss, (1/2N) Σ ‖a − aᵉ‖², of an actor over samples.
 pub fn bc_loss(actor: &ActorNet, samples: &[([f32; 12], [f32; 3])]) -> candle_core::Result<f64> {
+    weighted_loss(actor, samples, [1.0; 3])
+}
+
+/// The BC loss with a weight per output component.
+pub fn weighted_loss(
+    actor: &ActorNet,
+    samples: &[([f32; 12], [f32; 3])],
+    weights: [f32; 3],
+) -> candle_core::Result<f64> {
     let (x, y) = batch(samples, &(0..samples.len()).collect::<Vec<_>>())?;
-    loss(actor, &x, &y)?.to_scalar::<f32>().map(f64::from)
+    loss(actor, &x, &y, &weight_tensor(weights)?)?
+        .to_scalar::<f32>()
+        .map(f64::from)
+}
+
+fn weight_tensor(weights: [f32; 3]) -> candle_core::Result<Tensor> {
+    Tensor::from_slice(&weights, (1, 3), &Device::Cpu)
 }
 
 fn batch(
@@ -123,17 +143,24 @@ fn batch(
     ))
 }
 
-fn loss(actor: &ActorNet, x: &Tensor, y: &Tensor) -> candle_core::Result<Tensor> {
+fn loss(actor: &ActorNet, x: &Tensor, y: &Tensor, w: &Tensor) -> candle_core::Result<Tensor> {
     let n = x.dim(0)? as f64;
-    (actor.forward(x)? - y)?.sqr()?.sum_all()? / (2.0 * n)
+    (actor.forward(x)? - y)?
+        .sqr()?
+        .broadcast_mul(w)?
+        .sum_all()?
+        / (2.0 * n)
 }
 
-/// Trains the actor `{prefix}` (already in `varmap`) on `samples` with SGD; `on_epoch(epoch,
-/// loss)` is called after each epoch with the loss over all samples. Returns the losses.
+/// Trains the actor `{prefix}` (already in `varmap`) on `samples` with SGD, each output
+/// component's error weighted by `weights`; `on_epoch(epoch, loss)` is called after each epoch
+/// with the weighted loss over all samples. Returns the losses.
+#[allow(clippy::too_many_arguments)]
 pub fn train_actor(
     varmap: &VarMap,
     prefix: &str,
     width: usize,
+    weights: [f32; 3],
     samples: &[([f32; 12], [f32; 3])],
     config: &BcConfig,
     on_epoch: &mut dyn FnMut(usize, f64),
@@ -148,15 +175,16 @@ pub fn train_actor(
         config.learning_rate,
     )?;
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let w = weight_tensor(weights)?;
     let mut order: Vec<usize> = (0..samples.len()).collect();
     let mut losses = Vec::with_capacity(config.epochs);
     for epoch in 0..config.epochs {
         order.shuffle(&mut rng);
         for rows in order.chunks(config.batch_size.max(1)) {
             let (x, y) = batch(samples, rows)?;
-            optimizer.backward_step(&loss(&actor, &x, &y)?)?;
+            optimizer.backward_step(&loss(&actor, &x, &y, &w)?)?;
         }
-        let epoch_loss = bc_loss(&actor, samples)?;
+        let epoch_loss = weighted_loss(&actor, samples, weights)?;
         if !epoch_loss.is_finite() {
             candle_core::bail!(
                 "behaviour cloning of `{prefix}` diverged at epoch {epoch} (loss {epoch_loss})"
@@ -195,7 +223,16 @@ mod tests {
                 learning_rate: 0.05,
                 ..BcConfig::default()
             };
-            train_actor(&varmap, "pos", 32, &samples, &config, &mut |_, _| {}).unwrap()
+            train_actor(
+                &varmap,
+                "pos",
+                32,
+                [1.0; 3],
+                &samples,
+                &config,
+                &mut |_, _| {},
+            )
+            .unwrap()
         };
         let losses = run();
         assert!(losses[losses.len() - 1] < 0.5 * losses[0], "{losses:?}");

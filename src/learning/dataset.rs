@@ -2,14 +2,27 @@
 //!
 //! A recorded move Δ (mm or deg, by actor) is split the way the policy composes it
 //! (DESIGN.md §6: move = a · sigmoid(ω3) · step limit):
-//! - the step-size label s = clamp(max|Δᵢ| / (0.9 · limit), 0.02, 0.98), the target of sigmoid(ω3);
+//! - the step-size label s = clamp(max|Δᵢ| / (0.9 · limit), s_min, 0.98), the target of
+//!   sigmoid(ω3);
 //! - the actor's label a = clamp(Δ / (s · limit), −0.95, 0.95), the target of its tanh output.
+//!
+//! The floor s_min decides which network carries the size of small moves. Below it the actor's
+//! label is proportional to the move, a smooth function of the state that an MLP fits well;
+//! above it the actor gives a direction and the selector the size. Orientation moves are short
+//! (≤ 1 deg, proportional to the error), so their scale is held at 0.98 and the orientation
+//! actor learns the whole move; position moves span 5 mm to microns, so their scale follows the
+//! move down to 0.05 (0.25 mm), below which the position actor is proportional.
 //!
 //! The 0.9 keeps the labels off tanh's and the sigmoid's asymptotes, where a squared loss cannot
 //! get to them; a full 5 mm step comes back as 0.95 · 0.98 · 5 = 4.66 mm.
 
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
+
+/// Largest scale label.
+const MAX_SCALE: f64 = 0.98;
+/// Smallest position scale label: moves below 0.05 · 0.9 · limit are the actor's to size.
+const MIN_POSITION_SCALE: f64 = 0.05;
 
 /// Floor of the normalisation σ, so that a constant input does not divide by zero.
 const MIN_STD: f64 = 1e-3;
@@ -62,12 +75,12 @@ pub struct StepLabels {
 
 impl StepLabels {
     pub fn of(step: &DemoStep, limits: &StepLimits) -> Self {
-        let (components, limit) = match step.actor {
-            Actor::Position => (&step.action[0..3], limits.position_mm),
-            Actor::Orientation => (&step.action[3..6], limits.orientation_deg),
+        let (components, limit, min_scale) = match step.actor {
+            Actor::Position => (&step.action[0..3], limits.position_mm, MIN_POSITION_SCALE),
+            Actor::Orientation => (&step.action[3..6], limits.orientation_deg, MAX_SCALE),
         };
         let largest = components.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let scale = (largest / (0.9 * limit)).clamp(0.02, 0.98);
+        let scale = (largest / (0.9 * limit)).clamp(min_scale, MAX_SCALE);
         let direction =
             std::array::from_fn(|i| (components[i] / (scale * limit)).clamp(-0.95, 0.95));
         StepLabels {
@@ -135,7 +148,16 @@ mod tests {
             &step(Actor::Orientation, [0.0, 0.0, 0.0, 0.0, 0.45, 0.0]),
             &LIMITS,
         );
-        assert!((orientation.scale - 0.5).abs() < 1e-12);
+        // Orientation: the scale is held, the actor carries the size (0.45 / 0.98).
+        assert_eq!(orientation.scale, 0.98);
+        assert!((orientation.direction[1] - 0.45 / 0.98).abs() < 1e-12);
+        // A small position move: the scale stops at its floor, the actor is proportional.
+        let fine = StepLabels::of(
+            &step(Actor::Position, [0.01, -0.02, 0.0, 0.0, 0.0, 0.0]),
+            &LIMITS,
+        );
+        assert_eq!(fine.scale, 0.05);
+        assert!((fine.direction[1] + 0.02 / 0.25).abs() < 1e-12);
         assert!((orientation.to_action(&LIMITS)[4] - 0.45).abs() < 1e-12);
     }
 

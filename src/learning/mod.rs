@@ -4,5 +4,7 @@
 pub mod bc;
 pub mod dataset;
 pub mod demos;
+pub mod pipeline;
+pub mod refine;
 pub mod selector;
 pub mod td3;

@@ -12,6 +12,7 @@ use candle_nn::{AdamW, Linear, Module, Optimizer, ParamsAdamW, VarBuilder, VarMa
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+use std::collections::HashMap;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Td3Config {
@@ -184,11 +185,13 @@ pub struct Td3 {
     critic_optimizer: AdamW,
     rng: ChaCha8Rng,
     updates: usize,
+    actor_frozen: bool,
 }
 
 impl Td3 {
     /// A learner with freshly initialised networks. `actor_init`, if given, holds the actor's
-    /// starting weights under `actor.0/2/4` (e.g. from behaviour cloning).
+    /// starting weights under `actor.0/2/4` (e.g. from behaviour cloning); its width is read from
+    /// `actor.0.weight`, and `config.hidden` sizes the critics.
     pub fn new(
         state_dim: usize,
         action_dim: usize,
@@ -197,12 +200,21 @@ impl Td3 {
     ) -> candle_core::Result<Self> {
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
         let h = config.hidden;
-        let actor_vars = match actor_init {
-            Some(vars) => vars,
+        let (actor_vars, actor_width) = match actor_init {
+            Some(vars) => {
+                let width = {
+                    let data = vars.data().lock().expect("var map lock");
+                    let Some(first) = data.get("actor.0.weight") else {
+                        candle_core::bail!("TD3 actor weights have no `actor.0.weight`");
+                    };
+                    first.as_tensor().dim(0)?
+                };
+                (vars, width)
+            }
             None => {
                 let vars = VarMap::new();
                 init_mlp(&vars, "actor", [state_dim, h, h, action_dim], &mut rng)?;
-                vars
+                (vars, h)
             }
         };
         let critic_vars = VarMap::new();
@@ -218,11 +230,17 @@ impl Td3 {
         let critic_target_vars = clone_varmap(&critic_vars)?;
         let device = Device::Cpu;
         let vb = |vars: &VarMap| VarBuilder::from_varmap(vars, DType::F32, &device);
-        let actor = Mlp::load(vb(&actor_vars).pp("actor"), state_dim, h, action_dim, true)?;
+        let actor = Mlp::load(
+            vb(&actor_vars).pp("actor"),
+            state_dim,
+            actor_width,
+            action_dim,
+            true,
+        )?;
         let actor_target = Mlp::load(
             vb(&actor_target_vars).pp("actor"),
             state_dim,
-            h,
+            actor_width,
             action_dim,
             true,
         )?;
@@ -264,7 +282,50 @@ impl Td3 {
             critic_target_vars,
             rng,
             updates: 0,
+            actor_frozen: false,
         })
+    }
+
+    /// While frozen, updates train the critics only (so that they learn the values of a
+    /// pre-trained actor before it is moved by them).
+    pub fn freeze_actor(&mut self, frozen: bool) {
+        self.actor_frozen = frozen;
+    }
+
+    /// Every weight of the learner (online and target networks), for a checkpoint.
+    pub fn checkpoint(&self) -> HashMap<String, Tensor> {
+        let mut out = HashMap::new();
+        for (prefix, vars) in self.var_maps() {
+            let data = vars.data().lock().expect("var map lock");
+            for (name, var) in data.iter() {
+                out.insert(format!("{prefix}{name}"), var.as_tensor().clone());
+            }
+        }
+        out
+    }
+
+    /// Sets every weight from a [`Td3::checkpoint`]; names and shapes must match.
+    pub fn restore(&mut self, tensors: &HashMap<String, Tensor>) -> candle_core::Result<()> {
+        for (prefix, vars) in self.var_maps() {
+            let data = vars.data().lock().expect("var map lock");
+            for (name, var) in data.iter() {
+                let key = format!("{prefix}{name}");
+                let Some(value) = tensors.get(&key) else {
+                    candle_core::bail!("TD3 checkpoint has no `{key}`");
+                };
+                var.set(value)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn var_maps(&self) -> [(&'static str, &VarMap); 4] {
+        [
+            ("online.", &self.actor_vars),
+            ("online.", &self.critic_vars),
+            ("target.", &self.actor_target_vars),
+            ("target.", &self.critic_target_vars),
+        ]
     }
 
     /// The actor's action for a state (no noise).
@@ -345,12 +406,14 @@ impl Td3 {
         self.updates += 1;
         let mut actor_loss = None;
         if self.updates % self.config.policy_delay.max(1) == 0 {
-            let sa = Tensor::cat(&[&s, &self.actor.forward(&s)?], 1)?;
-            let loss = self.critics[0].forward(&sa)?.mean_all()?.neg()?;
-            // Only the actor's variables are in this optimizer: the critic stays as it is.
-            self.actor_optimizer.backward_step(&loss)?;
-            actor_loss = Some(f64::from(loss.to_scalar::<f32>()?));
-            soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
+            if !self.actor_frozen {
+                let sa = Tensor::cat(&[&s, &self.actor.forward(&s)?], 1)?;
+                let loss = self.critics[0].forward(&sa)?.mean_all()?.neg()?;
+                // Only the actor's variables are in this optimizer: the critic stays as it is.
+                self.actor_optimizer.backward_step(&loss)?;
+                actor_loss = Some(f64::from(loss.to_scalar::<f32>()?));
+                soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
+            }
             soft_update(&self.critic_vars, &self.critic_target_vars, self.config.tau)?;
         }
         Ok(Some((critic_loss, actor_loss)))

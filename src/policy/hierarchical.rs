@@ -754,8 +754,13 @@ impl Controller for HierarchicalPolicy {
         HierarchicalPolicy::reset(self);
     }
 
-    /// The policy's move; a step that fails or is not finite holds still (a zero move).
+    /// The policy's move; a step that fails or is not finite holds still (a zero move). Without
+    /// a fresh frame the cell holds still and the LSTM does not advance (the expert's
+    /// demonstrations have no such steps).
     fn act(&mut self, observation: &Observation) -> Decision {
+        if !observation.measurement_fresh {
+            return Decision::hold();
+        }
         match self.step(&observation.state) {
             Ok(out) if out.is_finite() => Decision {
                 action: out.to_move(),

@@ -1,0 +1,3 @@
+//! Subcommands of `celld` beyond `eval` and `policy`.
+
+pub mod train;

@@ -1,0 +1,523 @@
+//! `celld train bc|lstm|td3|all`: the training pipeline over a run directory.
+//!
+//! A run directory holds each stage's output, so a stage is a checkpoint and a run resumes:
+//!
+//! | file | written by |
+//! |---|---|
+//! | `demos.jsonl` | demonstrations (recorded in the twin, or copied from `--demos-file`) |
+//! | `bc.safetensors`, `bc_curve.csv` | `train bc`: both actors and the normaliser |
+//! | `lstm.safetensors`, `lstm_curve.csv`, `bc-policy.safetensors` | `train lstm`: + the selector |
+//! | `td3_checkpoint.safetensors`, `td3_progress.json` | `train td3`, every `--checkpoint-every` episodes |
+//! | `td3_curve.csv`, `td3_curve.json`, `policy.safetensors` | `train td3`: curve, best policy |
+//! | `run.json` | every stage: settings, figures, wall times |
+
+use anyhow::{Context, Result, bail};
+use assembly_cell::config::cell::CellConfig;
+use assembly_cell::learning::bc::BcConfig;
+use assembly_cell::learning::demos::{self, DemoEpisode};
+use assembly_cell::learning::pipeline::{self, step_limits};
+use assembly_cell::learning::refine::{RefineConfig, RefineProgress, Refinement};
+use assembly_cell::learning::selector::SelectorConfig;
+use assembly_cell::policy::Actor;
+use assembly_cell::sim::EnvOptions;
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Subcommand)]
+pub enum TrainCommand {
+    /// Behaviour cloning of the two actors on expert demonstrations (SGD).
+    Bc(TrainArgs),
+    /// The LSTM selector on the expert's choices of actor and step size (Adam); also writes the
+    /// BC policy (no TD3) as bc-policy.safetensors.
+    Lstm(TrainArgs),
+    /// TD3 refinement of the actors in the twin, from the BC actors.
+    Td3(TrainArgs),
+    /// Every stage in turn: demonstrations, bc, lstm, td3.
+    All(TrainArgs),
+}
+
+#[derive(Args, Clone)]
+pub struct TrainArgs {
+    /// Run directory (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue the run in --out: stages whose output is there are skipped, TD3 continues from
+    /// its checkpoint. Without it, a stage refuses to overwrite its output.
+    #[arg(long)]
+    resume: bool,
+    #[arg(long, default_value_t = 2026)]
+    seed: u64,
+    /// Cell file (default: the bundled reference cell).
+    #[arg(long)]
+    cell: Option<PathBuf>,
+    /// Expert episodes to record in the twin.
+    #[arg(long, default_value_t = 400)]
+    demos: usize,
+    /// Read the demonstrations from this JSON Lines file instead of recording them.
+    #[arg(long)]
+    demos_file: Option<PathBuf>,
+    /// Hidden width of each actor (D).
+    #[arg(long, default_value_t = 64)]
+    actor_width: usize,
+    #[arg(long, default_value_t = 60)]
+    bc_epochs: usize,
+    /// BC learning rate (SGD).
+    #[arg(long, default_value_t = 0.02)]
+    bc_lr: f64,
+    /// Weight of the lateral (x, y) components in the position actor's BC loss.
+    #[arg(long, default_value_t = 1.0)]
+    bc_lateral_weight: f64,
+    /// LSTM hidden size (H).
+    #[arg(long, default_value_t = 64)]
+    lstm_hidden: usize,
+    #[arg(long, default_value_t = 60)]
+    lstm_epochs: usize,
+    /// LSTM learning rate (Adam).
+    #[arg(long, default_value_t = 5e-3)]
+    lstm_lr: f64,
+    /// Episodes per LSTM batch.
+    #[arg(long, default_value_t = 8)]
+    lstm_batch: usize,
+    #[arg(long, default_value_t = 500)]
+    td3_episodes: usize,
+    /// Start TD3 from freshly initialised actors instead of the BC actors.
+    #[arg(long)]
+    no_bc_init: bool,
+    /// Validate (and keep the best policy) every this many TD3 episodes.
+    #[arg(long, default_value_t = 50)]
+    eval_every: usize,
+    #[arg(long, default_value_t = 200)]
+    eval_episodes: usize,
+    #[arg(long, default_value_t = 50)]
+    checkpoint_every: usize,
+}
+
+const DEMOS: &str = "demos.jsonl";
+const BC: &str = "bc.safetensors";
+const LSTM: &str = "lstm.safetensors";
+const BC_POLICY: &str = "bc-policy.safetensors";
+const TD3_CHECKPOINT: &str = "td3_checkpoint.safetensors";
+const TD3_PROGRESS: &str = "td3_progress.json";
+const POLICY: &str = "policy.safetensors";
+
+pub fn run(command: TrainCommand) -> Result<()> {
+    let (args, stages): (TrainArgs, &[Stage]) = match command {
+        TrainCommand::Bc(a) => (a, &[Stage::Bc]),
+        TrainCommand::Lstm(a) => (a, &[Stage::Lstm]),
+        TrainCommand::Td3(a) => (a, &[Stage::Td3]),
+        TrainCommand::All(a) => (a, &[Stage::Bc, Stage::Lstm, Stage::Td3]),
+    };
+    let run = Run::open(args)?;
+    for stage in stages {
+        run.stage(*stage)?;
+    }
+    Ok(())
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Stage {
+    Bc,
+    Lstm,
+    Td3,
+}
+
+struct Run {
+    args: TrainArgs,
+    cell: CellConfig,
+    options: EnvOptions,
+}
+
+impl Run {
+    /// Checks every setting before any work starts.
+    fn open(args: TrainArgs) -> Result<Self> {
+        let cell = match &args.cell {
+            Some(path) => CellConfig::load(path)?,
+            None => CellConfig::reference(),
+        };
+        let positive = [
+            ("--actor-width", args.actor_width),
+            ("--bc-epochs", args.bc_epochs),
+            ("--lstm-hidden", args.lstm_hidden),
+            ("--lstm-epochs", args.lstm_epochs),
+            ("--lstm-batch", args.lstm_batch),
+            ("--eval-episodes", args.eval_episodes),
+            ("--checkpoint-every", args.checkpoint_every),
+        ];
+        for (name, value) in positive {
+            if value == 0 {
+                bail!("{name} must be at least 1");
+            }
+        }
+        if args.demos_file.is_none() && args.demos < 10 {
+            bail!(
+                "--demos must be at least 10 (a tenth is held out to check the selector), got {}",
+                args.demos
+            );
+        }
+        for (name, lr) in [
+            ("--bc-lr", args.bc_lr),
+            ("--lstm-lr", args.lstm_lr),
+            ("--bc-lateral-weight", args.bc_lateral_weight),
+        ] {
+            if !(lr.is_finite() && lr > 0.0) {
+                bail!("{name} must be a finite number > 0, got {lr}");
+            }
+        }
+        if let Some(path) = &args.demos_file
+            && !path.is_file()
+        {
+            bail!("--demos-file {}: no such file", path.display());
+        }
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
+        let options = EnvOptions::from_cell(&cell);
+        Ok(Run {
+            args,
+            cell,
+            options,
+        })
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.args.out.join(name)
+    }
+
+    /// Whether a stage whose output is `name` should run: not if it exists and --resume is on;
+    /// an error if it exists without --resume.
+    fn should_run(&self, name: &str) -> Result<bool> {
+        if !self.path(name).exists() {
+            return Ok(true);
+        }
+        if self.args.resume {
+            eprintln!(
+                "{}: already there, kept (--resume)",
+                self.path(name).display()
+            );
+            return Ok(false);
+        }
+        bail!(
+            "{} exists; pass --resume to continue that run, or choose another --out",
+            self.path(name).display()
+        )
+    }
+
+    fn needs(&self, name: &str, stage: &str) -> Result<PathBuf> {
+        let path = self.path(name);
+        if !path.is_file() {
+            bail!(
+                "{} is missing: run `celld train {stage} --out {}` first",
+                path.display(),
+                self.args.out.display()
+            );
+        }
+        Ok(path)
+    }
+
+    fn stage(&self, stage: Stage) -> Result<()> {
+        match stage {
+            Stage::Bc => self.bc(),
+            Stage::Lstm => self.lstm(),
+            Stage::Td3 => self.td3(),
+        }
+    }
+
+    /// The demonstrations, recorded (and saved) on first use; a tenth held out.
+    fn demos(&self) -> Result<(Vec<DemoEpisode>, Vec<DemoEpisode>)> {
+        let path = self.path(DEMOS);
+        if !path.exists() {
+            match &self.args.demos_file {
+                Some(from) => {
+                    std::fs::copy(from, &path).with_context(|| {
+                        format!("copying --demos-file {} into the run", from.display())
+                    })?;
+                }
+                None => {
+                    let started = Instant::now();
+                    eprintln!("recording {} expert demonstrations…", self.args.demos);
+                    let episodes = demos::record_expert(
+                        &self.cell,
+                        self.options,
+                        self.args.demos,
+                        self.args.seed,
+                    );
+                    let mut file = std::io::BufWriter::new(std::fs::File::create(&path)?);
+                    demos::write_jsonl(&episodes, &mut file)?;
+                    file.flush()?;
+                    self.note("demos", started, json!({"episodes": episodes.len()}))?;
+                }
+            }
+        }
+        let file = std::fs::File::open(&path)?;
+        let mut episodes = demos::read_jsonl(std::io::BufReader::new(file))
+            .with_context(|| format!("{}", path.display()))?;
+        episodes.retain(|e| !e.steps.is_empty());
+        if episodes.len() < 10 {
+            bail!(
+                "{}: {} demonstrated episodes, at least 10 are needed",
+                path.display(),
+                episodes.len()
+            );
+        }
+        let held_out = episodes.split_off(episodes.len() - episodes.len() / 10);
+        Ok((episodes, held_out))
+    }
+
+    fn bc(&self) -> Result<()> {
+        if !self.should_run(BC)? {
+            return Ok(());
+        }
+        let (train, _) = self.demos()?;
+        let started = Instant::now();
+        let config = BcConfig {
+            epochs: self.args.bc_epochs,
+            learning_rate: self.args.bc_lr,
+            seed: self.args.seed,
+            lateral_weight: self.args.bc_lateral_weight,
+            ..BcConfig::default()
+        };
+        let bar = bar(2 * config.epochs as u64, "bc");
+        let mut curve = String::from("actor,epoch,loss\n");
+        let mut last = BTreeMap::new();
+        let varmap = pipeline::behaviour_clone(
+            &train,
+            &step_limits(&self.cell),
+            self.args.actor_width,
+            &config,
+            &mut |actor, epoch, loss| {
+                let name = actor_name(actor);
+                curve.push_str(&format!("{name},{epoch},{loss}\n"));
+                last.insert(name, loss);
+                bar.set_message(format!("{name} loss {loss:.4}"));
+                bar.inc(1);
+            },
+        )
+        .context("behaviour cloning (no checkpoint written)")?;
+        bar.finish_and_clear();
+        std::fs::write(self.path("bc_curve.csv"), curve)?;
+        pipeline::save_vars(&varmap, &self.path(BC))?;
+        self.note(
+            "bc",
+            started,
+            json!({"final_loss": last, "config": format!("{config:?}")}),
+        )
+    }
+
+    fn lstm(&self) -> Result<()> {
+        if !self.should_run(LSTM)? {
+            return Ok(());
+        }
+        let varmap = pipeline::load_vars(&self.needs(BC, "bc")?)?;
+        let (train, held_out) = self.demos()?;
+        let started = Instant::now();
+        let config = SelectorConfig {
+            hidden_size: self.args.lstm_hidden,
+            epochs: self.args.lstm_epochs,
+            batch_size: self.args.lstm_batch,
+            learning_rate: self.args.lstm_lr,
+            seed: self.args.seed,
+        };
+        let bar = bar(config.epochs as u64, "lstm");
+        let mut curve = String::from("epoch,loss\n");
+        let limits = step_limits(&self.cell);
+        let report = pipeline::train_lstm(
+            &varmap,
+            &train,
+            &held_out,
+            &limits,
+            &config,
+            &mut |epoch, loss| {
+                curve.push_str(&format!("{epoch},{loss}\n"));
+                bar.set_message(format!("loss {loss:.4}"));
+                bar.inc(1);
+            },
+        )
+        .context("LSTM selector training (no checkpoint written)")?;
+        bar.finish_and_clear();
+        std::fs::write(self.path("lstm_curve.csv"), curve)?;
+        pipeline::save_vars(&varmap, &self.path(LSTM))?;
+        let file = pipeline::policy_file(&varmap, &limits, &self.provenance("bc"))?;
+        file.save(self.path(BC_POLICY))?;
+        eprintln!(
+            "selector: held-out agreement with the expert's actor choice {:.4}",
+            report.held_out_agreement
+        );
+        self.note(
+            "lstm",
+            started,
+            json!({
+                "held_out_agreement": report.held_out_agreement,
+                "final_loss": report.losses.last(),
+                "config": format!("{config:?}"),
+            }),
+        )
+    }
+
+    fn td3(&self) -> Result<()> {
+        let checkpoint = self.path(TD3_CHECKPOINT);
+        let progress_path = self.path(TD3_PROGRESS);
+        let resuming = self.args.resume && checkpoint.is_file() && progress_path.is_file();
+        if !resuming && !self.should_run(POLICY)? {
+            return Ok(());
+        }
+        if !resuming && checkpoint.exists() {
+            bail!(
+                "{} exists; pass --resume to continue it, or choose another --out",
+                checkpoint.display()
+            );
+        }
+        let varmap = pipeline::load_vars(&self.needs(LSTM, "lstm")?)?;
+        let config = RefineConfig {
+            episodes: self.args.td3_episodes,
+            eval_every: self.args.eval_every,
+            eval_episodes: self.args.eval_episodes,
+            ..RefineConfig::default()
+        };
+        let mut refinement = Refinement::new(
+            &self.cell,
+            self.options,
+            varmap,
+            config,
+            !self.args.no_bc_init,
+            self.args.seed,
+        )?;
+        if resuming {
+            let tensors = candle_core::safetensors::load(&checkpoint, &candle_core::Device::Cpu)?;
+            let progress: RefineProgress = serde_json::from_slice(&std::fs::read(&progress_path)?)
+                .with_context(|| format!("{}", progress_path.display()))?;
+            refinement.restore(&tensors, progress)?;
+            eprintln!("resuming TD3 at episode {}", refinement.episode());
+        }
+        let started = Instant::now();
+        let bar = bar(config.episodes as u64, "td3");
+        bar.set_position(refinement.episode() as u64);
+        if refinement.validations().is_empty() {
+            refinement.validate()?;
+        }
+        while refinement.episode() < config.episodes {
+            let record = match refinement.train_episode() {
+                Ok(record) => record,
+                Err(error) => bail!(
+                    "TD3 diverged at episode {}: {error}; the last good checkpoint is {}",
+                    refinement.episode(),
+                    checkpoint.display()
+                ),
+            };
+            bar.inc(1);
+            let done = refinement.episode();
+            if config.eval_every > 0 && done % config.eval_every == 0 {
+                let v = refinement.validate()?;
+                bar.set_message(format!(
+                    "validation success {:.3}, steps {:.1}",
+                    v.success_rate,
+                    v.avg_steps.unwrap_or(f64::NAN)
+                ));
+            } else if done % 10 == 0 {
+                bar.set_message(format!(
+                    "episode return {:.1}, steps {}",
+                    record.return_, record.steps
+                ));
+            }
+            if done % self.args.checkpoint_every == 0 || done == config.episodes {
+                let (tensors, progress) = refinement.checkpoint()?;
+                let partial = checkpoint.with_extension("partial");
+                candle_core::safetensors::save(&tensors, &partial)?;
+                std::fs::rename(&partial, &checkpoint)?;
+                std::fs::write(&progress_path, serde_json::to_vec(&progress)?)?;
+            }
+        }
+        if refinement.validations().last().map(|v| v.episode) != Some(config.episodes) {
+            refinement.validate()?;
+        }
+        bar.finish_and_clear();
+        self.write_curve(&refinement)?;
+        let (best, vars) = refinement.best();
+        let limits = step_limits(&self.cell);
+        pipeline::policy_file(vars, &limits, &self.provenance("hierarchical"))?
+            .save(self.path(POLICY))?;
+        if let Some(best) = best {
+            eprintln!(
+                "TD3: best validation at episode {}: success {:.3}, avg steps {:.2}",
+                best.episode,
+                best.success_rate,
+                best.avg_steps.unwrap_or(f64::NAN)
+            );
+        }
+        self.note(
+            "td3",
+            started,
+            json!({"best": best, "validations": refinement.validations()}),
+        )
+    }
+
+    fn write_curve(&self, refinement: &Refinement) -> Result<()> {
+        let mut csv = String::from("episode,return,success,steps\n");
+        for r in refinement.curve() {
+            csv.push_str(&format!(
+                "{},{},{},{}\n",
+                r.episode,
+                r.return_,
+                u8::from(r.success),
+                r.steps
+            ));
+        }
+        std::fs::write(self.path("td3_curve.csv"), csv)?;
+        std::fs::write(
+            self.path("td3_curve.json"),
+            serde_json::to_vec_pretty(&json!({
+                "episodes": refinement.curve(),
+                "validations": refinement.validations(),
+            }))?,
+        )?;
+        Ok(())
+    }
+
+    fn provenance(&self, kind: &str) -> BTreeMap<String, String> {
+        BTreeMap::from([
+            ("policy".to_string(), kind.to_string()),
+            ("seed".to_string(), self.args.seed.to_string()),
+            ("cell".to_string(), self.cell.name.clone()),
+            (
+                "trained_by".to_string(),
+                format!("celld {}", env!("CARGO_PKG_VERSION")),
+            ),
+        ])
+    }
+
+    /// Adds a stage's figures and wall time to run.json.
+    fn note(&self, stage: &str, started: Instant, figures: Value) -> Result<()> {
+        let path = self.path("run.json");
+        let mut run: Value = match std::fs::read(&path) {
+            Ok(bytes) => serde_json::from_slice(&bytes).unwrap_or_else(|_| json!({})),
+            Err(_) => json!({}),
+        };
+        run["seed"] = json!(self.args.seed);
+        run["cell"] = json!(self.cell.name);
+        run[stage] = json!({"wall_s": started.elapsed().as_secs_f64(), "figures": figures});
+        std::fs::write(&path, serde_json::to_vec_pretty(&run)?)?;
+        eprintln!("{stage}: {:.1} s", started.elapsed().as_secs_f64());
+        Ok(())
+    }
+}
+
+fn actor_name(actor: Actor) -> &'static str {
+    match actor {
+        Actor::Position => "position",
+        Actor::Orientation => "orientation",
+    }
+}
+
+fn bar(len: u64, stage: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template(&format!(
+            "{stage:>4} {{bar:30}} {{pos}}/{{len}} {{elapsed}} (eta {{eta}}) {{msg}}"
+        ))
+        .expect("valid template"),
+    );
+    bar
+}

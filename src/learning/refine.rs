@@ -1,0 +1,479 @@
+//! TD3 refinement of the hierarchy in the twin (paper §3.3, Algorithm 3): the LSTM selector is
+//! fixed; each actor is one TD3 agent that starts from its BC weights and learns from the steps
+//! it took, with its local reward (position agent: λg·R_g + λP·r_P + λerr·r_err + step penalty;
+//! orientation agent: the same with λO·r_O).
+//!
+//! The moves are the policy file's forward pass with Gaussian exploration noise on the acting
+//! actor's tanh output. Updates run after each episode, one per step the agent took (TD3's one
+//! update per environment step). The policy is evaluated every `eval_every` episodes on
+//! validation episodes (seeds disjoint from the report's) and the best one is kept.
+
+use super::pipeline::{actor_prefix, normaliser_of};
+use super::td3::{ReplayBuffer, Td3, Td3Config, Transition};
+use crate::config::cell::CellConfig;
+use crate::policy::Actor;
+use crate::policy::eval::{self, EvalSummary, episode_seed};
+use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig};
+use crate::sim::{AssemblyEnv, EnvOptions, Outcome, RewardTerms};
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+/// Refinement settings. TD3's own defaults are Table 1's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RefineConfig {
+    pub episodes: usize,
+    pub td3: Td3Config,
+    /// Episodes at the start during which only the critics learn (the actors are frozen), so
+    /// that the first actor updates follow a critic that knows the BC policy's values.
+    pub critic_warmup_episodes: usize,
+    /// Evaluate (and keep the best policy) every this many episodes; 0: only at the end.
+    pub eval_every: usize,
+    pub eval_episodes: usize,
+    /// Seed of the validation episodes.
+    pub eval_seed: u64,
+}
+
+impl Default for RefineConfig {
+    fn default() -> Self {
+        RefineConfig {
+            episodes: 500,
+            td3: Td3Config {
+                hidden: 128,
+                ..Td3Config::default()
+            },
+            critic_warmup_episodes: 20,
+            eval_every: 50,
+            eval_episodes: 200,
+            eval_seed: 0x7A11_DA7E,
+        }
+    }
+}
+
+/// One training episode, as the learning curve records it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRecord {
+    pub episode: usize,
+    #[serde(rename = "return")]
+    pub return_: f64,
+    pub success: bool,
+    pub steps: u32,
+}
+
+/// One validation of the policy during refinement.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ValidationRecord {
+    /// Training episodes done before it.
+    pub episode: usize,
+    pub success_rate: f64,
+    pub avg_steps: Option<f64>,
+}
+
+impl ValidationRecord {
+    /// Higher is better: success first, then fewer steps.
+    fn score(&self) -> (f64, f64) {
+        (self.success_rate, -self.avg_steps.unwrap_or(f64::INFINITY))
+    }
+}
+
+/// The local reward of an actor's agent.
+pub fn local_reward(actor: Actor, terms: &RewardTerms) -> f64 {
+    let own = match actor {
+        Actor::Position => terms.position,
+        Actor::Orientation => terms.orientation,
+    };
+    terms.global + own + terms.error + terms.step
+}
+
+/// A refinement in progress.
+pub struct Refinement {
+    cell: CellConfig,
+    options: EnvOptions,
+    config: RefineConfig,
+    /// The whole policy; the actors' weights are copied in from the agents before each use.
+    policy_vars: VarMap,
+    policy_config: PolicyConfig,
+    agents: [Td3; 2],
+    buffers: [ReplayBuffer; 2],
+    env: AssemblyEnv,
+    rng: ChaCha8Rng,
+    episode: usize,
+    curve: Vec<EpisodeRecord>,
+    validations: Vec<ValidationRecord>,
+    best: Option<(ValidationRecord, VarMap)>,
+    seed: u64,
+}
+
+fn agent_index(actor: Actor) -> usize {
+    match actor {
+        Actor::Position => 0,
+        Actor::Orientation => 1,
+    }
+}
+
+const ACTORS: [Actor; 2] = [Actor::Position, Actor::Orientation];
+
+impl Refinement {
+    /// Starts from a policy's weights (`policy_vars`: every tensor of a policy file). With
+    /// `from_bc` false the actors are re-initialised (TD3 without behaviour cloning).
+    pub fn new(
+        cell: &CellConfig,
+        options: EnvOptions,
+        policy_vars: VarMap,
+        config: RefineConfig,
+        from_bc: bool,
+        seed: u64,
+    ) -> candle_core::Result<Self> {
+        let policy_config = {
+            let data = policy_vars.data().lock().expect("var map lock");
+            let dim = |name: &str, axis: usize| -> candle_core::Result<usize> {
+                data.get(name)
+                    .ok_or_else(|| candle_core::Error::Msg(format!("policy has no `{name}`")))?
+                    .as_tensor()
+                    .dim(axis)
+            };
+            PolicyConfig {
+                hidden_size: dim("high.lstm.weight_hh_l0", 1)?,
+                actor_width: dim("pos.0.weight", 0)?,
+                step_limit_mm: cell.steps.position_mm,
+                step_limit_deg: cell.steps.orientation_deg,
+            }
+        };
+        let mut agents = Vec::with_capacity(2);
+        for (k, actor) in ACTORS.into_iter().enumerate() {
+            let td3 = Td3Config {
+                seed: seed.wrapping_add(k as u64 + 1),
+                ..config.td3
+            };
+            let init = from_bc
+                .then(|| rename(&policy_vars, actor_prefix(actor), "actor"))
+                .transpose()?;
+            let mut agent = Td3::new(12, 3, td3, init)?;
+            agent.freeze_actor(config.critic_warmup_episodes > 0);
+            agents.push(agent);
+        }
+        let agents: [Td3; 2] = agents.try_into().map_err(|_| unreachable_agents())?;
+        let refinement = Refinement {
+            cell: cell.clone(),
+            options,
+            config,
+            policy_config,
+            buffers: [
+                ReplayBuffer::new(config.td3.replay_capacity),
+                ReplayBuffer::new(config.td3.replay_capacity),
+            ],
+            env: AssemblyEnv::new(cell, options),
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            episode: 0,
+            curve: Vec::new(),
+            validations: Vec::new(),
+            best: None,
+            seed,
+            agents,
+            policy_vars,
+        };
+        refinement.sync_actors()?;
+        Ok(refinement)
+    }
+
+    pub fn config(&self) -> &RefineConfig {
+        &self.config
+    }
+
+    /// Training episodes done.
+    pub fn episode(&self) -> usize {
+        self.episode
+    }
+
+    pub fn curve(&self) -> &[EpisodeRecord] {
+        &self.curve
+    }
+
+    pub fn validations(&self) -> &[ValidationRecord] {
+        &self.validations
+    }
+
+    /// The best validated policy so far (and its validation), else the current one.
+    pub fn best(&self) -> (Option<ValidationRecord>, &VarMap) {
+        match &self.best {
+            Some((record, vars)) => (Some(*record), vars),
+            None => (None, &self.policy_vars),
+        }
+    }
+
+    /// Copies each agent's actor into the policy's weights.
+    fn sync_actors(&self) -> candle_core::Result<()> {
+        let policy = self.policy_vars.data().lock().expect("var map lock");
+        for actor in ACTORS {
+            let agent = self.agents[agent_index(actor)].actor_vars();
+            let data = agent.data().lock().expect("var map lock");
+            for (name, var) in data.iter() {
+                let target = name.replacen("actor", actor_prefix(actor), 1);
+                policy[&target].set(var.as_tensor())?;
+            }
+        }
+        Ok(())
+    }
+
+    fn policy(&self) -> candle_core::Result<HierarchicalPolicy> {
+        policy_from_vars(&self.policy_vars, &self.policy_config)
+    }
+
+    /// Runs one training episode with exploration, then the agents' updates.
+    pub fn train_episode(&mut self) -> candle_core::Result<EpisodeRecord> {
+        let warm = self.episode >= self.config.critic_warmup_episodes;
+        for agent in &mut self.agents {
+            agent.freeze_actor(!warm);
+        }
+        let normaliser = normaliser_of(&self.policy_vars)?;
+        let mut policy = self.policy()?;
+        let seed = episode_seed(self.seed ^ 0x7D3, self.episode);
+        let mut observation = self
+            .env
+            .reset(seed)
+            .map_err(|e| candle_core::Error::Msg(format!("twin reset failed: {e}")))?;
+        let sigma = self.config.td3.exploration_noise;
+        let mut pending: Option<(Actor, [f32; 12], [f32; 3], f64)> = None;
+        let mut taken = [0usize; 2];
+        let mut return_ = 0.0;
+        let (success, steps) = loop {
+            let mut action = [0.0f64; 6];
+            if observation.measurement_fresh {
+                let x = normaliser.apply(&observation.state);
+                if let Some((actor, s, a, r)) = pending.take() {
+                    self.buffers[agent_index(actor)].push(transition(s, a, r, x, false));
+                }
+                let out = policy.step(&observation.state)?;
+                if !out.is_finite() {
+                    candle_core::bail!(
+                        "the policy's output is not finite at episode {}",
+                        self.episode
+                    );
+                }
+                let (offset, limit) = match out.actor {
+                    Actor::Position => (0, self.policy_config.step_limit_mm),
+                    Actor::Orientation => (3, self.policy_config.step_limit_deg),
+                };
+                let span = f64::from(out.scale) * limit;
+                let mut a = [0f32; 3];
+                for i in 0..3 {
+                    let clean = if span > 0.0 {
+                        out.action[offset + i] / span
+                    } else {
+                        0.0
+                    };
+                    let noise: f64 = self.rng.sample(StandardNormal);
+                    a[i] = (clean + sigma * noise).clamp(-1.0, 1.0) as f32;
+                    action[offset + i] = f64::from(a[i]) * span;
+                }
+                taken[agent_index(out.actor)] += 1;
+                pending = Some((out.actor, x, a, 0.0));
+            }
+            let result = self
+                .env
+                .step(&crate::geometry::Move::from_array(action))
+                .map_err(|e| candle_core::Error::Msg(format!("twin step failed: {e}")))?;
+            return_ += result.reward.total;
+            if let Some((actor, _, _, r)) = pending.as_mut() {
+                *r += local_reward(*actor, &result.reward);
+            }
+            if let Some(outcome) = result.outcome {
+                if let Some((actor, s, a, r)) = pending.take() {
+                    let x = normaliser.apply(&result.observation.state);
+                    self.buffers[agent_index(actor)].push(transition(s, a, r, x, true));
+                }
+                break (outcome == Outcome::Success, self.env.steps());
+            }
+            observation = result.observation;
+        };
+        for (k, agent) in self.agents.iter_mut().enumerate() {
+            for _ in 0..taken[k] {
+                agent.update(&self.buffers[k])?;
+            }
+        }
+        self.sync_actors()?;
+        let record = EpisodeRecord {
+            episode: self.episode,
+            return_,
+            success,
+            steps,
+        };
+        self.curve.push(record);
+        self.episode += 1;
+        Ok(record)
+    }
+
+    /// Evaluates the current policy on the validation episodes and keeps it if it is the best.
+    pub fn validate(&mut self) -> candle_core::Result<ValidationRecord> {
+        let summary = evaluate_vars(
+            &self.cell,
+            self.options,
+            &self.policy_vars,
+            &self.policy_config,
+            self.config.eval_episodes,
+            self.config.eval_seed,
+        )?;
+        let record = ValidationRecord {
+            episode: self.episode,
+            success_rate: summary.success_rate,
+            avg_steps: summary.avg_steps,
+        };
+        self.validations.push(record);
+        let better = match &self.best {
+            None => true,
+            Some((best, _)) => record.score() > best.score(),
+        };
+        if better {
+            self.best = Some((record, copy_vars(&self.policy_vars)?));
+        }
+        Ok(record)
+    }
+
+    /// Everything needed to resume: the policy, the best policy, both agents' networks.
+    pub fn checkpoint(&self) -> candle_core::Result<(HashMap<String, Tensor>, RefineProgress)> {
+        let mut tensors = HashMap::new();
+        for (prefix, vars) in [("policy.", &self.policy_vars), ("best.", self.best().1)] {
+            let data = vars.data().lock().expect("var map lock");
+            for (name, var) in data.iter() {
+                tensors.insert(format!("{prefix}{name}"), var.as_tensor().clone());
+            }
+        }
+        for (k, agent) in self.agents.iter().enumerate() {
+            for (name, tensor) in agent.checkpoint() {
+                tensors.insert(format!("agent{k}.{name}"), tensor);
+            }
+        }
+        let progress = RefineProgress {
+            episode: self.episode,
+            curve: self.curve.clone(),
+            validations: self.validations.clone(),
+            best: self.best.as_ref().map(|(r, _)| *r),
+        };
+        Ok((tensors, progress))
+    }
+
+    /// Continues from a [`Refinement::checkpoint`]. The replay buffers start empty (they are
+    /// not saved) and the exploration noise is re-seeded from the episode reached.
+    pub fn restore(
+        &mut self,
+        tensors: &HashMap<String, Tensor>,
+        progress: RefineProgress,
+    ) -> candle_core::Result<()> {
+        let take = |prefix: &str| -> HashMap<String, Tensor> {
+            tensors
+                .iter()
+                .filter_map(|(k, v)| k.strip_prefix(prefix).map(|n| (n.to_string(), v.clone())))
+                .collect()
+        };
+        set_vars(&self.policy_vars, &take("policy."))?;
+        for (k, agent) in self.agents.iter_mut().enumerate() {
+            agent.restore(&take(&format!("agent{k}.")))?;
+        }
+        self.best = match progress.best {
+            Some(record) => {
+                let vars = copy_vars(&self.policy_vars)?;
+                set_vars(&vars, &take("best."))?;
+                Some((record, vars))
+            }
+            None => None,
+        };
+        self.episode = progress.episode;
+        self.curve = progress.curve;
+        self.validations = progress.validations;
+        self.rng = ChaCha8Rng::seed_from_u64(self.seed ^ self.episode as u64);
+        self.sync_actors()
+    }
+}
+
+/// The bookkeeping half of a refinement checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RefineProgress {
+    pub episode: usize,
+    pub curve: Vec<EpisodeRecord>,
+    pub validations: Vec<ValidationRecord>,
+    pub best: Option<ValidationRecord>,
+}
+
+fn transition(s: [f32; 12], a: [f32; 3], r: f64, next: [f32; 12], done: bool) -> Transition {
+    Transition {
+        state: s.to_vec(),
+        action: a.to_vec(),
+        reward: r as f32,
+        next_state: next.to_vec(),
+        done,
+    }
+}
+
+fn unreachable_agents() -> candle_core::Error {
+    candle_core::Error::Msg("two agents expected".into())
+}
+
+/// The tensors `{from}.*` of `vars`, renamed `{to}.*`, in a new map.
+fn rename(vars: &VarMap, from: &str, to: &str) -> candle_core::Result<VarMap> {
+    let out = VarMap::new();
+    {
+        let source = vars.data().lock().expect("var map lock");
+        let mut target = out.data().lock().expect("var map lock");
+        for (name, var) in source.iter() {
+            if let Some(rest) = name.strip_prefix(&format!("{from}.")) {
+                target.insert(
+                    format!("{to}.{rest}"),
+                    Var::from_tensor(&var.as_tensor().copy()?)?,
+                );
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn copy_vars(vars: &VarMap) -> candle_core::Result<VarMap> {
+    let out = VarMap::new();
+    {
+        let source = vars.data().lock().expect("var map lock");
+        let mut target = out.data().lock().expect("var map lock");
+        for (name, var) in source.iter() {
+            target.insert(name.clone(), Var::from_tensor(&var.as_tensor().copy()?)?);
+        }
+    }
+    Ok(out)
+}
+
+fn set_vars(vars: &VarMap, tensors: &HashMap<String, Tensor>) -> candle_core::Result<()> {
+    let data = vars.data().lock().expect("var map lock");
+    for (name, var) in data.iter() {
+        let Some(value) = tensors.get(name) else {
+            candle_core::bail!("checkpoint has no `{name}`");
+        };
+        var.set(value)?;
+    }
+    Ok(())
+}
+
+/// A runnable policy from a `VarMap` of policy-file tensors.
+pub fn policy_from_vars(
+    vars: &VarMap,
+    config: &PolicyConfig,
+) -> candle_core::Result<HierarchicalPolicy> {
+    HierarchicalPolicy::load(
+        VarBuilder::from_varmap(vars, DType::F32, &Device::Cpu),
+        config,
+    )
+}
+
+/// Evaluates a policy held in a `VarMap` (all cores).
+pub fn evaluate_vars(
+    cell: &CellConfig,
+    options: EnvOptions,
+    vars: &VarMap,
+    config: &PolicyConfig,
+    episodes: usize,
+    seed: u64,
+) -> candle_core::Result<EvalSummary> {
+    let policy = policy_from_vars(vars, config)?;
+    let factory: crate::policy::ControllerFactory = Box::new(move || Box::new(policy.clone()));
+    Ok(eval::evaluate(cell, options, episodes, seed, &factory, &|_| {}).0)
+}
