@@ -33,6 +33,8 @@ enum Command {
     /// Train the hierarchical policy: demonstrations, BC actors, LSTM selector, TD3.
     #[command(subcommand)]
     Train(cli::train::TrainCommand),
+    /// Reproduce the structure of the paper's Tables 2–6 and Fig. 7 on the twin.
+    Report(cli::report::ReportArgs),
 }
 
 #[derive(Subcommand)]
@@ -117,6 +119,7 @@ fn main() -> ExitCode {
         Command::Eval(args) => run_eval(args),
         Command::Policy(PolicyCommand::Run { policy, states }) => run_policy(&policy, &states),
         Command::Train(command) => cli::train::run(command),
+        Command::Report(args) => cli::report::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

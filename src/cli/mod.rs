@@ -1,3 +1,5 @@
 //! Subcommands of `celld` beyond `eval` and `policy`.
 
+pub mod report;
+pub mod svg;
 pub mod train;

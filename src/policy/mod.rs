@@ -63,6 +63,27 @@ pub trait Controller: Send {
 /// The controllers that need no learning, by name.
 pub const BUILTIN_CONTROLLERS: [&str; 4] = ["expert", "visual-servo", "spiral", "da-dmp"];
 
+/// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3, the default policy)
+/// and `bc` (the same BC actors and selector without TD3). Made by `celld train all`; see the
+/// README.
+pub const LEARNED_CONTROLLERS: [&str; 2] = ["hierarchical", "bc"];
+
+/// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
+pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
+    match name {
+        "hierarchical" => Some(include_bytes!("../../policies/default.safetensors")),
+        "bc" => Some(include_bytes!("../../policies/bc.safetensors")),
+        _ => None,
+    }
+}
+
+fn load_bundled(name: &str) -> Option<hierarchical::HierarchicalPolicy> {
+    let bytes = bundled_policy(name)?;
+    let file = file::PolicyFile::from_bytes(bytes).expect("bundled policies are valid");
+    let policy = hierarchical::HierarchicalPolicy::from_file(&file).expect("bundled policy loads");
+    Some(policy.with_name(name))
+}
+
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("unknown controller `{name}`; known: {known}")]
 pub struct UnknownController {
@@ -73,23 +94,31 @@ pub struct UnknownController {
 /// Builds a built-in controller for `cell` by name.
 pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, UnknownController> {
     check_known(name)?;
+    if let Some(policy) = load_bundled(name) {
+        return Ok(Box::new(policy));
+    }
     match name {
         "expert" => Ok(Box::new(expert::Expert::new(cell))),
         "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
         "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
         "da-dmp" => Ok(Box::new(dmp::default_dmp(cell))),
-        _ => unreachable!("check_known lets only BUILTIN_CONTROLLERS through"),
+        _ => unreachable!("check_known lets only known names through"),
     }
 }
 
-/// Refuses a name that is not one of [`BUILTIN_CONTROLLERS`], without building anything.
+/// Refuses a name that is not one of [`BUILTIN_CONTROLLERS`] or [`LEARNED_CONTROLLERS`],
+/// without building anything.
 fn check_known(name: &str) -> Result<(), UnknownController> {
-    if BUILTIN_CONTROLLERS.contains(&name) {
+    if BUILTIN_CONTROLLERS.contains(&name) || LEARNED_CONTROLLERS.contains(&name) {
         Ok(())
     } else {
         Err(UnknownController {
             name: name.to_string(),
-            known: BUILTIN_CONTROLLERS.join(", "),
+            known: format!(
+                "{}, {}",
+                BUILTIN_CONTROLLERS.join(", "),
+                LEARNED_CONTROLLERS.join(", ")
+            ),
         })
     }
 }
@@ -106,6 +135,9 @@ pub fn builtin_factory(
     if name == "da-dmp" {
         let fitted = dmp::default_dmp(cell);
         return Ok(Box::new(move || Box::new(fitted.clone())));
+    }
+    if let Some(policy) = load_bundled(name) {
+        return Ok(Box::new(move || Box::new(policy.clone())));
     }
     let (name, cell) = (name.to_string(), cell.clone());
     Ok(Box::new(move || {

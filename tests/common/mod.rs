@@ -10,6 +10,7 @@ pub fn celld(args: &[&str]) -> Output {
 }
 
 /// The JSON object `--json` prints as the last line of stdout.
+#[allow(dead_code)] // not every test binary that includes this module uses it
 pub fn last_json(output: &Output) -> serde_json::Value {
     let stdout = String::from_utf8_lossy(&output.stdout);
     let last = stdout.lines().last().expect("some output");

@@ -1,0 +1,408 @@
+//! `celld report`: the structure of the paper's Tables 2–6 and Fig. 7, measured on our twin, as
+//! Markdown, JSON and SVG.
+//!
+//! - Tables 2 and 3: success of each policy (a row per `--policy`, i.e. per training condition)
+//!   under test conditions: pure position offsets (10/30/50 mm), pure orientation errors
+//!   (3/6/9 deg), and both combined.
+//! - Table 4: success by camera noise level (× the spec's point σ).
+//! - Table 5: avg steps, avg reward and success of every controller on the reference cell.
+//! - Table 6: the same on phi200, without retraining.
+//! - Fig. 7: learning curves (return and success, moving averages) of the `--curve` files
+//!   written by `celld train td3` (td3_curve.json).
+
+use super::svg;
+use anyhow::{Context, Result, bail};
+use assembly_cell::config::cell::CellConfig;
+use assembly_cell::learning::refine::EpisodeRecord;
+use assembly_cell::policy::eval::{self, EvalSummary};
+use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::policy::{self, ControllerFactory};
+use assembly_cell::sim::{EnvOptions, InitialConditions};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+use serde_json::json;
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct ReportArgs {
+    /// Episodes per table cell.
+    #[arg(long, default_value_t = 1000)]
+    episodes: usize,
+    #[arg(long, default_value = "docs/report")]
+    out: PathBuf,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Learned policies to tabulate, as LABEL=FILE (repeatable); default: the bundled ones.
+    #[arg(long = "policy")]
+    policies: Vec<String>,
+    /// Learning curves for Fig. 7, as LABEL=td3_curve.json (repeatable).
+    #[arg(long = "curve")]
+    curves: Vec<String>,
+}
+
+/// One table cell: a controller under one condition.
+#[derive(Serialize)]
+struct Cell {
+    controller: String,
+    condition: String,
+    summary: EvalSummary,
+}
+
+/// Makes a controller factory for a cell.
+type FactoryFor = Box<dyn Fn(&CellConfig) -> Result<ControllerFactory>>;
+
+struct Controller {
+    label: String,
+    factory: FactoryFor,
+}
+
+fn labelled(value: &str, flag: &str) -> Result<(String, PathBuf)> {
+    match value.split_once('=') {
+        Some((label, path)) if !label.is_empty() && !path.is_empty() => {
+            Ok((label.to_string(), PathBuf::from(path)))
+        }
+        _ => bail!("{flag} {value}: expected LABEL=FILE"),
+    }
+}
+
+fn learned(label: String, path: PathBuf) -> Result<Controller> {
+    // Checked now, before any work starts.
+    let loaded = HierarchicalPolicy::from_path(&path)
+        .with_context(|| format!("--policy {label}={}", path.display()))?
+        .with_name(label.clone());
+    Ok(Controller {
+        label,
+        factory: Box::new(move |_| {
+            let loaded = loaded.clone();
+            Ok(Box::new(move || Box::new(loaded.clone())))
+        }),
+    })
+}
+
+fn builtin(name: &'static str) -> Controller {
+    Controller {
+        label: name.to_string(),
+        factory: Box::new(move |cell| Ok(policy::builtin_factory(name, cell)?)),
+    }
+}
+
+pub fn run(args: ReportArgs) -> Result<()> {
+    if args.episodes == 0 {
+        bail!("--episodes must be at least 1");
+    }
+    let mut learned_policies = Vec::new();
+    for value in &args.policies {
+        let (label, path) = labelled(value, "--policy")?;
+        learned_policies.push(learned(label, path)?);
+    }
+    if learned_policies.is_empty() {
+        for name in policy::LEARNED_CONTROLLERS {
+            learned_policies.push(builtin(name));
+        }
+    }
+    let mut curves = Vec::new();
+    for value in &args.curves {
+        let (label, path) = labelled(value, "--curve")?;
+        curves.push((label, read_curve(&path)?));
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
+    let reference = CellConfig::reference();
+    let phi200 = CellConfig::parse(include_str!("../../cells/phi200.toml"), "cells/phi200.toml")?;
+    let default = InitialConditions::from_cell(&reference);
+    let conditions: Vec<(String, InitialConditions, f64)> = [10.0, 30.0, 50.0]
+        .iter()
+        .map(|&mm| (format!("{mm} mm"), (mm, 0.0), 1.0))
+        .chain(
+            [3.0, 6.0, 9.0]
+                .iter()
+                .map(|&deg| (format!("{deg} deg"), (0.0, deg), 1.0)),
+        )
+        .chain([10.0, 30.0, 50.0].iter().flat_map(|&mm| {
+            [3.0, 6.0, 9.0]
+                .iter()
+                .map(move |&deg| (format!("{mm} mm + {deg} deg"), (mm, deg), 1.0))
+        }))
+        .chain(NOISE_LEVELS.iter().map(|&noise| {
+            (
+                format!("noise ×{noise}"),
+                (default.offset_mm, default.orientation_deg),
+                noise,
+            )
+        }))
+        .map(|(label, (offset_mm, orientation_deg), noise)| {
+            (
+                label,
+                InitialConditions {
+                    offset_mm,
+                    orientation_deg,
+                },
+                noise,
+            )
+        })
+        .collect();
+    let builtins: Vec<Controller> = policy::BUILTIN_CONTROLLERS
+        .iter()
+        .map(|name| builtin(name))
+        .collect();
+    let total =
+        learned_policies.len() * conditions.len() + (builtins.len() + learned_policies.len()) * 2;
+    let bar = ProgressBar::new(total as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} evaluations {elapsed} (eta {eta}) {msg}",
+        )
+        .expect("valid template"),
+    );
+    let evaluate = |controller: &Controller,
+                    cell: &CellConfig,
+                    initial,
+                    noise,
+                    condition: &str|
+     -> Result<Cell> {
+        bar.set_message(format!(
+            "{} · {} · {condition}",
+            controller.label, cell.name
+        ));
+        let factory = (controller.factory)(cell)?;
+        let options = EnvOptions {
+            noise_scale: noise,
+            initial,
+        };
+        let (summary, _) =
+            eval::evaluate(cell, options, args.episodes, args.seed, &factory, &|_| {});
+        bar.inc(1);
+        Ok(Cell {
+            controller: controller.label.clone(),
+            condition: condition.to_string(),
+            summary,
+        })
+    };
+    let mut robustness = Vec::new();
+    for controller in &learned_policies {
+        for (label, initial, noise) in &conditions {
+            robustness.push(evaluate(controller, &reference, *initial, *noise, label)?);
+        }
+    }
+    let mut table5 = Vec::new();
+    let mut table6 = Vec::new();
+    let default_phi200 = InitialConditions::from_cell(&phi200);
+    for controller in builtins.iter().chain(&learned_policies) {
+        table5.push(evaluate(controller, &reference, default, 1.0, "phi170")?);
+        table6.push(evaluate(
+            controller,
+            &phi200,
+            default_phi200,
+            1.0,
+            "phi200",
+        )?);
+    }
+    bar.finish_and_clear();
+    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let markdown = render(
+        &args,
+        &command,
+        &learned_policies,
+        &robustness,
+        &table5,
+        &table6,
+        &curves,
+    );
+    std::fs::write(args.out.join("report.md"), markdown)?;
+    std::fs::write(
+        args.out.join("report.json"),
+        serde_json::to_vec_pretty(&json!({
+            "command": command,
+            "episodes": args.episodes,
+            "seed": args.seed,
+            "robustness": robustness,
+            "table5": table5,
+            "table6": table6,
+        }))?,
+    )?;
+    if !curves.is_empty() {
+        std::fs::write(
+            args.out.join("fig7_return.svg"),
+            svg::line_plot(
+                "Return per episode (moving average of 20)",
+                "episode",
+                "return",
+                &series(&curves, |r| r.return_),
+            ),
+        )?;
+        std::fs::write(
+            args.out.join("fig7_success.svg"),
+            svg::line_plot(
+                "Success (moving average of 20)",
+                "episode",
+                "success rate",
+                &series(&curves, |r| f64::from(u8::from(r.success))),
+            ),
+        )?;
+        std::fs::write(
+            args.out.join("fig7_steps.svg"),
+            svg::line_plot(
+                "Steps per episode (moving average of 20)",
+                "episode",
+                "steps",
+                &series(&curves, |r| f64::from(r.steps)),
+            ),
+        )?;
+    }
+    println!("report written to {}", args.out.display());
+    Ok(())
+}
+
+/// Camera noise levels of Table 4, × the spec's point σ.
+const NOISE_LEVELS: [f64; 5] = [0.0, 0.5, 1.0, 2.0, 4.0];
+
+fn read_curve(path: &PathBuf) -> Result<Vec<EpisodeRecord>> {
+    #[derive(serde::Deserialize)]
+    struct Curve {
+        episodes: Vec<EpisodeRecord>,
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("--curve {}", path.display()))?;
+    let curve: Curve = serde_json::from_slice(&bytes)
+        .with_context(|| format!("--curve {}: not a td3_curve.json", path.display()))?;
+    if curve.episodes.is_empty() {
+        bail!("--curve {}: no episodes", path.display());
+    }
+    Ok(curve.episodes)
+}
+
+fn series(
+    curves: &[(String, Vec<EpisodeRecord>)],
+    value: impl Fn(&EpisodeRecord) -> f64,
+) -> Vec<(String, Vec<(f64, f64)>)> {
+    curves
+        .iter()
+        .map(|(label, records)| {
+            let values: Vec<f64> = records.iter().map(&value).collect();
+            let points = (0..values.len())
+                .map(|i| {
+                    let from = i.saturating_sub(19);
+                    let window = &values[from..=i];
+                    (
+                        records[i].episode as f64,
+                        window.iter().sum::<f64>() / window.len() as f64,
+                    )
+                })
+                .collect();
+            (label.clone(), points)
+        })
+        .collect()
+}
+
+fn steps(summary: &EvalSummary) -> String {
+    summary
+        .avg_steps
+        .map_or("-".to_string(), |s| format!("{s:.1}"))
+}
+
+fn render(
+    args: &ReportArgs,
+    command: &str,
+    learned: &[Controller],
+    robustness: &[Cell],
+    table5: &[Cell],
+    table6: &[Cell],
+    curves: &[(String, Vec<EpisodeRecord>)],
+) -> String {
+    let mut md = String::new();
+    let _ = writeln!(md, "# The paper's tables on our twin\n");
+    let _ = writeln!(
+        md,
+        "Made by `{command}`: {} episodes per cell, evaluation seed {}. Success is judged on the \
+         twin's true pose; avg steps count successful episodes only.\n",
+        args.episodes, args.seed
+    );
+    let find = |label: &str, condition: &str| {
+        robustness
+            .iter()
+            .find(|c| c.controller == label && c.condition == condition)
+            .map_or("-".to_string(), |c| {
+                format!("{:.3}", c.summary.success_rate)
+            })
+    };
+    let table = |md: &mut String, title: &str, columns: &[String]| {
+        let _ = writeln!(md, "## {title}\n");
+        let _ = writeln!(md, "| policy | {} |", columns.join(" | "));
+        let _ = writeln!(md, "|---|{}", "---|".repeat(columns.len()));
+        for controller in learned {
+            let row: Vec<String> = columns.iter().map(|c| find(&controller.label, c)).collect();
+            let _ = writeln!(md, "| {} | {} |", controller.label, row.join(" | "));
+        }
+        let _ = writeln!(md);
+    };
+    let columns = |items: &[&str]| items.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    table(
+        &mut md,
+        "Table 2: success under pure position or orientation errors (rows: policies, i.e. training conditions)",
+        &columns(&["10 mm", "30 mm", "50 mm", "3 deg", "6 deg", "9 deg"]),
+    );
+    let combined: Vec<String> = [10, 30, 50]
+        .iter()
+        .flat_map(|mm| {
+            [3, 6, 9]
+                .iter()
+                .map(move |deg| format!("{mm} mm + {deg} deg"))
+        })
+        .collect();
+    table(&mut md, "Table 3: success under combined errors", &combined);
+    let noise: Vec<String> = NOISE_LEVELS.iter().map(|n| format!("noise ×{n}")).collect();
+    table(
+        &mut md,
+        "Table 4: success by camera noise (× the spec's point σ; initial 50 mm / 1 deg)",
+        &noise,
+    );
+    for (title, cells) in [
+        ("Table 5: every method, phi170 (simulation column)", table5),
+        ("Table 6: phi200 without retraining", table6),
+    ] {
+        let _ = writeln!(md, "## {title}\n");
+        let _ = writeln!(
+            md,
+            "| method | avg steps | avg reward | success | failures |"
+        );
+        let _ = writeln!(md, "|---|---|---|---|---|");
+        for c in cells {
+            let failures: Vec<String> = c
+                .summary
+                .failures
+                .iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect();
+            let _ = writeln!(
+                md,
+                "| {} | {} | {:.1} | {:.3} | {} |",
+                c.controller,
+                steps(&c.summary),
+                c.summary.avg_reward,
+                c.summary.success_rate,
+                failures.join(", ")
+            );
+        }
+        let _ = writeln!(md);
+    }
+    if !curves.is_empty() {
+        let _ = writeln!(md, "## Fig. 7: learning curves\n");
+        let _ = writeln!(
+            md,
+            "![return](fig7_return.svg)\n\n![success](fig7_success.svg)\n\n![steps](fig7_steps.svg)\n"
+        );
+        for (label, records) in curves {
+            let last: Vec<&EpisodeRecord> = records.iter().rev().take(50).collect();
+            let success = last.iter().filter(|r| r.success).count() as f64 / last.len() as f64;
+            let _ = writeln!(
+                md,
+                "- {label}: {} episodes; success over the last {} training episodes {:.2}",
+                records.len(),
+                last.len(),
+                success
+            );
+        }
+    }
+    md
+}

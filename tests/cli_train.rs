@@ -1,0 +1,148 @@
+//! `celld train` end to end, at toy sizes: the run directory, resuming, refusing to overwrite,
+//! determinism under a seed, and bad input named before any work.
+
+mod common;
+
+use common::celld;
+use std::path::Path;
+
+const TINY: [&str; 18] = [
+    "--demos",
+    "12",
+    "--bc-epochs",
+    "2",
+    "--lstm-epochs",
+    "2",
+    "--lstm-hidden",
+    "8",
+    "--actor-width",
+    "16",
+    "--eval-every",
+    "2",
+    "--eval-episodes",
+    "4",
+    "--checkpoint-every",
+    "1",
+    "--seed",
+    "7",
+];
+
+fn train(stage: &str, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["train", stage, "--out", out.to_str().unwrap()];
+    args.extend_from_slice(&TINY);
+    args.extend_from_slice(extra);
+    celld(&args)
+}
+
+fn stderr(output: &std::process::Output) -> String {
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+#[test]
+fn train_all_makes_a_policy_resumes_and_is_deterministic() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    let first = train("all", &a, &["--td3-episodes", "3"]);
+    assert!(first.status.success(), "{}", stderr(&first));
+    for name in [
+        "demos.jsonl",
+        "bc.safetensors",
+        "bc_curve.csv",
+        "lstm.safetensors",
+        "lstm_curve.csv",
+        "bc-policy.safetensors",
+        "td3_checkpoint.safetensors",
+        "td3_progress.json",
+        "td3_curve.csv",
+        "td3_curve.json",
+        "policy.safetensors",
+        "run.json",
+    ] {
+        assert!(a.join(name).is_file(), "{name} missing");
+    }
+    let curve = std::fs::read_to_string(a.join("td3_curve.csv")).unwrap();
+    assert_eq!(curve.lines().next(), Some("episode,return,success,steps"));
+    assert_eq!(curve.lines().count(), 1 + 3);
+    // The policy is a valid policy file that celld runs.
+    let policy = a.join("policy.safetensors");
+    let eval = celld(&[
+        "eval",
+        "--controller",
+        policy.to_str().unwrap(),
+        "--episodes",
+        "2",
+    ]);
+    assert!(eval.status.success(), "{}", stderr(&eval));
+
+    // The same seed gives the same files.
+    let second = train("all", &b, &["--td3-episodes", "3"]);
+    assert!(second.status.success(), "{}", stderr(&second));
+    for name in ["bc.safetensors", "lstm.safetensors", "policy.safetensors"] {
+        assert_eq!(
+            std::fs::read(a.join(name)).unwrap(),
+            std::fs::read(b.join(name)).unwrap(),
+            "{name} differs between two runs with one seed"
+        );
+    }
+
+    // A second run into the same directory refuses to overwrite it…
+    let again = train("all", &a, &["--td3-episodes", "3"]);
+    assert!(!again.status.success());
+    assert!(stderr(&again).contains("--resume"), "{}", stderr(&again));
+    // …and with --resume, TD3 continues from its checkpoint.
+    let more = train("td3", &a, &["--td3-episodes", "5", "--resume"]);
+    assert!(more.status.success(), "{}", stderr(&more));
+    assert!(
+        stderr(&more).contains("resuming TD3 at episode 3"),
+        "{}",
+        stderr(&more)
+    );
+    let progress: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("td3_progress.json")).unwrap()).unwrap();
+    assert_eq!(progress["episode"], 5);
+    assert_eq!(progress["curve"].as_array().unwrap().len(), 5);
+}
+
+#[test]
+fn bad_training_requests_are_refused_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let missing = train("lstm", &out, &[]);
+    assert!(!missing.status.success());
+    assert!(
+        stderr(&missing).contains("bc.safetensors is missing"),
+        "{}",
+        stderr(&missing)
+    );
+    let few = celld(&[
+        "train",
+        "all",
+        "--out",
+        out.to_str().unwrap(),
+        "--demos",
+        "3",
+    ]);
+    assert!(!few.status.success());
+    assert!(stderr(&few).contains("--demos must be at least 10"));
+    let lr = celld(&[
+        "train",
+        "bc",
+        "--out",
+        out.to_str().unwrap(),
+        "--bc-lr",
+        "-1",
+    ]);
+    assert!(!lr.status.success());
+    assert!(stderr(&lr).contains("--bc-lr must be a finite number > 0"));
+    let file = celld(&[
+        "train",
+        "bc",
+        "--out",
+        out.to_str().unwrap(),
+        "--demos-file",
+        "no/such.jsonl",
+    ]);
+    assert!(!file.status.success());
+    assert!(stderr(&file).contains("no/such.jsonl: no such file"));
+    assert!(!out.join("demos.jsonl").exists(), "no work was done");
+}
