@@ -124,14 +124,7 @@ fn bad_training_requests_are_refused_before_any_work() {
     ]);
     assert!(!few.status.success());
     assert!(stderr(&few).contains("--demos must be at least 10"));
-    let lr = celld(&[
-        "train",
-        "bc",
-        "--out",
-        out.to_str().unwrap(),
-        "--bc-lr",
-        "-1",
-    ]);
+    let lr = celld(&["train", "bc", "--out", out.to_str().unwrap(), "--bc-lr=-1"]);
     assert!(!lr.status.success());
     assert!(stderr(&lr).contains("--bc-lr must be a finite number > 0"));
     let file = celld(&[

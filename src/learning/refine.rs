@@ -8,6 +8,7 @@
 //! update per environment step). The policy is evaluated every `eval_every` episodes on
 //! validation episodes (seeds disjoint from the report's) and the best one is kept.
 
+use super::bc::init_actor;
 use super::pipeline::{actor_prefix, normaliser_of};
 use super::td3::{ReplayBuffer, Td3, Td3Config, Transition};
 use crate::config::cell::CellConfig;
@@ -149,10 +150,16 @@ impl Refinement {
                 seed: seed.wrapping_add(k as u64 + 1),
                 ..config.td3
             };
-            let init = from_bc
-                .then(|| rename(&policy_vars, actor_prefix(actor), "actor"))
-                .transpose()?;
-            let mut agent = Td3::new(12, 3, td3, init)?;
+            let init = if from_bc {
+                rename(&policy_vars, actor_prefix(actor), "actor")?
+            } else {
+                // Fresh weights of the policy's width (PyTorch's initialisation, seeded).
+                let vars = VarMap::new();
+                let mut rng = ChaCha8Rng::seed_from_u64(td3.seed ^ 0xA11CE);
+                init_actor(&vars, "actor", policy_config.actor_width, &mut rng)?;
+                vars
+            };
+            let mut agent = Td3::new(12, 3, td3, Some(init))?;
             agent.freeze_actor(config.critic_warmup_episodes > 0);
             agents.push(agent);
         }
@@ -476,4 +483,107 @@ pub fn evaluate_vars(
     let policy = policy_from_vars(vars, config)?;
     let factory: crate::policy::ControllerFactory = Box::new(move || Box::new(policy.clone()));
     Ok(eval::evaluate(cell, options, episodes, seed, &factory, &|_| {}).0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::learning::bc::BcConfig;
+    use crate::learning::demos::record_expert;
+    use crate::learning::pipeline::{behaviour_clone, step_limits, train_lstm};
+    use crate::learning::selector::SelectorConfig;
+
+    #[test]
+    fn each_agent_gets_the_global_terms_and_its_own_local_term() {
+        let terms = RewardTerms {
+            global: 50.0,
+            position: 0.3,
+            orientation: 0.2,
+            error: -2.0,
+            step: -0.01,
+            total: 48.49,
+        };
+        assert!((local_reward(Actor::Position, &terms) - 48.29).abs() < 1e-12);
+        assert!((local_reward(Actor::Orientation, &terms) - 48.19).abs() < 1e-12);
+    }
+
+    fn tiny_refinement(from_bc: bool) -> Refinement {
+        let cell = CellConfig::reference();
+        let options = EnvOptions::from_cell(&cell);
+        let demos = record_expert(&cell, options, 4, 1);
+        let limits = step_limits(&cell);
+        let bc = BcConfig {
+            epochs: 1,
+            ..BcConfig::default()
+        };
+        let vars = behaviour_clone(&demos, &limits, 8, &bc, &mut |_, _, _| {}).unwrap();
+        let selector = SelectorConfig {
+            hidden_size: 4,
+            epochs: 1,
+            ..SelectorConfig::default()
+        };
+        train_lstm(&vars, &demos, &demos, &limits, &selector, &mut |_, _| {}).unwrap();
+        let config = RefineConfig {
+            episodes: 2,
+            td3: Td3Config {
+                hidden: 16,
+                batch_size: 4,
+                ..Td3Config::default()
+            },
+            critic_warmup_episodes: 0,
+            eval_episodes: 2,
+            ..RefineConfig::default()
+        };
+        Refinement::new(&cell, options, vars, config, from_bc, 3).unwrap()
+    }
+
+    fn snapshot(vars: &VarMap) -> Vec<(String, Vec<f32>)> {
+        let data = vars.data().lock().unwrap();
+        let mut out: Vec<_> = data
+            .iter()
+            .map(|(k, v)| {
+                let values = v.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+                (k.clone(), values)
+            })
+            .collect();
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        out
+    }
+
+    #[test]
+    fn a_restored_checkpoint_continues_where_it_stopped() {
+        let mut run = tiny_refinement(true);
+        run.train_episode().unwrap();
+        run.validate().unwrap();
+        let (tensors, progress) = run.checkpoint().unwrap();
+        assert_eq!(progress.episode, 1);
+        let mut resumed = tiny_refinement(true);
+        resumed.restore(&tensors, progress.clone()).unwrap();
+        assert_eq!(resumed.episode(), 1);
+        assert_eq!(resumed.curve(), run.curve());
+        assert_eq!(snapshot(&resumed.policy_vars), snapshot(&run.policy_vars));
+        assert_eq!(snapshot(resumed.best().1), snapshot(run.best().1));
+        // The agents' networks came back too: a checkpoint of the resumed run is the same.
+        let (again, _) = resumed.checkpoint().unwrap();
+        for (name, tensor) in &tensors {
+            let a = tensor.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let b = again[name].flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            assert_eq!(a, b, "{name}");
+        }
+    }
+
+    #[test]
+    fn without_bc_the_actors_start_afresh_at_the_policys_width() {
+        let bc = tiny_refinement(true);
+        let fresh = tiny_refinement(false);
+        let pos = |r: &Refinement| {
+            snapshot(&r.policy_vars)
+                .into_iter()
+                .find(|(k, _)| k == "pos.0.weight")
+                .unwrap()
+                .1
+        };
+        assert_eq!(pos(&bc).len(), pos(&fresh).len());
+        assert_ne!(pos(&bc), pos(&fresh));
+    }
 }

@@ -238,7 +238,7 @@ mod tests {
     fn the_selector_agrees_with_the_expert_on_held_out_demonstrations() {
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
-        let train = record_expert(&cell, options, 64, 11);
+        let train = record_expert(&cell, options, 128, 11);
         let held_out = record_expert(&cell, options, 16, 12);
         let normaliser = Normaliser::fit(&train);
         let limits = StepLimits {
@@ -247,7 +247,7 @@ mod tests {
         };
         let config = SelectorConfig {
             hidden_size: 64,
-            epochs: 100,
+            epochs: 60,
             batch_size: 8,
             learning_rate: 5e-3,
             seed: 4,
