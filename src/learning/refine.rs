@@ -10,7 +10,7 @@
 
 use super::bc::init_actor;
 use super::pipeline::{actor_prefix, normaliser_of};
-use super::td3::{ReplayBuffer, Td3, Td3Config, Transition};
+use super::td3::{ReplayBuffer, Td3, Td3Config, Transition, clone_varmap};
 use crate::config::cell::CellConfig;
 use crate::policy::Actor;
 use crate::policy::eval::{self, EvalSummary, episode_seed};
@@ -335,7 +335,7 @@ impl Refinement {
             Some((best, _)) => record.score() > best.score(),
         };
         if better {
-            self.best = Some((record, copy_vars(&self.policy_vars)?));
+            self.best = Some((record, clone_varmap(&self.policy_vars)?));
         }
         Ok(record)
     }
@@ -382,7 +382,7 @@ impl Refinement {
         }
         self.best = match progress.best {
             Some(record) => {
-                let vars = copy_vars(&self.policy_vars)?;
+                let vars = clone_varmap(&self.policy_vars)?;
                 set_vars(&vars, &take("best."))?;
                 Some((record, vars))
             }
@@ -432,18 +432,6 @@ fn rename(vars: &VarMap, from: &str, to: &str) -> candle_core::Result<VarMap> {
                     Var::from_tensor(&var.as_tensor().copy()?)?,
                 );
             }
-        }
-    }
-    Ok(out)
-}
-
-fn copy_vars(vars: &VarMap) -> candle_core::Result<VarMap> {
-    let out = VarMap::new();
-    {
-        let source = vars.data().lock().expect("var map lock");
-        let mut target = out.data().lock().expect("var map lock");
-        for (name, var) in source.iter() {
-            target.insert(name.clone(), Var::from_tensor(&var.as_tensor().copy()?)?);
         }
     }
     Ok(out)

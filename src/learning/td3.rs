@@ -96,8 +96,8 @@ fn init_mlp(
     init_linear(varmap, &format!("{prefix}.4"), sizes[2], sizes[3], rng)
 }
 
-/// A copy of every variable of `from` into a new map (for the target networks).
-fn clone_varmap(from: &VarMap) -> candle_core::Result<VarMap> {
+/// A copy of every variable of `from` into a new map (for target networks and kept policies).
+pub(crate) fn clone_varmap(from: &VarMap) -> candle_core::Result<VarMap> {
     let to = VarMap::new();
     {
         let source = from.data().lock().expect("var map lock");
