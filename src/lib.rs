@@ -1,13 +1,20 @@
 //! `assembly-cell`: the digital twin, learning and service behind `celld`.
 //!
 //! Pure libraries (no async runtime, no storage): [`geometry`], [`kinematics`], [`collision`],
-//! [`camera`], [`sim`], [`policy`]. See DESIGN.md §3 and docs/.
+//! [`camera`], [`sim`], [`policy`], [`learning`]. The service: [`cell`] (hardware seam, job
+//! core, control thread), [`storage`] (SQLite), [`http`] (axum), [`metrics`], wired by [`app`].
+//! See DESIGN.md §3 and docs/.
 
+pub mod app;
 pub mod camera;
+pub mod cell;
 pub mod collision;
 pub mod config;
 pub mod geometry;
+pub mod http;
 pub mod kinematics;
 pub mod learning;
+pub mod metrics;
 pub mod policy;
 pub mod sim;
+pub mod storage;

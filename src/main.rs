@@ -35,6 +35,11 @@ enum Command {
     Train(cli::train::TrainCommand),
     /// Reproduce the structure of the paper's Tables 2–6 and Fig. 7 on the twin.
     Report(cli::report::ReportArgs),
+    /// Run the cell service: jobs, telemetry, history over HTTP (DESIGN.md §7).
+    Serve(cli::serve::ServeArgs),
+    /// Manage API tokens.
+    #[command(subcommand)]
+    Token(cli::serve::TokenCommand),
 }
 
 #[derive(Subcommand)]
@@ -120,6 +125,8 @@ fn main() -> ExitCode {
         Command::Policy(PolicyCommand::Run { policy, states }) => run_policy(&policy, &states),
         Command::Train(command) => cli::train::run(command),
         Command::Report(args) => cli::report::run(args),
+        Command::Serve(args) => cli::serve::serve(args),
+        Command::Token(command) => cli::serve::token(command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -108,7 +108,7 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
 
 /// Refuses a name that is not one of [`BUILTIN_CONTROLLERS`] or [`LEARNED_CONTROLLERS`],
 /// without building anything.
-fn check_known(name: &str) -> Result<(), UnknownController> {
+pub fn check_known(name: &str) -> Result<(), UnknownController> {
     if BUILTIN_CONTROLLERS.contains(&name) || LEARNED_CONTROLLERS.contains(&name) {
         Ok(())
     } else {

@@ -1,0 +1,276 @@
+//! `celld serve`: wires the control thread, the storage writer, telemetry and HTTP together,
+//! and takes them down in order. The only module that knows all of them.
+//!
+//! ```text
+//!   HTTP handlers ──commands──▶ control thread (robot, controller, supervisor)
+//!        ▲                          │ events, in order
+//!        │ status (watch)           ├──▶ storage writer (batched SQLite transactions)
+//!        └──────────────────────────┼──▶ telemetry broadcast ──▶ SSE subscribers
+//!                                   └──▶ metrics
+//! ```
+
+use crate::cell::task::{self, CellEvent, LoopSettings};
+use crate::cell::{CellCommand, JobStatus, SafetyLimits, TwinBackend};
+use crate::config::cell::CellConfig;
+use crate::config::service::ServiceConfig;
+use crate::http::{self, Context, TelemetryMessage};
+use crate::metrics::Metrics;
+use crate::policy;
+use crate::storage::tokens::{self, Role};
+use crate::storage::{Db, audit, jobs, recorder};
+use anyhow::{Context as _, Result, bail};
+use serde_json::json;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+use tokio::sync::{broadcast, mpsc, watch};
+
+/// Runs the service until SIGINT or SIGTERM.
+pub async fn serve(settings: ServiceConfig) -> Result<()> {
+    settings.validate()?;
+    let cell = match &settings.cell {
+        Some(path) => CellConfig::load(path)?,
+        None => CellConfig::reference(),
+    };
+    let active = &settings.control.active_controller;
+    if !active.starts_with("policy:") {
+        policy::check_known(active).context("control.active_controller")?;
+    }
+    let db = Db::open(&settings.db).await?;
+    let interrupted = jobs::interrupt_leftovers(&db).await?;
+    if interrupted > 0 {
+        tracing::warn!(
+            interrupted,
+            "jobs left running or queued by the last run are now interrupted"
+        );
+    }
+    if tokens::count(&db).await? == 0 {
+        first_admin_token(&db, &settings.db).await?;
+    }
+    let estop_latched = db.cell_flag("estop").await?;
+
+    let metrics = Metrics::default();
+    let (telemetry, _) = broadcast::channel(settings.control.telemetry_buffer);
+    let (events, events_inbox) = mpsc::unbounded_channel();
+    let recorder = tokio::spawn(recorder::run(
+        db.clone(),
+        events_inbox,
+        settings.control.step_batch,
+    ));
+    let sink = event_sink(metrics.clone(), telemetry.clone(), events);
+    let period = settings
+        .step_period_s(cell.camera.rate_hz)
+        .map(Duration::from_secs_f64);
+    let loop_settings = LoopSettings {
+        period,
+        limits: SafetyLimits {
+            deadline_s: settings.control.deadline_ms / 1000.0,
+            max_stale_steps: settings.control.max_stale_steps,
+        },
+        estop_latched,
+    };
+    let (cell_handle, control_thread) = task::spawn(
+        cell.clone(),
+        Box::new(TwinBackend::new(&cell)),
+        loop_settings,
+        sink,
+    );
+
+    let (stop_streams, shutdown) = watch::channel(false);
+    let accepting = Arc::new(AtomicBool::new(true));
+    let context = Context {
+        db: db.clone(),
+        cell: cell_handle.clone(),
+        cell_config: Arc::new(cell.clone()),
+        settings: Arc::new(settings.clone()),
+        metrics,
+        telemetry,
+        accepting: accepting.clone(),
+        shutdown: shutdown.clone(),
+    };
+    let listener = tokio::net::TcpListener::bind(settings.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", settings.listen))?;
+    let address = listener.local_addr()?;
+    let mut server_shutdown = shutdown.clone();
+    let server = tokio::spawn(
+        axum::serve(listener, http::router(context))
+            .with_graceful_shutdown(async move {
+                let _ = server_shutdown.wait_for(|stop| *stop).await;
+            })
+            .into_future(),
+    );
+    println!(
+        "celld: cell `{}` on the {} backend{}, database {}",
+        cell.name,
+        cell_handle.status().backend,
+        match period {
+            None => " (fast)".to_string(),
+            Some(p) => format!(", control period {} ms", p.as_secs_f64() * 1000.0),
+        },
+        settings.db.display()
+    );
+    println!("celld: listening on http://{address}");
+    println!("celld: dashboard http://{address}/ , API http://{address}/api/openapi.json");
+    if estop_latched {
+        println!("celld: the e-stop is latched from before; POST /api/cell/reset to clear it");
+    }
+    std::io::stdout().flush().ok();
+
+    wait_for_signal().await;
+    tracing::info!("stopping: no new jobs, holding the robot");
+    accepting.store(false, Ordering::SeqCst);
+    // The control thread holds the robot, closes the running and queued jobs as interrupted,
+    // and exits; its event sink closes with it, which lets the storage writer finish.
+    let stopped = tokio::time::timeout(
+        Duration::from_secs(3),
+        cell_handle.ask(|reply| CellCommand::Shutdown { reply }),
+    )
+    .await;
+    if !matches!(stopped, Ok(Ok(()))) {
+        tracing::error!("the control thread did not confirm the stop in 3 s");
+    }
+    let _ = stop_streams.send(true);
+    let _ = tokio::task::spawn_blocking(move || control_thread.join()).await;
+    if tokio::time::timeout(Duration::from_secs(4), recorder)
+        .await
+        .is_err()
+    {
+        tracing::error!("the storage writer did not finish in 4 s");
+    }
+    if tokio::time::timeout(Duration::from_secs(2), server)
+        .await
+        .is_err()
+    {
+        tracing::warn!("open connections did not close in 2 s");
+    }
+    db.writer.close().await;
+    db.reader.close().await;
+    println!("celld: stopped");
+    Ok(())
+}
+
+/// What the control thread's events turn into: metrics, telemetry, rows.
+fn event_sink(
+    metrics: Metrics,
+    telemetry: broadcast::Sender<TelemetryMessage>,
+    storage: mpsc::UnboundedSender<CellEvent>,
+) -> Box<dyn FnMut(CellEvent) + Send> {
+    Box::new(move |event| {
+        let (name, data) = match &event {
+            CellEvent::Step(record) => {
+                metrics.step_seconds.observe(record.compute_us / 1e6);
+                if let Some(reason) = &record.veto_reason {
+                    metrics.count_veto(reason);
+                }
+                ("step", serde_json::to_string(record))
+            }
+            CellEvent::JobStarted { job_id } => (
+                "job",
+                serde_json::to_string(&json!({"job_id": job_id, "status": JobStatus::Running})),
+            ),
+            CellEvent::JobEnded { job_id, end } => {
+                metrics.count_job(end.status.as_str(), end.failure_reason.as_deref());
+                (
+                    "job",
+                    serde_json::to_string(&json!({
+                        "job_id": job_id,
+                        "status": end.status,
+                        "failure_reason": end.failure_reason,
+                        "steps": end.steps,
+                        "reward": end.reward,
+                    })),
+                )
+            }
+            CellEvent::EStop { latched } => (
+                "cell",
+                serde_json::to_string(&json!({"estop_latched": latched})),
+            ),
+        };
+        if telemetry.receiver_count() > 0
+            && let Ok(data) = data
+        {
+            let _ = telemetry.send(TelemetryMessage {
+                event: name,
+                data: data.into(),
+            });
+        }
+        if storage.send(event).is_err() {
+            tracing::error!("the storage writer has stopped; an event was not stored");
+        }
+    })
+}
+
+async fn wait_for_signal() {
+    let interrupt = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut terminate =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+                .expect("install the SIGTERM handler");
+        tokio::select! {
+            _ = interrupt => {}
+            _ = terminate.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = interrupt.await;
+}
+
+/// The file beside the database that holds the first admin token.
+pub fn admin_token_path(db: &Path) -> PathBuf {
+    db.with_file_name("admin.token")
+}
+
+/// Makes the first admin token, prints it once and writes it beside the database (mode 0600).
+async fn first_admin_token(db: &Db, db_path: &Path) -> Result<()> {
+    let token = tokens::create(db, Role::Admin, "admin", "celld serve (first start)").await?;
+    let path = admin_token_path(db_path);
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create(true).truncate(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    let mut file = options
+        .open(&path)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    writeln!(file, "{}", token.token)?;
+    audit::record(
+        db,
+        "celld",
+        "token.create",
+        json!({"token_id": token.id, "name": "admin", "role": "admin"}),
+    )
+    .await?;
+    println!(
+        "celld: first start: admin token (shown once; also in {}):\n{}",
+        path.display(),
+        token.token
+    );
+    Ok(())
+}
+
+/// `celld token create`: a new token in the database, printed once.
+pub async fn create_token(db_path: &Path, role: &str, name: &str) -> Result<()> {
+    let Some(role) = Role::parse(role) else {
+        bail!("role `{role}` is not viewer, operator or admin");
+    };
+    let name = name.trim();
+    if name.is_empty() {
+        bail!("--name must not be empty");
+    }
+    let db = Db::open(db_path).await?;
+    let token = tokens::create(&db, role, name, "celld token create").await?;
+    audit::record(
+        &db,
+        "cli",
+        "token.create",
+        json!({"token_id": token.id, "name": name, "role": role}),
+    )
+    .await?;
+    println!("{}", token.token);
+    db.writer.close().await;
+    db.reader.close().await;
+    Ok(())
+}

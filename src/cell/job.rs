@@ -1,0 +1,428 @@
+//! One job's run as a pure core: `step(backend, clock) -> StepReport`.
+//!
+//! Each step asks the controller for a move, refuses a non-finite one before the robot sees it,
+//! has the backend supervise and execute it, and judges the result: the episode's own outcome,
+//! a missed deadline, or too many steps without a fresh camera frame. The thread shell in
+//! `task` owns the clock and the robot; this file owns the rules.
+
+use super::backend::CellBackend;
+use crate::config::cell::CellConfig;
+use crate::policy::{self, Actor, Controller, file::PolicyFile, hierarchical::HierarchicalPolicy};
+use crate::sim::{InitialConditions, Observation, Outcome, PoseErrors, RewardTerms};
+use serde::Serialize;
+
+/// Where a job's controller comes from; built on the control thread when the job starts.
+#[derive(Debug, Clone)]
+pub enum ControllerSource {
+    /// A built-in controller or bundled policy by name (`expert`, `hierarchical`, ...).
+    Builtin(String),
+    /// A registered policy file.
+    Policy { id: i64, bytes: Vec<u8> },
+}
+
+impl ControllerSource {
+    pub fn build(&self, cell: &CellConfig) -> Result<Box<dyn Controller>, String> {
+        match self {
+            ControllerSource::Builtin(name) => {
+                policy::builtin(name, cell).map_err(|e| e.to_string())
+            }
+            ControllerSource::Policy { id, bytes } => {
+                let file =
+                    PolicyFile::from_bytes(bytes).map_err(|e| format!("policy {id}: {e}"))?;
+                let policy = HierarchicalPolicy::from_file(&file)
+                    .map_err(|e| format!("policy {id}: {e}"))?;
+                Ok(Box::new(policy.with_name(&format!("policy:{id}"))))
+            }
+        }
+    }
+}
+
+/// A job as the control thread receives it.
+#[derive(Debug, Clone)]
+pub struct JobSpec {
+    pub id: i64,
+    pub controller: ControllerSource,
+    pub seed: u64,
+    pub initial: InitialConditions,
+}
+
+/// A job's lifecycle state, as stored and served.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+    Interrupted,
+}
+
+impl JobStatus {
+    pub const ALL: [JobStatus; 6] = [
+        JobStatus::Queued,
+        JobStatus::Running,
+        JobStatus::Succeeded,
+        JobStatus::Failed,
+        JobStatus::Cancelled,
+        JobStatus::Interrupted,
+    ];
+
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+            JobStatus::Interrupted => "interrupted",
+        }
+    }
+
+    pub fn parse(text: &str) -> Option<JobStatus> {
+        Self::ALL.into_iter().find(|s| s.as_str() == text)
+    }
+
+    pub fn is_final(&self) -> bool {
+        !matches!(self, JobStatus::Queued | JobStatus::Running)
+    }
+}
+
+/// How a job ended.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct JobEnd {
+    pub status: JobStatus,
+    /// `estop`, `cancelled`, `missed_deadline`, `stale_camera`, `nan_action`, an episode
+    /// failure code (`contact`, `collision_limit`, ...) or `shutdown`; none on success.
+    pub failure_reason: Option<String>,
+    pub steps: u32,
+    pub reward: f64,
+    pub final_errors: Option<PoseErrors>,
+}
+
+/// The control loop's own stop rules (DESIGN.md §8).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SafetyLimits {
+    /// Longest a step's decision, supervision and execution may take, s.
+    pub deadline_s: f64,
+    /// Steps in a row without a fresh camera frame before the job stops.
+    pub max_stale_steps: u32,
+}
+
+/// One control step as stored and streamed.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StepRecord {
+    pub job_id: i64,
+    pub step: u32,
+    /// Time since the job started, s.
+    pub t_s: f64,
+    /// The 12-dim state after the step (DESIGN.md §5).
+    pub state: [f64; 12],
+    /// The commanded move `[Δx, Δy, Δz, θx, θy, θz]`, mm and deg.
+    pub action: [f64; 6],
+    pub actor: Option<Actor>,
+    pub scale: Option<f64>,
+    pub legs_mm: [f64; 6],
+    /// `allowed` or `vetoed` by the supervisor.
+    pub verdict: &'static str,
+    pub veto_reason: Option<String>,
+    pub reward: RewardTerms,
+    /// Decision + supervision + execution time of this step, µs.
+    pub compute_us: f64,
+}
+
+/// What one call of [`JobRun::step`] produced.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepReport {
+    /// None when the step was refused before the robot saw it.
+    pub record: Option<StepRecord>,
+    pub end: Option<JobEnd>,
+}
+
+/// A running job: its controller, the latest observation and its counters.
+pub struct JobRun {
+    pub id: i64,
+    controller: Box<dyn Controller>,
+    limits: SafetyLimits,
+    observation: Observation,
+    started_s: f64,
+    steps: u32,
+    stale_steps: u32,
+    reward: f64,
+    last_errors: Option<PoseErrors>,
+}
+
+impl JobRun {
+    /// Builds the controller and brings the cell to the episode's start. `now_s` is the
+    /// shell's monotonic clock.
+    pub fn start(
+        spec: &JobSpec,
+        cell: &CellConfig,
+        backend: &mut dyn CellBackend,
+        limits: SafetyLimits,
+        now_s: f64,
+    ) -> Result<JobRun, JobEnd> {
+        let refuse = |reason: String| JobEnd {
+            status: JobStatus::Failed,
+            failure_reason: Some(reason),
+            steps: 0,
+            reward: 0.0,
+            final_errors: None,
+        };
+        let mut controller = spec
+            .controller
+            .build(cell)
+            .map_err(|e| refuse(format!("controller: {e}")))?;
+        controller.reset(spec.seed ^ 0x5EED_C0DE);
+        let observation = backend
+            .start(spec.seed, spec.initial)
+            .map_err(|e| refuse(format!("start: {e}")))?;
+        Ok(JobRun {
+            id: spec.id,
+            controller,
+            limits,
+            observation,
+            started_s: now_s,
+            steps: 0,
+            stale_steps: 0,
+            reward: 0.0,
+            last_errors: None,
+        })
+    }
+
+    /// The latest observation (the cell's estimate of the relative pose).
+    pub fn observation(&self) -> &Observation {
+        &self.observation
+    }
+
+    /// One control step. `clock` is the shell's monotonic clock in seconds, read before and
+    /// after the work to time it.
+    pub fn step(&mut self, backend: &mut dyn CellBackend, clock: &dyn Fn() -> f64) -> StepReport {
+        let begin_s = clock();
+        let decision = self.controller.act(&self.observation);
+        if !decision.action.is_finite() {
+            backend.hold();
+            return StepReport {
+                record: None,
+                end: Some(self.end(JobStatus::Failed, Some("nan_action"))),
+            };
+        }
+        let result = match backend.step(&decision.action) {
+            Ok(result) => result,
+            Err(error) => {
+                backend.hold();
+                return StepReport {
+                    record: None,
+                    end: Some(self.end(JobStatus::Failed, Some(&format!("backend: {error}")))),
+                };
+            }
+        };
+        let compute_s = clock() - begin_s;
+        self.steps += 1;
+        self.reward += result.reward.total;
+        self.last_errors = Some(result.true_errors);
+        self.stale_steps = if result.observation.measurement_fresh {
+            0
+        } else {
+            self.stale_steps + 1
+        };
+        let record = StepRecord {
+            job_id: self.id,
+            step: self.steps,
+            t_s: clock() - self.started_s,
+            state: result.observation.state,
+            action: decision.action.to_array(),
+            actor: decision.actor,
+            scale: decision.scale,
+            legs_mm: result.legs_mm,
+            verdict: if result.veto.is_some() {
+                "vetoed"
+            } else {
+                "allowed"
+            },
+            veto_reason: result.veto.as_ref().map(|v| v.code().to_string()),
+            reward: result.reward,
+            compute_us: compute_s * 1e6,
+        };
+        let state_finite = result.observation.state.iter().all(|v| v.is_finite());
+        self.observation = result.observation;
+        let end = match result.outcome {
+            Some(Outcome::Success) => Some(self.end(JobStatus::Succeeded, None)),
+            Some(Outcome::Failure(reason)) => {
+                Some(self.end(JobStatus::Failed, Some(reason.code())))
+            }
+            None if !state_finite => Some(self.end(JobStatus::Failed, Some("nan_state"))),
+            None if compute_s > self.limits.deadline_s => {
+                Some(self.end(JobStatus::Failed, Some("missed_deadline")))
+            }
+            None if self.stale_steps > self.limits.max_stale_steps => {
+                Some(self.end(JobStatus::Failed, Some("stale_camera")))
+            }
+            None => None,
+        };
+        if end.is_some() {
+            backend.hold();
+        }
+        StepReport {
+            record: Some(record),
+            end,
+        }
+    }
+
+    /// Ends the job from outside (cancel, e-stop, shutdown) with what it has done so far.
+    pub fn end(&self, status: JobStatus, reason: Option<&str>) -> JobEnd {
+        JobEnd {
+            status,
+            failure_reason: reason.map(str::to_string),
+            steps: self.steps,
+            reward: self.reward,
+            final_errors: self.last_errors,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::backend::TwinBackend;
+    use crate::policy::Decision;
+    use crate::policy::eval::run_episode;
+    use crate::sim::{AssemblyEnv, EnvOptions};
+    use std::cell::Cell;
+
+    fn spec(controller: &str, seed: u64) -> JobSpec {
+        let cell = CellConfig::reference();
+        JobSpec {
+            id: 7,
+            controller: ControllerSource::Builtin(controller.into()),
+            seed,
+            initial: InitialConditions::from_cell(&cell),
+        }
+    }
+
+    const GENEROUS: SafetyLimits = SafetyLimits {
+        deadline_s: 10.0,
+        max_stale_steps: 4,
+    };
+
+    fn run_to_end(run: &mut JobRun, backend: &mut TwinBackend) -> (Vec<StepRecord>, JobEnd) {
+        let mut records = Vec::new();
+        loop {
+            let report = run.step(backend, &|| 0.0);
+            records.extend(report.record);
+            if let Some(end) = report.end {
+                return (records, end);
+            }
+        }
+    }
+
+    #[test]
+    fn a_job_is_the_same_episode_as_eval_runs() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell);
+        let mut run = JobRun::start(&spec("expert", 11), &cell, &mut backend, GENEROUS, 0.0)
+            .unwrap_or_else(|e| panic!("{e:?}"));
+        let (records, end) = run_to_end(&mut run, &mut backend);
+
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut expert = policy::builtin("expert", &cell).unwrap();
+        let reference = run_episode(&mut env, expert.as_mut(), 0, 11);
+        assert_eq!(end.steps, reference.steps);
+        assert_eq!(records.len(), reference.steps as usize);
+        assert_eq!(end.status == JobStatus::Succeeded, reference.succeeded());
+        assert!((end.reward - reference.reward).abs() < 1e-9);
+        assert_eq!(records.last().unwrap().step, end.steps);
+    }
+
+    /// A controller that answers NaN after a few moves.
+    struct Faulty(u32);
+    impl Controller for Faulty {
+        fn name(&self) -> &str {
+            "faulty"
+        }
+        fn reset(&mut self, _seed: u64) {}
+        fn act(&mut self, _observation: &Observation) -> Decision {
+            self.0 += 1;
+            let value = if self.0 > 3 { f64::NAN } else { 0.0 };
+            Decision::plain(crate::geometry::Move::translation(value, 0.0, 0.0))
+        }
+    }
+
+    #[test]
+    fn a_nan_move_never_reaches_the_robot() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell);
+        let mut run = JobRun::start(&spec("expert", 1), &cell, &mut backend, GENEROUS, 0.0)
+            .unwrap_or_else(|e| panic!("{e:?}"));
+        run.controller = Box::new(Faulty(0));
+        let (records, end) = run_to_end(&mut run, &mut backend);
+        assert_eq!(
+            records.len(),
+            3,
+            "three finite holds, then the NaN is refused"
+        );
+        assert_eq!(end.failure_reason.as_deref(), Some("nan_action"));
+        assert_eq!(end.steps, 3);
+    }
+
+    #[test]
+    fn a_slow_step_misses_its_deadline() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell);
+        let limits = SafetyLimits {
+            deadline_s: 0.05,
+            ..GENEROUS
+        };
+        let mut run = JobRun::start(&spec("expert", 1), &cell, &mut backend, limits, 0.0)
+            .unwrap_or_else(|e| panic!("{e:?}"));
+        // A clock that advances 0.1 s per reading: every step takes 0.1 s > 0.05 s.
+        let now = Cell::new(0.0);
+        let clock = || {
+            now.set(now.get() + 0.1);
+            now.get()
+        };
+        let report = run.step(&mut backend, &clock);
+        let end = report.end.expect("the first step ends the job");
+        assert_eq!(end.failure_reason.as_deref(), Some("missed_deadline"));
+        assert!((report.record.unwrap().compute_us - 1e5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn blind_steps_stop_the_job() {
+        let mut cell = CellConfig::reference();
+        cell.camera.dropout_probability = 1.0;
+        let mut backend = TwinBackend::new(&cell);
+        let limits = SafetyLimits {
+            max_stale_steps: 2,
+            ..GENEROUS
+        };
+        let mut run = JobRun::start(&spec("expert", 3), &cell, &mut backend, limits, 0.0)
+            .unwrap_or_else(|e| panic!("{e:?}"));
+        let (records, end) = run_to_end(&mut run, &mut backend);
+        assert_eq!(end.failure_reason.as_deref(), Some("stale_camera"));
+        assert_eq!(
+            records.len(),
+            3,
+            "the third blind step in a row is one too many"
+        );
+    }
+
+    #[test]
+    fn an_unknown_policy_file_fails_at_start_with_its_reason() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell);
+        let bad = JobSpec {
+            controller: ControllerSource::Policy {
+                id: 3,
+                bytes: b"not safetensors".to_vec(),
+            },
+            ..spec("expert", 1)
+        };
+        let end = match JobRun::start(&bad, &cell, &mut backend, GENEROUS, 0.0) {
+            Ok(_) => panic!("a broken policy must not start"),
+            Err(end) => end,
+        };
+        assert_eq!(end.status, JobStatus::Failed);
+        assert!(end.failure_reason.unwrap().contains("policy 3"));
+    }
+}

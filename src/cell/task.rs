@@ -1,0 +1,358 @@
+//! The control thread: owns the robot, runs queued jobs one at a time at the control period,
+//! and answers cancel, e-stop, reset and shutdown between steps.
+//!
+//! It is a plain OS thread, so policy inference and the supervisor never run on the async
+//! runtime's workers. Commands come in on a channel; every event (job started, step, job ended,
+//! e-stop) goes to one sink, in order; the cell's status is published on a watch channel.
+
+use super::backend::CellBackend;
+use super::job::{JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord};
+use crate::config::cell::CellConfig;
+use serde::Serialize;
+use std::collections::VecDeque;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+use tokio::sync::{oneshot, watch};
+
+/// Requests to the control thread.
+pub enum CellCommand {
+    Enqueue(JobSpec),
+    /// Cancels a queued or running job; answers whether the job was queued or running.
+    Cancel {
+        job_id: i64,
+        reply: oneshot::Sender<bool>,
+    },
+    /// Latches the e-stop: stops motion, fails the running job and cancels the queue.
+    EStop {
+        reply: oneshot::Sender<()>,
+    },
+    /// Clears the latch; starts nothing.
+    Reset {
+        reply: oneshot::Sender<()>,
+    },
+    /// Holds the robot, closes the running and queued jobs as interrupted, and ends the thread.
+    Shutdown {
+        reply: oneshot::Sender<()>,
+    },
+}
+
+/// What happened, in the order it happened.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum CellEvent {
+    JobStarted { job_id: i64 },
+    Step(StepRecord),
+    JobEnded { job_id: i64, end: JobEnd },
+    EStop { latched: bool },
+}
+
+/// The relative pose the cell last estimated: P (mm) and O (deg) of DESIGN.md §5.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct LastPose {
+    pub position_mm: [f64; 3],
+    pub orientation_deg: [f64; 3],
+}
+
+/// The cell as `GET /api/cell` shows it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CellStatus {
+    pub backend: String,
+    pub estop_latched: bool,
+    pub current_job: Option<i64>,
+    pub queue: Vec<i64>,
+    pub last_pose: Option<LastPose>,
+}
+
+/// The sending side of the control thread, cheap to clone.
+#[derive(Clone)]
+pub struct CellHandle {
+    commands: mpsc::Sender<CellCommand>,
+    status: watch::Receiver<CellStatus>,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("the control thread has stopped")]
+pub struct CellStopped;
+
+impl CellHandle {
+    pub fn status(&self) -> CellStatus {
+        self.status.borrow().clone()
+    }
+
+    pub fn send(&self, command: CellCommand) -> Result<(), CellStopped> {
+        self.commands.send(command).map_err(|_| CellStopped)
+    }
+
+    /// Sends a command built around a reply channel and waits for the answer.
+    pub async fn ask<T>(
+        &self,
+        command: impl FnOnce(oneshot::Sender<T>) -> CellCommand,
+    ) -> Result<T, CellStopped> {
+        let (reply, answer) = oneshot::channel();
+        self.send(command(reply))?;
+        answer.await.map_err(|_| CellStopped)
+    }
+}
+
+/// How the thread runs.
+pub struct LoopSettings {
+    /// Control period; none runs steps back to back.
+    pub period: Option<Duration>,
+    pub limits: SafetyLimits,
+    /// Whether the e-stop was latched when the service last stopped.
+    pub estop_latched: bool,
+}
+
+/// Starts the control thread. `sink` receives every event in order; `on_step_latency` gets
+/// each step's work time (for the metrics).
+pub fn spawn(
+    cell: CellConfig,
+    backend: Box<dyn CellBackend>,
+    settings: LoopSettings,
+    sink: Box<dyn FnMut(CellEvent) + Send>,
+) -> (CellHandle, std::thread::JoinHandle<()>) {
+    let (commands, inbox) = mpsc::channel();
+    let status = CellStatus {
+        backend: backend.name().to_string(),
+        estop_latched: settings.estop_latched,
+        current_job: None,
+        queue: Vec::new(),
+        last_pose: None,
+    };
+    let (status_tx, status_rx) = watch::channel(status);
+    let mut control = ControlLoop {
+        cell,
+        backend,
+        settings,
+        sink,
+        status: status_tx,
+        queue: VecDeque::new(),
+        running: None,
+        epoch: Instant::now(),
+    };
+    let thread = std::thread::Builder::new()
+        .name("celld-control".into())
+        .spawn(move || control.run(inbox))
+        .expect("spawn the control thread");
+    (
+        CellHandle {
+            commands,
+            status: status_rx,
+        },
+        thread,
+    )
+}
+
+struct ControlLoop {
+    cell: CellConfig,
+    backend: Box<dyn CellBackend>,
+    settings: LoopSettings,
+    sink: Box<dyn FnMut(CellEvent) + Send>,
+    status: watch::Sender<CellStatus>,
+    queue: VecDeque<JobSpec>,
+    running: Option<JobRun>,
+    epoch: Instant,
+}
+
+impl ControlLoop {
+    fn now_s(&self) -> f64 {
+        self.epoch.elapsed().as_secs_f64()
+    }
+
+    fn run(&mut self, inbox: mpsc::Receiver<CellCommand>) {
+        let mut next_step = Instant::now();
+        loop {
+            // Wait for a command: forever when idle, until the next step when a job runs.
+            let command = if self.running.is_some() {
+                let wait = next_step.saturating_duration_since(Instant::now());
+                match inbox.recv_timeout(wait) {
+                    Ok(command) => Some(command),
+                    Err(mpsc::RecvTimeoutError::Timeout) => None,
+                    Err(mpsc::RecvTimeoutError::Disconnected) => return self.shutdown(None),
+                }
+            } else {
+                match inbox.recv() {
+                    Ok(command) => Some(command),
+                    Err(_) => return self.shutdown(None),
+                }
+            };
+            if let Some(command) = command {
+                if let CellCommand::Shutdown { reply } = command {
+                    return self.shutdown(Some(reply));
+                }
+                self.handle(command);
+                // Drain whatever else arrived before stepping.
+                while let Ok(command) = inbox.try_recv() {
+                    if let CellCommand::Shutdown { reply } = command {
+                        return self.shutdown(Some(reply));
+                    }
+                    self.handle(command);
+                }
+            }
+            if self.running.is_none() && !self.status.borrow().estop_latched {
+                self.start_next();
+                next_step = Instant::now();
+            }
+            if self.running.is_some() && Instant::now() >= next_step {
+                self.step();
+                if let Some(period) = self.settings.period {
+                    next_step += period;
+                    // A step that overran its period does not make the next ones hurry.
+                    next_step = next_step.max(Instant::now());
+                }
+            }
+            self.publish();
+        }
+    }
+
+    fn handle(&mut self, command: CellCommand) {
+        match command {
+            CellCommand::Enqueue(spec) => {
+                if self.status.borrow().estop_latched {
+                    let end = JobEnd {
+                        status: JobStatus::Cancelled,
+                        failure_reason: Some("estop".into()),
+                        steps: 0,
+                        reward: 0.0,
+                        final_errors: None,
+                    };
+                    (self.sink)(CellEvent::JobEnded {
+                        job_id: spec.id,
+                        end,
+                    });
+                } else {
+                    self.queue.push_back(spec);
+                }
+            }
+            CellCommand::Cancel { job_id, reply } => {
+                let found = if self.running.as_ref().is_some_and(|r| r.id == job_id) {
+                    self.backend.hold();
+                    self.finish(JobStatus::Cancelled, Some("cancelled"));
+                    true
+                } else if let Some(index) = self.queue.iter().position(|s| s.id == job_id) {
+                    self.queue.remove(index);
+                    self.end_unstarted(job_id, JobStatus::Cancelled, "cancelled");
+                    true
+                } else {
+                    false
+                };
+                let _ = reply.send(found);
+            }
+            CellCommand::EStop { reply } => {
+                self.backend.hold();
+                self.status.send_modify(|s| s.estop_latched = true);
+                (self.sink)(CellEvent::EStop { latched: true });
+                if self.running.is_some() {
+                    self.finish(JobStatus::Failed, Some("estop"));
+                }
+                for spec in std::mem::take(&mut self.queue) {
+                    self.end_unstarted(spec.id, JobStatus::Cancelled, "estop");
+                }
+                let _ = reply.send(());
+            }
+            CellCommand::Reset { reply } => {
+                self.status.send_modify(|s| s.estop_latched = false);
+                (self.sink)(CellEvent::EStop { latched: false });
+                let _ = reply.send(());
+            }
+            CellCommand::Shutdown { .. } => unreachable!("handled by the loop"),
+        }
+    }
+
+    fn start_next(&mut self) {
+        while let Some(spec) = self.queue.pop_front() {
+            (self.sink)(CellEvent::JobStarted { job_id: spec.id });
+            let now = self.now_s();
+            match JobRun::start(
+                &spec,
+                &self.cell,
+                self.backend.as_mut(),
+                self.settings.limits,
+                now,
+            ) {
+                Ok(run) => {
+                    self.running = Some(run);
+                    return;
+                }
+                Err(end) => (self.sink)(CellEvent::JobEnded {
+                    job_id: spec.id,
+                    end,
+                }),
+            }
+        }
+    }
+
+    fn step(&mut self) {
+        let Some(run) = self.running.as_mut() else {
+            return;
+        };
+        let epoch = self.epoch;
+        let clock = move || epoch.elapsed().as_secs_f64();
+        let report = run.step(self.backend.as_mut(), &clock);
+        if let Some(record) = report.record {
+            (self.sink)(CellEvent::Step(record));
+        }
+        if let Some(end) = report.end {
+            let job_id = run.id;
+            self.running = None;
+            (self.sink)(CellEvent::JobEnded { job_id, end });
+        }
+    }
+
+    /// Ends the running job with `status`.
+    fn finish(&mut self, status: JobStatus, reason: Option<&str>) {
+        if let Some(run) = self.running.take() {
+            let end = run.end(status, reason);
+            (self.sink)(CellEvent::JobEnded {
+                job_id: run.id,
+                end,
+            });
+        }
+    }
+
+    fn end_unstarted(&mut self, job_id: i64, status: JobStatus, reason: &str) {
+        let end = JobEnd {
+            status,
+            failure_reason: Some(reason.into()),
+            steps: 0,
+            reward: 0.0,
+            final_errors: None,
+        };
+        (self.sink)(CellEvent::JobEnded { job_id, end });
+    }
+
+    fn shutdown(&mut self, reply: Option<oneshot::Sender<()>>) {
+        self.backend.hold();
+        self.finish(JobStatus::Interrupted, Some("shutdown"));
+        for spec in std::mem::take(&mut self.queue) {
+            self.end_unstarted(spec.id, JobStatus::Interrupted, "shutdown");
+        }
+        self.publish();
+        if let Some(reply) = reply {
+            let _ = reply.send(());
+        }
+    }
+
+    fn publish(&mut self) {
+        let current_job = self.running.as_ref().map(|r| r.id);
+        let queue: Vec<i64> = self.queue.iter().map(|s| s.id).collect();
+        let last_pose = self.running.as_ref().map(|r| {
+            let s = r.observation().state;
+            LastPose {
+                position_mm: [s[6], s[7], s[8]],
+                orientation_deg: [s[9], s[10], s[11]],
+            }
+        });
+        self.status.send_if_modified(|status| {
+            let changed = status.current_job != current_job
+                || status.queue != queue
+                || (last_pose.is_some() && status.last_pose != last_pose);
+            status.current_job = current_job;
+            status.queue = queue;
+            if last_pose.is_some() {
+                status.last_pose = last_pose;
+            }
+            changed
+        });
+    }
+}

@@ -1,0 +1,93 @@
+//! `celld serve` and `celld token create`: the CLI side of the service (settings layering and a
+//! runtime); the service itself is `app`.
+
+use anyhow::Result;
+use assembly_cell::app;
+use assembly_cell::config::service::ServiceConfig;
+use clap::{Args, Subcommand};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct ServeArgs {
+    /// Service settings (TOML; see deploy/celld.example.toml). `CELLD_*` variables override
+    /// it, and these flags override both.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Address to listen on (default 127.0.0.1:8080; port 0 picks a free one).
+    #[arg(long)]
+    listen: Option<SocketAddr>,
+    /// SQLite database file (default data/celld.db).
+    #[arg(long)]
+    db: Option<PathBuf>,
+    /// Cell file (default: the bundled reference cell, cells/phi170.toml).
+    #[arg(long)]
+    cell: Option<PathBuf>,
+    /// Run the twin as fast as it can instead of at the camera's rate.
+    #[arg(long)]
+    fast: bool,
+}
+
+#[derive(Subcommand)]
+pub enum TokenCommand {
+    /// Make a new API token and print it (it is stored only as a hash).
+    Create {
+        /// viewer (read), operator (jobs, e-stop) or admin (policies, training, tokens).
+        #[arg(long)]
+        role: String,
+        /// Who or what the token is for.
+        #[arg(long)]
+        name: String,
+        /// SQLite database file (default data/celld.db, or the one CELLD_DB names).
+        #[arg(long)]
+        db: Option<PathBuf>,
+    },
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?)
+}
+
+pub fn serve(args: ServeArgs) -> Result<()> {
+    let mut settings = ServiceConfig::load(args.config.as_deref())?;
+    settings.apply_env(std::env::vars())?;
+    if let Some(listen) = args.listen {
+        settings.listen = listen;
+    }
+    if let Some(db) = args.db {
+        settings.db = db;
+    }
+    if let Some(cell) = args.cell {
+        settings.cell = Some(cell);
+    }
+    if args.fast {
+        settings.fast = true;
+    }
+    init_logging();
+    runtime()?.block_on(app::serve(settings))
+}
+
+pub fn token(command: TokenCommand) -> Result<()> {
+    match command {
+        TokenCommand::Create { role, name, db } => {
+            let mut settings = ServiceConfig::default();
+            settings.apply_env(std::env::vars())?;
+            let db = db.unwrap_or(settings.db);
+            runtime()?.block_on(app::create_token(&db, &role, &name))
+        }
+    }
+}
+
+/// Logs to stderr; `CELLD_LOG` = error, warn, info (default), debug or trace.
+fn init_logging() {
+    let level = std::env::var("CELLD_LOG")
+        .ok()
+        .and_then(|l| l.parse().ok())
+        .unwrap_or(tracing::Level::INFO);
+    tracing_subscriber::fmt()
+        .with_max_level(level)
+        .with_writer(std::io::stderr)
+        .init();
+}

@@ -1,0 +1,318 @@
+//! The service's own settings (`celld serve`): where it listens, where it keeps its data, which
+//! cell it runs and how the control loop is timed.
+//!
+//! Layers, later wins: built-in defaults, a TOML file (`--config`), `CELLD_*` environment
+//! variables, command-line flags. Every key is documented in `deploy/celld.example.toml`.
+
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceConfigError {
+    #[error("cannot read {path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("{origin}: `{key}` = `{value}`: {reason}")]
+    Invalid {
+        origin: String,
+        key: &'static str,
+        value: String,
+        reason: String,
+    },
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// Address the HTTP server binds (`127.0.0.1:0` picks a free port).
+    pub listen: SocketAddr,
+    /// The SQLite database file; its directory is created if missing, and the first admin
+    /// token is written beside it as `admin.token`.
+    pub db: PathBuf,
+    /// Cell file; none means the bundled reference cell (cells/phi170.toml).
+    pub cell: Option<PathBuf>,
+    /// Run the twin as fast as it can instead of at the camera's rate.
+    pub fast: bool,
+    pub control: ControlConfig,
+    pub http: HttpConfig,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControlConfig {
+    /// What `"controller": "active"` runs until the policy registry names an active policy.
+    pub active_controller: String,
+    /// Control period, ms; none means one camera cycle (1000 / camera.rate_hz). Ignored with
+    /// `fast`.
+    pub step_period_ms: Option<f64>,
+    /// A step whose decision, supervision and execution take longer than this stops the job
+    /// with `missed_deadline`.
+    pub deadline_ms: f64,
+    /// This many steps in a row without a fresh camera measurement stop the job with
+    /// `stale_camera`.
+    pub max_stale_steps: u32,
+    /// Steps per SQLite transaction while a job runs (also flushed every 100 ms).
+    pub step_batch: usize,
+    /// Telemetry events buffered per subscriber; a subscriber further behind skips ahead and
+    /// is counted as lagging.
+    pub telemetry_buffer: usize,
+}
+
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HttpConfig {
+    /// Largest request body accepted, bytes (larger is 413).
+    pub body_limit_bytes: usize,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        ServiceConfig {
+            listen: "127.0.0.1:8080".parse().expect("valid address"),
+            db: PathBuf::from("data/celld.db"),
+            cell: None,
+            fast: false,
+            control: ControlConfig::default(),
+            http: HttpConfig::default(),
+        }
+    }
+}
+
+impl Default for ControlConfig {
+    fn default() -> Self {
+        ControlConfig {
+            active_controller: "expert".to_string(),
+            step_period_ms: None,
+            deadline_ms: 50.0,
+            max_stale_steps: 4,
+            step_batch: 256,
+            telemetry_buffer: 1024,
+        }
+    }
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        HttpConfig {
+            body_limit_bytes: 1 << 20,
+        }
+    }
+}
+
+impl ServiceConfig {
+    /// Defaults, then the file if given.
+    pub fn load(path: Option<&Path>) -> Result<Self, ServiceConfigError> {
+        let Some(path) = path else {
+            return Ok(ServiceConfig::default());
+        };
+        let text = std::fs::read_to_string(path).map_err(|source| ServiceConfigError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        toml::from_str(&text).map_err(|e| ServiceConfigError::Parse {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        })
+    }
+
+    /// Applies `CELLD_*` variables from `vars` (the process environment in `celld serve`).
+    pub fn apply_env(
+        &mut self,
+        vars: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<(), ServiceConfigError> {
+        for (key, value) in vars {
+            let Some(name) = key.strip_prefix("CELLD_") else {
+                continue;
+            };
+            let invalid = |key: &'static str, reason: &str| ServiceConfigError::Invalid {
+                origin: "environment".to_string(),
+                key,
+                value: value.clone(),
+                reason: reason.to_string(),
+            };
+            match name {
+                "LISTEN" => {
+                    self.listen = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_LISTEN", "not an address"))?
+                }
+                "DB" => self.db = PathBuf::from(&value),
+                "CELL" => self.cell = Some(PathBuf::from(&value)),
+                "FAST" => {
+                    self.fast = parse_bool(&value)
+                        .ok_or_else(|| invalid("CELLD_FAST", "expected true or false"))?
+                }
+                "ACTIVE_CONTROLLER" => self.control.active_controller = value.clone(),
+                "STEP_PERIOD_MS" => {
+                    self.control.step_period_ms = Some(
+                        value
+                            .parse()
+                            .map_err(|_| invalid("CELLD_STEP_PERIOD_MS", "not a number"))?,
+                    )
+                }
+                "DEADLINE_MS" => {
+                    self.control.deadline_ms = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_DEADLINE_MS", "not a number"))?
+                }
+                "BODY_LIMIT_BYTES" => {
+                    self.http.body_limit_bytes = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_BODY_LIMIT_BYTES", "not a whole number"))?
+                }
+                // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks values no type can: positive periods and sizes.
+    pub fn validate(&self) -> Result<(), ServiceConfigError> {
+        let invalid =
+            |key: &'static str, value: String, reason: &str| ServiceConfigError::Invalid {
+                origin: "configuration".to_string(),
+                key,
+                value,
+                reason: reason.to_string(),
+            };
+        if let Some(period) = self.control.step_period_ms
+            && !(period.is_finite() && period >= 0.0)
+        {
+            return Err(invalid(
+                "control.step_period_ms",
+                period.to_string(),
+                "must be a number ≥ 0",
+            ));
+        }
+        if !(self.control.deadline_ms.is_finite() && self.control.deadline_ms > 0.0) {
+            return Err(invalid(
+                "control.deadline_ms",
+                self.control.deadline_ms.to_string(),
+                "must be > 0",
+            ));
+        }
+        if self.control.step_batch == 0 {
+            return Err(invalid("control.step_batch", "0".into(), "must be ≥ 1"));
+        }
+        if self.control.telemetry_buffer == 0 {
+            return Err(invalid(
+                "control.telemetry_buffer",
+                "0".into(),
+                "must be ≥ 1",
+            ));
+        }
+        if self.http.body_limit_bytes == 0 {
+            return Err(invalid("http.body_limit_bytes", "0".into(), "must be ≥ 1"));
+        }
+        Ok(())
+    }
+
+    /// The control period, s: none in fast mode, else the configured one or a camera cycle.
+    pub fn step_period_s(&self, camera_rate_hz: f64) -> Option<f64> {
+        if self.fast {
+            None
+        } else {
+            Some(
+                self.control
+                    .step_period_ms
+                    .map_or(1.0 / camera_rate_hz, |ms| ms / 1000.0),
+            )
+        }
+    }
+}
+
+fn parse_bool(text: &str) -> Option<bool> {
+    match text.to_ascii_lowercase().as_str() {
+        "1" | "true" | "yes" | "on" => Some(true),
+        "0" | "false" | "no" | "off" => Some(false),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn vars(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+        pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect()
+    }
+
+    #[test]
+    fn file_then_environment_override_defaults_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("celld.toml");
+        std::fs::write(
+            &path,
+            "listen = \"0.0.0.0:9000\"\nfast = true\n[control]\ndeadline_ms = 20\n",
+        )
+        .unwrap();
+        let mut config = ServiceConfig::load(Some(&path)).unwrap();
+        assert_eq!(config.listen.port(), 9000);
+        assert!(config.fast);
+        assert_eq!(config.control.deadline_ms, 20.0);
+        assert_eq!(
+            config.db,
+            PathBuf::from("data/celld.db"),
+            "untouched default"
+        );
+
+        config
+            .apply_env(vars(&[
+                ("CELLD_LISTEN", "127.0.0.1:7000"),
+                ("CELLD_FAST", "false"),
+                ("PATH", "/bin"),
+            ]))
+            .unwrap();
+        assert_eq!(config.listen.port(), 7000);
+        assert!(!config.fast);
+        assert_eq!(config.control.deadline_ms, 20.0, "the file's value stays");
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        let mut config = ServiceConfig::default();
+        let error = config
+            .apply_env(vars(&[("CELLD_DEADLINE_MS", "soon")]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("CELLD_DEADLINE_MS") && error.contains("soon"),
+            "{error}"
+        );
+
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("celld.toml");
+        std::fs::write(&path, "listen_on = \"x\"\n").unwrap();
+        let error = ServiceConfig::load(Some(&path)).unwrap_err().to_string();
+        assert!(error.contains("listen_on"), "{error}");
+
+        config = ServiceConfig::default();
+        config.control.deadline_ms = 0.0;
+        assert!(
+            config
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("deadline_ms")
+        );
+    }
+
+    #[test]
+    fn period_is_a_camera_cycle_unless_set_or_fast() {
+        let mut config = ServiceConfig::default();
+        assert_eq!(config.step_period_s(4.0), Some(0.25));
+        config.control.step_period_ms = Some(20.0);
+        assert_eq!(config.step_period_s(4.0), Some(0.02));
+        config.fast = true;
+        assert_eq!(config.step_period_s(4.0), None);
+    }
+}

@@ -1,0 +1,82 @@
+//! Bearer tokens and roles. `Authorization: Bearer TOKEN` on every route but health, metrics
+//! and the OpenAPI document. A browser's EventSource cannot send headers, so the telemetry
+//! stream also takes `?access_token=TOKEN` ([`StreamCaller`]); no other route does, so tokens
+//! stay out of ordinary URLs and logs.
+
+use super::Context;
+use super::error::ApiError;
+use crate::storage::tokens::{self, Caller, Role};
+use axum::extract::FromRequestParts;
+use axum::http::request::Parts;
+
+/// The authenticated caller of a request.
+pub struct Auth(pub Caller);
+
+impl Auth {
+    /// Refuses (403) a caller below `role`.
+    pub fn require(&self, role: Role) -> Result<&Caller, ApiError> {
+        if self.0.role >= role {
+            Ok(&self.0)
+        } else {
+            Err(ApiError::forbidden(format!(
+                "this needs the {} role; token `{}` is {}",
+                role.as_str(),
+                self.0.name,
+                self.0.role.as_str()
+            )))
+        }
+    }
+}
+
+async fn caller_of(context: &Context, secret: Option<&str>) -> Result<Caller, ApiError> {
+    let secret = secret.ok_or_else(|| {
+        ApiError::unauthorized("missing token: send `Authorization: Bearer TOKEN`")
+    })?;
+    tokens::find(&context.db, secret)
+        .await?
+        .ok_or_else(|| ApiError::unauthorized("unknown token"))
+}
+
+fn bearer(parts: &Parts) -> Result<Option<&str>, ApiError> {
+    let Some(value) = parts.headers.get(axum::http::header::AUTHORIZATION) else {
+        return Ok(None);
+    };
+    let value = value
+        .to_str()
+        .map_err(|_| ApiError::unauthorized("the Authorization header is not text"))?;
+    value
+        .strip_prefix("Bearer ")
+        .map(|s| Some(s.trim()))
+        .ok_or_else(|| ApiError::unauthorized("the Authorization header must be `Bearer TOKEN`"))
+}
+
+impl FromRequestParts<Context> for Auth {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, context: &Context) -> Result<Self, ApiError> {
+        Ok(Auth(caller_of(context, bearer(parts)?).await?))
+    }
+}
+
+/// Like [`Auth`], also taking the token from `?access_token=`.
+pub struct StreamCaller(pub Auth);
+
+impl FromRequestParts<Context> for StreamCaller {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, context: &Context) -> Result<Self, ApiError> {
+        let from_query = parts.uri.query().and_then(|query| {
+            query
+                .split('&')
+                .find_map(|pair| pair.strip_prefix("access_token="))
+                .map(str::to_string)
+        });
+        let secret = match bearer(parts)? {
+            Some(secret) => Some(secret.to_string()),
+            None => from_query,
+        };
+        Ok(StreamCaller(Auth(
+            caller_of(context, secret.as_deref()).await?,
+        )))
+    }
+}

@@ -1,0 +1,78 @@
+//! `/api/cell`: the cell's state (viewer), e-stop and reset (operator).
+
+use super::Context;
+use super::auth::Auth;
+use super::error::{ApiResult, Json};
+use crate::cell::{CellCommand, CellStatus};
+use crate::storage::audit;
+use crate::storage::tokens::Role;
+use axum::Router;
+use axum::extract::State;
+use axum::routing::{get, post};
+use serde::Serialize;
+use serde_json::json;
+
+pub fn router() -> Router<Context> {
+    Router::new()
+        .route("/api/cell", get(read))
+        .route("/api/cell/estop", post(estop))
+        .route("/api/cell/reset", post(reset))
+}
+
+#[derive(Serialize)]
+struct CellView {
+    #[serde(flatten)]
+    status: CellStatus,
+    cell: String,
+    queue_length: usize,
+    accepting_jobs: bool,
+}
+
+fn view(context: &Context) -> CellView {
+    let status = context.cell.status();
+    CellView {
+        queue_length: status.queue.len(),
+        status,
+        cell: context.cell_config.name.clone(),
+        accepting_jobs: context.accepting_jobs(),
+    }
+}
+
+async fn read(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
+    auth.require(Role::Viewer)?;
+    Ok(Json(view(&context)))
+}
+
+/// Latches the e-stop: motion stops at once, the running job fails with `estop`, queued jobs
+/// are cancelled. Stays latched (across restarts too) until a reset.
+async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
+    let caller = auth.require(Role::Operator)?;
+    let running = context.cell.status().current_job;
+    context
+        .cell
+        .ask(|reply| CellCommand::EStop { reply })
+        .await?;
+    audit::record(
+        &context.db,
+        &caller.name,
+        "cell.estop",
+        json!({"job": running}),
+    )
+    .await?;
+    if let Some(id) = running {
+        super::jobs::wait_until_final(&context, id).await?;
+    }
+    Ok(Json(view(&context)))
+}
+
+/// Clears the e-stop latch. Starts nothing: the next motion is the next job an operator
+/// creates.
+async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
+    let caller = auth.require(Role::Operator)?;
+    context
+        .cell
+        .ask(|reply| CellCommand::Reset { reply })
+        .await?;
+    audit::record(&context.db, &caller.name, "cell.reset", json!({})).await?;
+    Ok(Json(view(&context)))
+}

@@ -1,0 +1,99 @@
+//! `/api/stats`: jobs, success rate, average steps and failure reasons, overall and by day or
+//! by controller, over a time range.
+
+use super::Context;
+use super::auth::Auth;
+use super::error::{ApiError, ApiResult, Json, Query};
+use crate::storage::jobs::{self, GroupBy};
+use crate::storage::tokens::Role;
+use axum::Router;
+use axum::extract::State;
+use axum::routing::get;
+use serde::Deserialize;
+use serde_json::{Value, json};
+
+pub fn router() -> Router<Context> {
+    Router::new().route("/api/stats", get(read))
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StatsQuery {
+    since: Option<String>,
+    until: Option<String>,
+    by: Option<String>,
+}
+
+async fn read(
+    State(context): State<Context>,
+    auth: Auth,
+    Query(query): Query<StatsQuery>,
+) -> ApiResult<Json<Value>> {
+    auth.require(Role::Viewer)?;
+    let by = match query.by.as_deref() {
+        None | Some("day") => GroupBy::Day,
+        Some("controller") => GroupBy::Controller,
+        Some(other) => {
+            return Err(ApiError::bad_request(format!(
+                "by `{other}` is not day or controller"
+            )));
+        }
+    };
+    for (field, value) in [("since", &query.since), ("until", &query.until)] {
+        if let Some(value) = value
+            && !is_iso_time(value)
+        {
+            return Err(ApiError::bad_request(format!(
+                "{field} `{value}` is not a UTC date or time like 2026-11-22 or 2026-11-22T08:00:00Z"
+            )));
+        }
+    }
+    let (total, groups) = jobs::stats(
+        &context.db,
+        query.since.as_deref(),
+        query.until.as_deref(),
+        by,
+    )
+    .await?;
+    Ok(Json(json!({"total": total, "groups": groups})))
+}
+
+/// `YYYY-MM-DD`, optionally followed by `THH:MM[:SS[.fff]][Z]`: the prefixes of the stored
+/// times, which compare as text.
+fn is_iso_time(text: &str) -> bool {
+    let pattern = b"dddd-dd-ddTdd:dd:dd.dddZ";
+    let bytes = text.as_bytes();
+    if bytes.len() < 10 || bytes.len() > pattern.len() {
+        return false;
+    }
+    bytes.iter().zip(pattern).all(|(&b, &p)| match p {
+        b'd' => b.is_ascii_digit(),
+        _ => b == p,
+    }) && (bytes.len() == 10 || bytes.len() >= 16)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::is_iso_time;
+
+    #[test]
+    fn iso_prefixes_are_accepted_and_others_refused() {
+        for good in [
+            "2026-11-22",
+            "2026-11-22T08:00",
+            "2026-11-22T08:00:00Z",
+            "2026-11-22T08:00:00.123Z",
+        ] {
+            assert!(is_iso_time(good), "{good}");
+        }
+        for bad in [
+            "yesterday",
+            "2026-1-22",
+            "2026-11-22T8",
+            "2026-11-22 08:00",
+            "2026-11-22T08:00:00+01:00",
+        ] {
+            assert!(!is_iso_time(bad), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,140 @@
+//! The service's Prometheus metrics (`GET /metrics`): jobs by outcome, control-step latency,
+//! supervisor vetoes by reason, queue length, telemetry subscribers and their lag.
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+use std::sync::Arc;
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct OutcomeLabel {
+    /// The job's final status.
+    pub status: String,
+    /// Its failure reason, `none` on success.
+    pub reason: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ReasonLabel {
+    pub reason: String,
+}
+
+/// Every metric, cheap to clone (each is an `Arc` of atomics inside).
+#[derive(Clone)]
+pub struct Metrics {
+    registry: Arc<Registry>,
+    /// Jobs ended, by final status and failure reason.
+    pub jobs: Family<OutcomeLabel, Counter>,
+    /// Work time of one control step (decision, supervision, execution), s.
+    pub step_seconds: Histogram,
+    pub vetoes: Family<ReasonLabel, Counter>,
+    pub queue_length: Gauge,
+    pub telemetry_subscribers: Gauge,
+    /// Telemetry events a slow subscriber skipped.
+    pub telemetry_lagged: Counter,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        let mut registry = Registry::with_prefix("celld");
+        let jobs = Family::<OutcomeLabel, Counter>::default();
+        registry.register("jobs", "Jobs ended, by outcome", jobs.clone());
+        // 1 µs .. ~0.5 s.
+        let step_seconds = Histogram::new(exponential_buckets(1e-6, 2.0, 20));
+        registry.register(
+            "control_step_seconds",
+            "Work time of one control step (decision, supervision, execution)",
+            step_seconds.clone(),
+        );
+        let vetoes = Family::<ReasonLabel, Counter>::default();
+        registry.register(
+            "supervisor_vetoes",
+            "Moves the supervisor vetoed, by reason",
+            vetoes.clone(),
+        );
+        let queue_length = Gauge::default();
+        registry.register(
+            "queue_length",
+            "Jobs waiting for the robot",
+            queue_length.clone(),
+        );
+        let telemetry_subscribers = Gauge::default();
+        registry.register(
+            "telemetry_subscribers",
+            "Open telemetry streams",
+            telemetry_subscribers.clone(),
+        );
+        let telemetry_lagged = Counter::default();
+        registry.register(
+            "telemetry_lagged_events",
+            "Telemetry events skipped by subscribers that fell behind",
+            telemetry_lagged.clone(),
+        );
+        Metrics {
+            registry: Arc::new(registry),
+            jobs,
+            step_seconds,
+            vetoes,
+            queue_length,
+            telemetry_subscribers,
+            telemetry_lagged,
+        }
+    }
+}
+
+impl Metrics {
+    /// The text exposition format.
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        prometheus_client::encoding::text::encode(&mut out, &self.registry)
+            .expect("writing to a String cannot fail");
+        out
+    }
+
+    pub fn count_job(&self, status: &str, reason: Option<&str>) {
+        self.jobs
+            .get_or_create(&OutcomeLabel {
+                status: status.to_string(),
+                reason: reason.unwrap_or("none").to_string(),
+            })
+            .inc();
+    }
+
+    pub fn count_veto(&self, reason: &str) {
+        self.vetoes
+            .get_or_create(&ReasonLabel {
+                reason: reason.to_string(),
+            })
+            .inc();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn counts_show_up_in_the_exposition() {
+        let metrics = Metrics::default();
+        metrics.count_job("succeeded", None);
+        metrics.count_job("succeeded", None);
+        metrics.count_veto("collision");
+        metrics.step_seconds.observe(3e-6);
+        let text = metrics.render();
+        assert!(
+            text.contains("celld_jobs_total{status=\"succeeded\",reason=\"none\"} 2"),
+            "{text}"
+        );
+        assert!(
+            text.contains("celld_supervisor_vetoes_total{reason=\"collision\"} 1"),
+            "{text}"
+        );
+        assert!(
+            text.contains("celld_control_step_seconds_count 1"),
+            "{text}"
+        );
+    }
+}

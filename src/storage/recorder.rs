@@ -1,0 +1,97 @@
+//! The storage writer: turns the control thread's events into rows while the job runs.
+//!
+//! Steps are written in batches (a transaction per batch, or every 100 ms, whichever comes
+//! first); a job's start and end are written after the steps before them, in the same
+//! transaction, so a job never shows more steps than are stored. A failed write is logged and
+//! retried with everything after it; nothing is dropped.
+
+use super::{Db, DbError, jobs, steps};
+use crate::cell::{CellEvent, StepRecord};
+use std::collections::VecDeque;
+use std::time::Duration;
+use tokio::sync::mpsc::UnboundedReceiver;
+
+/// Runs until the event channel closes, then writes what is left.
+pub async fn run(db: Db, mut events: UnboundedReceiver<CellEvent>, batch: usize) {
+    let mut pending: VecDeque<CellEvent> = VecDeque::new();
+    let mut pending_steps = 0usize;
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            event = events.recv() => {
+                let Some(event) = event else { break };
+                let urgent = !matches!(event, CellEvent::Step(_));
+                pending_steps += usize::from(!urgent);
+                pending.push_back(event);
+                if urgent || pending_steps >= batch {
+                    // Take whatever else is already waiting, so bursts go in one transaction.
+                    while let Ok(event) = events.try_recv() {
+                        pending_steps += usize::from(matches!(event, CellEvent::Step(_)));
+                        pending.push_back(event);
+                    }
+                    flush(&db, &mut pending, &mut pending_steps).await;
+                }
+            }
+            _ = tick.tick() => {
+                if !pending.is_empty() {
+                    flush(&db, &mut pending, &mut pending_steps).await;
+                }
+            }
+        }
+    }
+    for attempt in 0..10 {
+        if pending.is_empty() {
+            return;
+        }
+        if attempt > 0 {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        flush(&db, &mut pending, &mut pending_steps).await;
+    }
+    tracing::error!(events = pending.len(), "could not store the last events");
+}
+
+async fn flush(db: &Db, pending: &mut VecDeque<CellEvent>, pending_steps: &mut usize) {
+    match write(db, pending).await {
+        Ok(()) => {
+            pending.clear();
+            *pending_steps = 0;
+        }
+        Err(error) => tracing::error!(%error, "storing steps failed; will retry"),
+    }
+}
+
+async fn write(db: &Db, events: &VecDeque<CellEvent>) -> Result<(), DbError> {
+    let mut tx = db.writer.begin().await?;
+    let mut run: Vec<StepRecord> = Vec::new();
+    for event in events {
+        match event {
+            CellEvent::Step(record) => {
+                run.push(record.clone());
+                if run.len() == steps::ROWS_PER_STATEMENT {
+                    steps::insert_rows(&mut *tx, &run).await?;
+                    run.clear();
+                }
+            }
+            other => {
+                steps::insert_rows(&mut *tx, &run).await?;
+                run.clear();
+                match other {
+                    CellEvent::JobStarted { job_id } => {
+                        jobs::mark_started(&mut *tx, *job_id).await?
+                    }
+                    CellEvent::JobEnded { job_id, end } => {
+                        jobs::mark_ended(&mut *tx, *job_id, end).await?
+                    }
+                    CellEvent::EStop { latched } => {
+                        super::set_cell_flag(&mut *tx, "estop", *latched).await?;
+                    }
+                    CellEvent::Step(_) => unreachable!(),
+                }
+            }
+        }
+    }
+    steps::insert_rows(&mut *tx, &run).await?;
+    tx.commit().await
+}

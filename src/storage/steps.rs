@@ -1,0 +1,180 @@
+//! Step rows: written in batches by the recorder, read back as JSON or CSV.
+
+use super::{Db, DbError};
+use crate::cell::StepRecord;
+use serde::Serialize;
+use serde_json::Value;
+use sqlx::{QueryBuilder, Row, Sqlite};
+
+/// Rows per INSERT statement (17 values each, well under SQLite's 32766 parameters).
+pub const ROWS_PER_STATEMENT: usize = 100;
+
+/// Inserts the records in one transaction.
+pub async fn insert_batch(db: &Db, records: &[StepRecord]) -> Result<(), DbError> {
+    let mut tx = db.writer.begin().await?;
+    for chunk in records.chunks(ROWS_PER_STATEMENT) {
+        insert_rows(&mut *tx, chunk).await?;
+    }
+    tx.commit().await
+}
+
+/// Inserts the records with whatever executor the caller holds (a transaction).
+pub async fn insert_rows<'e>(
+    executor: impl sqlx::SqliteExecutor<'e>,
+    records: &[StepRecord],
+) -> Result<(), DbError> {
+    if records.is_empty() {
+        return Ok(());
+    }
+    let mut insert: QueryBuilder<Sqlite> = QueryBuilder::new(
+        "INSERT INTO steps (job_id, step, t_s, state, action, actor, scale, legs_mm, verdict,
+             veto_reason, reward_global, reward_position, reward_orientation, reward_error,
+             reward_step, reward_total, compute_us) ",
+    );
+    insert.push_values(records, |mut row, r| {
+        row.push_bind(r.job_id)
+            .push_bind(i64::from(r.step))
+            .push_bind(r.t_s)
+            .push_bind(json_array(&r.state))
+            .push_bind(json_array(&r.action))
+            .push_bind(r.actor.map(|a| actor_name(&a)))
+            .push_bind(r.scale)
+            .push_bind(json_array(&r.legs_mm))
+            .push_bind(r.verdict)
+            .push_bind(r.veto_reason.clone())
+            .push_bind(r.reward.global)
+            .push_bind(r.reward.position)
+            .push_bind(r.reward.orientation)
+            .push_bind(r.reward.error)
+            .push_bind(r.reward.step)
+            .push_bind(r.reward.total)
+            .push_bind(r.compute_us);
+    });
+    insert.build().execute(executor).await?;
+    Ok(())
+}
+
+fn json_array(values: &[f64]) -> String {
+    serde_json::to_string(values).expect("finite numbers serialise")
+}
+
+fn actor_name(actor: &crate::policy::Actor) -> &'static str {
+    match actor {
+        crate::policy::Actor::Position => "position",
+        crate::policy::Actor::Orientation => "orientation",
+    }
+}
+
+/// A stored step as served: the same fields as the live [`StepRecord`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StoredStep {
+    pub step: i64,
+    pub t_s: f64,
+    pub state: Value,
+    pub action: Value,
+    pub actor: Option<String>,
+    pub scale: Option<f64>,
+    pub legs_mm: Value,
+    pub verdict: String,
+    pub veto_reason: Option<String>,
+    pub reward: Reward,
+    pub compute_us: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Reward {
+    pub global: f64,
+    pub position: f64,
+    pub orientation: f64,
+    pub error: f64,
+    pub step: f64,
+    pub total: f64,
+}
+
+/// Every step of a job, in order.
+pub async fn list(db: &Db, job_id: i64) -> Result<Vec<StoredStep>, DbError> {
+    let rows = sqlx::query("SELECT * FROM steps WHERE job_id = ? ORDER BY step")
+        .bind(job_id)
+        .fetch_all(&db.reader)
+        .await?;
+    let parse = |text: String| serde_json::from_str(&text).unwrap_or(Value::Null);
+    Ok(rows
+        .iter()
+        .map(|row| StoredStep {
+            step: row.get("step"),
+            t_s: row.get("t_s"),
+            state: parse(row.get("state")),
+            action: parse(row.get("action")),
+            actor: row.get("actor"),
+            scale: row.get("scale"),
+            legs_mm: parse(row.get("legs_mm")),
+            verdict: row.get("verdict"),
+            veto_reason: row.get("veto_reason"),
+            reward: Reward {
+                global: row.get("reward_global"),
+                position: row.get("reward_position"),
+                orientation: row.get("reward_orientation"),
+                error: row.get("reward_error"),
+                step: row.get("reward_step"),
+                total: row.get("reward_total"),
+            },
+            compute_us: row.get("compute_us"),
+        })
+        .collect())
+}
+
+/// The CSV form of [`list`]: one header line, vectors spread over numbered columns.
+pub fn to_csv(steps: &[StoredStep]) -> String {
+    let mut header: Vec<String> = vec!["step".into(), "t_s".into()];
+    header.extend((0..12).map(|i| format!("state_{i}")));
+    header.extend(["dx_mm", "dy_mm", "dz_mm", "rx_deg", "ry_deg", "rz_deg"].map(String::from));
+    header.extend(["actor", "scale"].map(String::from));
+    header.extend((1..=6).map(|i| format!("leg{i}_mm")));
+    header.extend(["verdict", "veto_reason"].map(String::from));
+    header.extend(
+        [
+            "reward_global",
+            "reward_position",
+            "reward_orientation",
+            "reward_error",
+            "reward_step",
+            "reward_total",
+            "compute_us",
+        ]
+        .map(String::from),
+    );
+    let mut out = header.join(",");
+    out.push('\n');
+    let numbers = |value: &Value, n: usize| -> Vec<String> {
+        let items = value.as_array().cloned().unwrap_or_default();
+        (0..n)
+            .map(|i| items.get(i).map(|v| v.to_string()).unwrap_or_default())
+            .collect()
+    };
+    for s in steps {
+        let mut fields = vec![s.step.to_string(), s.t_s.to_string()];
+        fields.extend(numbers(&s.state, 12));
+        fields.extend(numbers(&s.action, 6));
+        fields.push(s.actor.clone().unwrap_or_default());
+        fields.push(s.scale.map(|v| v.to_string()).unwrap_or_default());
+        fields.extend(numbers(&s.legs_mm, 6));
+        fields.push(s.verdict.clone());
+        fields.push(s.veto_reason.clone().unwrap_or_default());
+        let r = &s.reward;
+        fields.extend(
+            [
+                r.global,
+                r.position,
+                r.orientation,
+                r.error,
+                r.step,
+                r.total,
+                s.compute_us,
+            ]
+            .map(|v| v.to_string()),
+        );
+        out.push_str(&fields.join(","));
+        out.push('\n');
+    }
+    out
+}

@@ -1,0 +1,127 @@
+//! API tokens: a random secret shown once, stored only as its sha256.
+
+use super::{Db, DbError};
+use rand::RngCore;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use sqlx::Row;
+
+/// What a token may do; each role includes the ones before it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    Viewer,
+    Operator,
+    Admin,
+}
+
+impl Role {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Role::Viewer => "viewer",
+            Role::Operator => "operator",
+            Role::Admin => "admin",
+        }
+    }
+
+    pub fn parse(text: &str) -> Option<Role> {
+        [Role::Viewer, Role::Operator, Role::Admin]
+            .into_iter()
+            .find(|r| r.as_str() == text)
+    }
+}
+
+/// Who is calling, once their token is known.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Caller {
+    pub token_id: i64,
+    pub name: String,
+    pub role: Role,
+}
+
+/// A freshly made token: the secret exists only here.
+#[derive(Debug, Clone, Serialize)]
+pub struct NewToken {
+    pub id: i64,
+    pub name: String,
+    pub role: Role,
+    pub token: String,
+}
+
+pub fn hash(secret: &str) -> String {
+    Sha256::digest(secret.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Makes and stores a token.
+pub async fn create(
+    db: &Db,
+    role: Role,
+    name: &str,
+    created_by: &str,
+) -> Result<NewToken, DbError> {
+    let mut bytes = [0u8; 32];
+    rand::rng().fill_bytes(&mut bytes);
+    let secret: String = std::iter::once("celld_".to_string())
+        .chain(bytes.iter().map(|b| format!("{b:02x}")))
+        .collect();
+    let id: i64 = sqlx::query_scalar(
+        "INSERT INTO tokens (name, role, token_hash, created_by) VALUES (?, ?, ?, ?) RETURNING id",
+    )
+    .bind(name)
+    .bind(role.as_str())
+    .bind(hash(&secret))
+    .bind(created_by)
+    .fetch_one(&db.writer)
+    .await?;
+    Ok(NewToken {
+        id,
+        name: name.to_string(),
+        role,
+        token: secret,
+    })
+}
+
+/// The caller a secret belongs to, if any.
+pub async fn find(db: &Db, secret: &str) -> Result<Option<Caller>, DbError> {
+    let row = sqlx::query("SELECT id, name, role FROM tokens WHERE token_hash = ?")
+        .bind(hash(secret))
+        .fetch_optional(&db.reader)
+        .await?;
+    Ok(row.and_then(|row| {
+        Some(Caller {
+            token_id: row.get("id"),
+            name: row.get("name"),
+            role: Role::parse(row.get("role"))?,
+        })
+    }))
+}
+
+pub async fn count(db: &Db) -> Result<i64, DbError> {
+    sqlx::query_scalar("SELECT COUNT(*) FROM tokens")
+        .fetch_one(&db.reader)
+        .await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hash_is_sha256_hex() {
+        // sha256("abc"), FIPS 180-2 appendix B.1.
+        assert_eq!(
+            hash("abc"),
+            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+        );
+    }
+
+    #[test]
+    fn roles_are_ordered_by_what_they_may_do() {
+        assert!(Role::Viewer < Role::Operator && Role::Operator < Role::Admin);
+        assert_eq!(Role::parse("operator"), Some(Role::Operator));
+        assert_eq!(Role::parse("root"), None);
+    }
+}
