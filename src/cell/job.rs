@@ -31,7 +31,7 @@ impl ControllerSource {
                     PolicyFile::from_bytes(bytes).map_err(|e| format!("policy {id}: {e}"))?;
                 let policy = HierarchicalPolicy::from_file(&file)
                     .map_err(|e| format!("policy {id}: {e}"))?;
-                Ok(Box::new(policy.with_name(&format!("policy:{id}"))))
+                Ok(Box::new(policy.with_name(format!("policy:{id}"))))
             }
         }
     }

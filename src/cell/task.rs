@@ -41,7 +41,7 @@ pub enum CellCommand {
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum CellEvent {
     JobStarted { job_id: i64 },
-    Step(StepRecord),
+    Step(Box<StepRecord>),
     JobEnded { job_id: i64, end: JobEnd },
     EStop { latched: bool },
 }
@@ -103,8 +103,7 @@ pub struct LoopSettings {
     pub estop_latched: bool,
 }
 
-/// Starts the control thread. `sink` receives every event in order; `on_step_latency` gets
-/// each step's work time (for the metrics).
+/// Starts the control thread. `sink` receives every event in order.
 pub fn spawn(
     cell: CellConfig,
     backend: Box<dyn CellBackend>,
@@ -162,8 +161,10 @@ impl ControlLoop {
     fn run(&mut self, inbox: mpsc::Receiver<CellCommand>) {
         let mut next_step = Instant::now();
         loop {
-            // Wait for a command: forever when idle, until the next step when a job runs.
-            let command = if self.running.is_some() {
+            // Wait for a command: forever when idle, until the next step when there is work.
+            let has_work = self.running.is_some()
+                || (!self.queue.is_empty() && !self.status.borrow().estop_latched);
+            let command = if has_work {
                 let wait = next_step.saturating_duration_since(Instant::now());
                 match inbox.recv_timeout(wait) {
                     Ok(command) => Some(command),
@@ -290,7 +291,7 @@ impl ControlLoop {
         let clock = move || epoch.elapsed().as_secs_f64();
         let report = run.step(self.backend.as_mut(), &clock);
         if let Some(record) = report.record {
-            (self.sink)(CellEvent::Step(record));
+            (self.sink)(CellEvent::Step(Box::new(record)));
         }
         if let Some(end) = report.end {
             let job_id = run.id;

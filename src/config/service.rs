@@ -307,6 +307,15 @@ mod tests {
     }
 
     #[test]
+    fn the_documented_example_is_the_defaults() {
+        let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/celld.example.toml");
+        assert_eq!(
+            ServiceConfig::load(Some(&example)).unwrap(),
+            ServiceConfig::default()
+        );
+    }
+
+    #[test]
     fn period_is_a_camera_cycle_unless_set_or_fast() {
         let mut config = ServiceConfig::default();
         assert_eq!(config.step_period_s(4.0), Some(0.25));

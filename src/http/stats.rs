@@ -61,15 +61,14 @@ async fn read(
 /// `YYYY-MM-DD`, optionally followed by `THH:MM[:SS[.fff]][Z]`: the prefixes of the stored
 /// times, which compare as text.
 fn is_iso_time(text: &str) -> bool {
-    let pattern = b"dddd-dd-ddTdd:dd:dd.dddZ";
-    let bytes = text.as_bytes();
-    if bytes.len() < 10 || bytes.len() > pattern.len() {
-        return false;
-    }
-    bytes.iter().zip(pattern).all(|(&b, &p)| match p {
+    let pattern = b"dddd-dd-ddTdd:dd:dd.ddd";
+    let bytes = text.strip_suffix('Z').unwrap_or(text).as_bytes();
+    let shape_ok = bytes.iter().zip(pattern).all(|(&b, &p)| match p {
         b'd' => b.is_ascii_digit(),
         _ => b == p,
-    }) && (bytes.len() == 10 || bytes.len() >= 16)
+    });
+    // Date; date and minutes; seconds; seconds and 1 to 3 decimals.
+    shape_ok && matches!(bytes.len(), 10 | 16 | 19 | 21..=23)
 }
 
 #[cfg(test)]

@@ -68,7 +68,7 @@ async fn write(db: &Db, events: &VecDeque<CellEvent>) -> Result<(), DbError> {
     for event in events {
         match event {
             CellEvent::Step(record) => {
-                run.push(record.clone());
+                run.push(StepRecord::clone(record));
                 if run.len() == steps::ROWS_PER_STATEMENT {
                     steps::insert_rows(&mut *tx, &run).await?;
                     run.clear();

@@ -1,0 +1,305 @@
+//! Service figures (DESIGN.md §9), printed rather than asserted:
+//! - step rows written to SQLite in batches, rows/s;
+//! - a real `celld serve` running expert jobs back to back: the control step's p99 alone, under
+//!   1000 HTTP reads/s (and those reads' p50/p99 and errors), and with 100 telemetry
+//!   subscribers plus one that never reads.
+//!
+//! `cargo bench --bench service` (add `-- --quick` for a shorter run).
+
+use assembly_cell::cell::StepRecord;
+use assembly_cell::sim::RewardTerms;
+use assembly_cell::storage::{Db, steps};
+use serde_json::{Value, json};
+use std::io::{BufRead, BufReader, Read};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    step_rows(if quick { 50_000 } else { 200_000 });
+    service(if quick { 4 } else { 10 });
+}
+
+fn record(job_id: i64, step: u32) -> StepRecord {
+    let x = f64::from(step);
+    StepRecord {
+        job_id,
+        step,
+        t_s: x * 0.25,
+        state: std::array::from_fn(|i| x * 0.1 + i as f64),
+        action: [0.1, -0.2, 0.3, 0.01, 0.02, -0.03],
+        actor: Some(assembly_cell::policy::Actor::Position),
+        scale: Some(0.5),
+        legs_mm: [760.0; 6],
+        verdict: "allowed",
+        veto_reason: None,
+        reward: RewardTerms::default(),
+        compute_us: 12.0,
+    }
+}
+
+fn step_rows(rows: u32) {
+    let dir = tempfile::tempdir().unwrap();
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(async {
+        let db = Db::open(&dir.path().join("bench.db")).await.unwrap();
+        let job: i64 = sqlx::query_scalar(
+            "INSERT INTO jobs (status, controller, seed, initial_pos_mm, initial_ori_deg)
+             VALUES ('running', 'bench', 0, 50, 1) RETURNING id",
+        )
+        .fetch_one(&db.writer)
+        .await
+        .unwrap();
+        let records: Vec<StepRecord> = (1..=rows).map(|s| record(job, s)).collect();
+        for batch in [256usize, 1024] {
+            sqlx::query("DELETE FROM steps").execute(&db.writer).await.unwrap();
+            let start = Instant::now();
+            for chunk in records.chunks(batch) {
+                steps::insert_batch(&db, chunk).await.unwrap();
+            }
+            let seconds = start.elapsed().as_secs_f64();
+            println!(
+                "step rows into SQLite (WAL, synchronous=FULL), batches of {batch}: {rows} rows in {seconds:.2} s = {:.0} rows/s",
+                f64::from(rows) / seconds
+            );
+        }
+    });
+}
+
+struct Server {
+    child: Child,
+    base: String,
+    token: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start_server() -> Server {
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_celld"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--db"])
+        .arg(dir.path().join("celld.db"))
+        .env("CELLD_STEP_PERIOD_MS", "20")
+        .env("CELLD_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    let base = loop {
+        let line = lines.next().unwrap().unwrap();
+        if let Some(address) = line.strip_prefix("celld: listening on ") {
+            break address.trim().to_string();
+        }
+    };
+    std::thread::spawn(move || for _ in lines.by_ref() {});
+    let token = std::fs::read_to_string(dir.path().join("admin.token"))
+        .unwrap()
+        .trim()
+        .to_string();
+    Server {
+        child,
+        base,
+        token,
+        _dir: dir,
+    }
+}
+
+fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .build()
+        .into()
+}
+
+impl Server {
+    fn get(&self, agent: &ureq::Agent, path: &str) -> Result<Value, String> {
+        let mut response = agent
+            .get(format!("{}{path}", self.base))
+            .header("Authorization", format!("Bearer {}", self.token))
+            .call()
+            .map_err(|e| e.to_string())?;
+        if response.status() != 200 {
+            return Err(format!("status {}", response.status()));
+        }
+        response.body_mut().read_json().map_err(|e| e.to_string())
+    }
+
+    /// Runs `jobs` expert jobs one after another; returns every step's work time, µs.
+    fn run_jobs(&self, jobs: u64, first_seed: u64) -> Vec<f64> {
+        let agent = agent();
+        let mut ids = Vec::new();
+        for seed in first_seed..first_seed + jobs {
+            let mut response = agent
+                .post(format!("{}/api/jobs", self.base))
+                .header("Authorization", format!("Bearer {}", self.token))
+                .send_json(json!({"controller": "expert", "seed": seed}))
+                .unwrap();
+            let job: Value = response.body_mut().read_json().unwrap();
+            ids.push(job["id"].as_i64().unwrap());
+        }
+        let mut compute = Vec::new();
+        for id in ids {
+            loop {
+                let job = self.get(&agent, &format!("/api/jobs/{id}")).unwrap();
+                if !matches!(job["status"].as_str(), Some("queued" | "running")) {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            let steps = self.get(&agent, &format!("/api/jobs/{id}/steps")).unwrap();
+            compute.extend(
+                steps["items"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|s| s["compute_us"].as_f64().unwrap()),
+            );
+        }
+        compute
+    }
+}
+
+fn percentile(values: &mut [f64], p: f64) -> f64 {
+    values.sort_by(|a, b| a.total_cmp(b));
+    values[((values.len() as f64 - 1.0) * p).round() as usize]
+}
+
+/// Reads at `rate` requests/s from `threads` threads until `stop`; latencies in ms.
+fn load(server: &Arc<Server>, rate: u64, threads: u64, stop: Arc<AtomicBool>) -> (Vec<f64>, u64) {
+    let errors = Arc::new(AtomicU64::new(0));
+    let handles: Vec<_> = (0..threads)
+        .map(|t| {
+            let (server, stop, errors) = (server.clone(), stop.clone(), errors.clone());
+            std::thread::spawn(move || {
+                let agent = agent();
+                let interval = Duration::from_secs_f64(threads as f64 / rate as f64);
+                let mut next = Instant::now() + interval.mul_f64(t as f64 / threads as f64);
+                let mut latencies = Vec::new();
+                let mut n = 0u64;
+                while !stop.load(Ordering::Relaxed) {
+                    std::thread::sleep(next.saturating_duration_since(Instant::now()));
+                    // Latency counts from the scheduled time, so a stalled server shows.
+                    let scheduled = next;
+                    let path = if n % 2 == 0 {
+                        "/api/cell"
+                    } else {
+                        "/api/jobs?limit=10"
+                    };
+                    if server.get(&agent, path).is_err() {
+                        errors.fetch_add(1, Ordering::Relaxed);
+                    }
+                    latencies.push(scheduled.elapsed().as_secs_f64() * 1e3);
+                    next += interval;
+                    n += 1;
+                }
+                latencies
+            })
+        })
+        .collect();
+    let mut all = Vec::new();
+    for handle in handles {
+        all.extend(handle.join().unwrap());
+    }
+    (all, errors.load(Ordering::Relaxed))
+}
+
+fn service(jobs: u64) {
+    let server = Arc::new(start_server());
+    // Warm up (first policy build, page cache).
+    server.run_jobs(1, 1000);
+
+    let mut alone = server.run_jobs(jobs, 1);
+    let alone_p99 = percentile(&mut alone, 0.99);
+    println!(
+        "control step alone: {} steps, p50 {:.1} µs, p99 {:.1} µs",
+        alone.len(),
+        percentile(&mut alone, 0.5),
+        alone_p99
+    );
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let loader = {
+        let (server, stop) = (server.clone(), stop.clone());
+        std::thread::spawn(move || load(&server, 1000, 8, stop))
+    };
+    let started = Instant::now();
+    let mut loaded = server.run_jobs(jobs, 1);
+    stop.store(true, Ordering::Relaxed);
+    let (mut latencies, errors) = loader.join().unwrap();
+    let seconds = started.elapsed().as_secs_f64();
+    let loaded_p99 = percentile(&mut loaded, 0.99);
+    println!(
+        "HTTP reads during jobs: {} requests in {seconds:.1} s ({:.0}/s), {errors} errors, p50 {:.2} ms, p99 {:.2} ms",
+        latencies.len(),
+        latencies.len() as f64 / seconds,
+        percentile(&mut latencies, 0.5),
+        percentile(&mut latencies, 0.99)
+    );
+    println!(
+        "control step under that load: p99 {loaded_p99:.1} µs ({:+.1}% against alone)",
+        (loaded_p99 / alone_p99 - 1.0) * 100.0
+    );
+
+    // 100 subscribers that read everything, and one that never reads.
+    let readers: Vec<_> = (0..100)
+        .map(|_| {
+            let url = format!(
+                "{}/api/telemetry?access_token={}",
+                server.base, server.token
+            );
+            std::thread::spawn(move || {
+                let response = ureq::get(url).call().unwrap();
+                let mut reader = response.into_body().into_reader();
+                let mut buffer = [0u8; 8192];
+                while let Ok(n) = reader.read(&mut buffer) {
+                    if n == 0 {
+                        break;
+                    }
+                }
+            })
+        })
+        .collect();
+    let stalled = std::net::TcpStream::connect(server.base.trim_start_matches("http://")).unwrap();
+    use std::io::Write;
+    write!(
+        &stalled,
+        "GET /api/telemetry?access_token={} HTTP/1.1\r\nHost: x\r\n\r\n",
+        server.token
+    )
+    .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let mut subscribed = server.run_jobs(jobs, 1);
+    let subscribed_p99 = percentile(&mut subscribed, 0.99);
+    let metrics = ureq::get(format!("{}/metrics", server.base))
+        .call()
+        .unwrap()
+        .into_body()
+        .read_to_string()
+        .unwrap();
+    let gauge = |name: &str| {
+        metrics
+            .lines()
+            .find(|l| l.starts_with(name))
+            .map(|l| l.rsplit(' ').next().unwrap().to_string())
+            .unwrap_or_default()
+    };
+    println!(
+        "control step with {} telemetry subscribers (one never reads): p99 {subscribed_p99:.1} µs ({:+.1}% against alone); events skipped by laggards: {}",
+        gauge("celld_telemetry_subscribers"),
+        (subscribed_p99 / alone_p99 - 1.0) * 100.0,
+        gauge("celld_telemetry_lagged_events_total"),
+    );
+    drop(stalled);
+    drop(server);
+    for reader in readers {
+        let _ = reader.join();
+    }
+}

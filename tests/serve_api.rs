@@ -1,0 +1,406 @@
+//! `celld serve` over HTTP: a real server on a free port with a real SQLite file.
+
+mod serve_support;
+
+use serde_json::{Value, json};
+use serve_support::Server;
+use std::io::BufRead;
+use std::time::{Duration, Instant};
+
+/// 20 ms per control step: an expert job (about 47 steps) takes about a second.
+const QUICK: [(&str, &str); 1] = [("CELLD_STEP_PERIOD_MS", "20")];
+/// 60 ms per step: a job runs long enough to be caught running.
+const SLOW: [(&str, &str); 1] = [("CELLD_STEP_PERIOD_MS", "60")];
+
+fn id(job: &Value) -> i64 {
+    job["id"].as_i64().unwrap()
+}
+
+#[test]
+fn jobs_run_in_order_and_every_step_is_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &QUICK);
+    let operator = server.token("operator");
+    let first = server.create_job(&operator, json!({"controller": "expert", "seed": 1}));
+    let second = server.create_job(&operator, json!({"controller": "active", "seed": 2}));
+    assert_eq!(first["status"], "queued");
+    assert_eq!(
+        second["controller"], "expert",
+        "`active` is the expert until a policy is"
+    );
+
+    let (_, cell) = server.get("/api/cell", Some(&operator));
+    assert_eq!(
+        cell["queue_length"], 1,
+        "the second job waits for the robot: {cell}"
+    );
+    assert_eq!(cell["current_job"], id(&first));
+
+    for job in [&first, &second] {
+        let done = server.wait_final(id(job));
+        assert_eq!(done["status"], "succeeded", "{done}");
+        let steps = server.steps(id(job));
+        assert_eq!(steps.len() as i64, done["steps"].as_i64().unwrap());
+        assert!(steps.len() > 10);
+        for (index, step) in steps.iter().enumerate() {
+            assert_eq!(step["step"], index as i64 + 1);
+            assert_eq!(step["state"].as_array().unwrap().len(), 12);
+            assert_eq!(step["action"].as_array().unwrap().len(), 6);
+            assert_eq!(step["legs_mm"].as_array().unwrap().len(), 6);
+        }
+        let total: f64 = steps
+            .iter()
+            .map(|s| s["reward"]["total"].as_f64().unwrap())
+            .sum();
+        assert!((total - done["reward"].as_f64().unwrap()).abs() < 1e-6);
+        assert!(
+            done["final_errors"]["depth_error_mm"]
+                .as_f64()
+                .unwrap()
+                .abs()
+                <= 0.05
+        );
+    }
+    let a = server.job(id(&first));
+    let b = server.job(id(&second));
+    assert!(b["started_at"].as_str().unwrap() >= a["finished_at"].as_str().unwrap());
+
+    // The CSV has a header and one line per step.
+    let response = ureq::get(format!(
+        "{}/api/jobs/{}/steps?format=csv",
+        server.base,
+        id(&first)
+    ))
+    .header("Authorization", format!("Bearer {operator}"))
+    .call()
+    .unwrap()
+    .into_body()
+    .read_to_string()
+    .unwrap();
+    let lines: Vec<&str> = response.lines().collect();
+    assert!(lines[0].starts_with("step,t_s,state_0"));
+    assert_eq!(lines.len() as i64, a["steps"].as_i64().unwrap() + 1);
+
+    let (status, page) = server.get("/api/jobs?status=succeeded&limit=1", Some(&operator));
+    assert_eq!(status, 200);
+    assert_eq!(page["total"], 2);
+    assert_eq!(page["items"].as_array().unwrap().len(), 1);
+    assert_eq!(page["items"][0]["id"], id(&second), "newest first");
+
+    let (_, stats) = server.get("/api/stats?by=controller", Some(&operator));
+    assert_eq!(stats["total"]["succeeded"], 2, "{stats}");
+    assert_eq!(stats["groups"][0]["key"], "expert");
+
+    let (_, metrics) = server.get("/metrics", None);
+    let metrics = metrics.as_str().unwrap().to_string();
+    assert!(
+        metrics.contains("celld_jobs_total{status=\"succeeded\",reason=\"none\"} 2"),
+        "{metrics}"
+    );
+}
+
+#[test]
+fn cancel_estop_and_reset() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &SLOW);
+    let operator = server.token("operator");
+
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 3}));
+    server.wait_job(id(&job), "ran", |j| j["status"] == "running");
+    let (status, cancelled) = server.post(
+        &format!("/api/jobs/{}/cancel", id(&job)),
+        Some(&operator),
+        None,
+    );
+    assert_eq!(status, 200, "{cancelled}");
+    assert_eq!(cancelled["status"], "cancelled");
+    let (status, again) = server.post(
+        &format!("/api/jobs/{}/cancel", id(&job)),
+        Some(&operator),
+        None,
+    );
+    assert_eq!(status, 409, "{again}");
+
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 4}));
+    let queued = server.create_job(&operator, json!({"controller": "expert", "seed": 5}));
+    server.wait_job(id(&job), "took a step", |j| j["status"] == "running");
+    while server.steps(id(&job)).len() < 2 {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let (status, cell) = server.post("/api/cell/estop", Some(&operator), None);
+    assert_eq!(status, 200, "{cell}");
+    assert_eq!(cell["estop_latched"], true);
+    let stopped = server.job(id(&job));
+    assert_eq!(stopped["status"], "failed");
+    assert_eq!(stopped["failure_reason"], "estop");
+    let dropped = server.wait_final(id(&queued));
+    assert_eq!(dropped["status"], "cancelled");
+    assert_eq!(dropped["failure_reason"], "estop");
+
+    let (status, refused) = server.post(
+        "/api/jobs",
+        Some(&operator),
+        Some(json!({"controller": "expert"})),
+    );
+    assert_eq!(status, 409, "no job while latched: {refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("e-stop")
+    );
+
+    let steps_at_stop = server.steps(id(&job)).len();
+    let (status, cell) = server.post("/api/cell/reset", Some(&operator), None);
+    assert_eq!(status, 200);
+    assert_eq!(cell["estop_latched"], false);
+    std::thread::sleep(Duration::from_millis(400));
+    let (_, cell) = server.get("/api/cell", Some(&operator));
+    assert_eq!(
+        cell["current_job"],
+        Value::Null,
+        "reset starts nothing: {cell}"
+    );
+    assert_eq!(
+        server.steps(id(&job)).len(),
+        steps_at_stop,
+        "no motion after reset"
+    );
+    assert_eq!(
+        server.job(id(&job))["steps"].as_i64().unwrap() as usize,
+        steps_at_stop
+    );
+
+    let (_, audit) = server.get("/api/audit", Some(&server.admin));
+    let actions: Vec<&str> = audit["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["action"].as_str().unwrap())
+        .collect();
+    assert!(
+        actions.contains(&"cell.estop") && actions.contains(&"cell.reset"),
+        "{actions:?}"
+    );
+}
+
+#[test]
+fn roles_are_enforced() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &QUICK);
+    let viewer = server.token("viewer");
+    let operator = server.token("operator");
+
+    let (status, body) = server.get("/api/jobs", None);
+    assert_eq!(status, 401, "{body}");
+    let (status, _) = server.get("/api/jobs", Some("celld_not_a_token"));
+    assert_eq!(status, 401);
+    let (status, _) = server.get("/api/jobs", Some(&viewer));
+    assert_eq!(status, 200);
+    let (status, body) = server.post(
+        "/api/jobs",
+        Some(&viewer),
+        Some(json!({"controller": "expert"})),
+    );
+    assert_eq!(status, 403, "{body}");
+    assert!(
+        body["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("operator")
+    );
+    let (status, _) = server.post("/api/cell/estop", Some(&viewer), None);
+    assert_eq!(status, 403);
+    let (status, body) = server.post(
+        "/api/tokens",
+        Some(&operator),
+        Some(json!({"role": "admin", "name": "sneaky"})),
+    );
+    assert_eq!(status, 403, "{body}");
+    let (status, _) = server.get("/api/audit", Some(&operator));
+    assert_eq!(status, 403);
+    for open in ["/api/health", "/metrics", "/api/openapi.json"] {
+        assert_eq!(server.get(open, None).0, 200, "{open}");
+    }
+    let (_, jobs) = server.get("/api/jobs", Some(&viewer));
+    assert_eq!(jobs["total"], 0, "refused requests created nothing");
+}
+
+#[test]
+fn bad_input_is_named_and_leaves_the_running_job_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &QUICK);
+    let operator = server.token("operator");
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 9}));
+
+    let cases: Vec<(&str, Vec<u8>, u16, &str)> = vec![
+        ("malformed JSON", b"{\"controller\": ".to_vec(), 400, "JSON"),
+        (
+            "unknown controller",
+            br#"{"controller": "teleport"}"#.to_vec(),
+            422,
+            "teleport",
+        ),
+        (
+            "wrong type",
+            br#"{"controller": 5}"#.to_vec(),
+            422,
+            "controller",
+        ),
+        (
+            "unknown field",
+            br#"{"controller": "expert", "speed": 3}"#.to_vec(),
+            422,
+            "speed",
+        ),
+        (
+            "negative offset",
+            br#"{"controller": "expert", "initial": {"pos_mm": -1, "ori_deg": 1}}"#.to_vec(),
+            422,
+            "initial.pos_mm",
+        ),
+        (
+            "missing policy",
+            br#"{"controller": "policy:42"}"#.to_vec(),
+            404,
+            "42",
+        ),
+        ("oversized body", vec![b' '; 2 << 20], 413, "length limit"),
+    ];
+    for (what, body, expected, named) in cases {
+        let (status, answer) = server.post_raw("/api/jobs", &operator, "application/json", &body);
+        assert_eq!(status, expected, "{what}: {answer}");
+        let message = answer["error"]["message"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{what}: {answer}"));
+        assert!(
+            message.contains(named),
+            "{what}: `{message}` should name `{named}`"
+        );
+    }
+    let (status, answer) = server.post_raw(
+        "/api/jobs",
+        &operator,
+        "text/plain",
+        br#"{"controller": "expert"}"#,
+    );
+    assert_eq!(status, 415, "{answer}");
+    let (status, answer) = server.get("/api/jobs?status=sleeping", Some(&operator));
+    assert_eq!(status, 400);
+    assert!(
+        answer["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("sleeping")
+    );
+    let (status, _) = server.get("/api/jobs?limit=lots", Some(&operator));
+    assert_eq!(status, 400);
+    let (status, answer) = server.get("/api/jobs/999", Some(&operator));
+    assert_eq!(status, 404, "{answer}");
+    let (status, _) = server.get("/api/jobs/first", Some(&operator));
+    assert_eq!(status, 400);
+    let (status, answer) = server.get("/api/stats?since=yesterday", Some(&operator));
+    assert_eq!(status, 400);
+    assert!(
+        answer["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("yesterday")
+    );
+    let (status, answer) = server.get("/api/nowhere", Some(&operator));
+    assert_eq!(status, 404);
+    assert!(answer["error"].is_object());
+
+    let done = server.wait_final(id(&job));
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(
+        server.steps(id(&job)).len() as i64,
+        done["steps"].as_i64().unwrap()
+    );
+    let (_, jobs) = server.get("/api/jobs", Some(&operator));
+    assert_eq!(jobs["total"], 1, "no refused request stored a job");
+}
+
+#[test]
+fn telemetry_streams_a_running_jobs_steps() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &QUICK);
+    let viewer = server.token("viewer");
+    let operator = server.token("operator");
+
+    // The token in the query, as a browser's EventSource must send it.
+    let stream = ureq::get(format!(
+        "{}/api/telemetry?access_token={viewer}",
+        server.base
+    ))
+    .call()
+    .expect("subscribe");
+    assert!(
+        stream.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/event-stream")
+    );
+    let mut lines = std::io::BufReader::new(stream.into_body().into_reader()).lines();
+
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 12}));
+    let started = Instant::now();
+    let mut event = String::new();
+    let mut steps_seen = 0;
+    loop {
+        assert!(started.elapsed() < Duration::from_secs(60), "no end event");
+        let line = lines.next().expect("the stream stays open").unwrap();
+        if let Some(name) = line.strip_prefix("event: ") {
+            event = name.to_string();
+        } else if let Some(data) = line.strip_prefix("data: ") {
+            let data: Value = serde_json::from_str(data).unwrap();
+            if event == "step" && data["job_id"] == id(&job) {
+                steps_seen += 1;
+                assert_eq!(
+                    data["step"], steps_seen,
+                    "steps arrive in order, none missing"
+                );
+            }
+            if event == "job" && data["job_id"] == id(&job) && data["status"] == "succeeded" {
+                assert_eq!(data["steps"], steps_seen);
+                break;
+            }
+        }
+    }
+    assert!(steps_seen > 10);
+
+    let (status, _) = server.get("/api/telemetry", None);
+    assert_eq!(status, 401, "the stream needs a token too");
+}
+
+/// Every route the routers declare is in the OpenAPI document, with its methods.
+#[test]
+fn openapi_describes_every_route() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &QUICK);
+    let (status, document) = server.get("/api/openapi.json", None);
+    assert_eq!(status, 200);
+    assert_eq!(
+        document["openapi"].as_str().unwrap().chars().next(),
+        Some('3')
+    );
+    let mut declared = 0;
+    for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/src/http")).unwrap() {
+        let source = std::fs::read_to_string(entry.unwrap().path()).unwrap();
+        for route in source.split(".route(\"").skip(1) {
+            let (path, rest) = route.split_once('"').unwrap();
+            let handlers = &rest[..rest.find("))").unwrap_or(rest.len())];
+            for method in ["get", "post", "put", "delete", "patch"] {
+                if handlers.contains(&format!("{method}(")) {
+                    declared += 1;
+                    assert!(
+                        document["paths"][path][method].is_object(),
+                        "{} {path} is not in the OpenAPI document",
+                        method.to_uppercase()
+                    );
+                }
+            }
+        }
+    }
+    assert!(declared >= 14, "found only {declared} routes");
+}

@@ -1,0 +1,192 @@
+//! A real `celld serve` on a free port with its own SQLite file, and a small HTTP client.
+#![allow(dead_code)]
+
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+pub struct Server {
+    child: Child,
+    pub base: String,
+    pub admin: String,
+    pub db: PathBuf,
+    agent: ureq::Agent,
+}
+
+fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(Duration::from_secs(30)))
+        .build()
+        .into()
+}
+
+impl Server {
+    /// Starts a server on `dir/celld.db` with the given `CELLD_*` settings.
+    pub fn start(dir: &Path, env: &[(&str, &str)]) -> Server {
+        let db = dir.join("celld.db");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_celld"))
+            .args(["serve", "--listen", "127.0.0.1:0", "--db"])
+            .arg(&db)
+            .envs(env.iter().copied())
+            .env("CELLD_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("start celld serve");
+        let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let base = loop {
+            let line = lines
+                .next()
+                .expect("celld serve exited before listening")
+                .unwrap();
+            if let Some(address) = line.strip_prefix("celld: listening on ") {
+                break address.trim().to_string();
+            }
+        };
+        // Keep draining stdout so the server never blocks on a full pipe.
+        std::thread::spawn(move || for _ in lines.by_ref() {});
+        let admin = std::fs::read_to_string(dir.join("admin.token"))
+            .expect("admin.token beside the database")
+            .trim()
+            .to_string();
+        Server {
+            child,
+            base,
+            admin,
+            db,
+            agent: agent(),
+        }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    fn answer(response: Result<ureq::http::Response<ureq::Body>, ureq::Error>) -> (u16, Value) {
+        let mut response = response.expect("the server answers");
+        let status = response.status().as_u16();
+        let text = response.body_mut().read_to_string().unwrap_or_default();
+        let value = serde_json::from_str(&text).unwrap_or(Value::String(text));
+        (status, value)
+    }
+
+    pub fn get(&self, path: &str, token: Option<&str>) -> (u16, Value) {
+        let mut request = self.agent.get(format!("{}{path}", self.base));
+        if let Some(token) = token {
+            request = request.header("Authorization", format!("Bearer {token}"));
+        }
+        Self::answer(request.call())
+    }
+
+    pub fn post(&self, path: &str, token: Option<&str>, body: Option<Value>) -> (u16, Value) {
+        let mut request = self.agent.post(format!("{}{path}", self.base));
+        if let Some(token) = token {
+            request = request.header("Authorization", format!("Bearer {token}"));
+        }
+        Self::answer(match body {
+            Some(body) => request.send_json(body),
+            None => request.send_empty(),
+        })
+    }
+
+    pub fn post_raw(
+        &self,
+        path: &str,
+        token: &str,
+        content_type: &str,
+        body: &[u8],
+    ) -> (u16, Value) {
+        let request = self
+            .agent
+            .post(format!("{}{path}", self.base))
+            .header("Authorization", format!("Bearer {token}"))
+            .header("Content-Type", content_type);
+        Self::answer(request.send(body))
+    }
+
+    /// A new token of `role` made through the API.
+    pub fn token(&self, role: &str) -> String {
+        let (status, body) = self.post(
+            "/api/tokens",
+            Some(&self.admin),
+            Some(serde_json::json!({"role": role, "name": format!("test {role}")})),
+        );
+        assert_eq!(status, 201, "{body}");
+        body["token"].as_str().unwrap().to_string()
+    }
+
+    pub fn create_job(&self, token: &str, body: Value) -> Value {
+        let (status, job) = self.post("/api/jobs", Some(token), Some(body));
+        assert_eq!(status, 201, "{job}");
+        job
+    }
+
+    pub fn job(&self, id: i64) -> Value {
+        let (status, job) = self.get(&format!("/api/jobs/{id}"), Some(&self.admin));
+        assert_eq!(status, 200, "{job}");
+        job
+    }
+
+    pub fn steps(&self, id: i64) -> Vec<Value> {
+        let (status, body) = self.get(&format!("/api/jobs/{id}/steps"), Some(&self.admin));
+        assert_eq!(status, 200, "{body}");
+        body["items"].as_array().unwrap().clone()
+    }
+
+    /// Polls the job until `done` holds (up to 60 s).
+    pub fn wait_job(&self, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+        let start = Instant::now();
+        loop {
+            let job = self.job(id);
+            if done(&job) {
+                return job;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "job {id} never {what}: {job}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    pub fn wait_final(&self, id: i64) -> Value {
+        self.wait_job(id, "finished", |job| {
+            !matches!(job["status"].as_str(), Some("queued" | "running"))
+        })
+    }
+
+    pub fn kill9(&mut self) {
+        self.child.kill().expect("kill -9");
+        self.child.wait().unwrap();
+    }
+
+    /// Sends SIGTERM and waits for the exit (up to `limit`).
+    pub fn terminate(&mut self, limit: Duration) -> (ExitStatus, Duration) {
+        let start = Instant::now();
+        let sent = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(sent.success());
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return (status, start.elapsed());
+            }
+            assert!(
+                start.elapsed() < limit,
+                "celld did not exit within {limit:?} of SIGTERM"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
