@@ -89,12 +89,16 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
         telemetry,
         accepting: accepting.clone(),
         shutdown: shutdown.clone(),
+        known_callers: Default::default(),
     };
     let listener = tokio::net::TcpListener::bind(settings.listen)
         .await
         .with_context(|| format!("cannot listen on {}", settings.listen))?;
     let address = listener.local_addr()?;
     let mut server_shutdown = shutdown.clone();
+    http::policies::register_bundled(&context)
+        .await
+        .map_err(|e| anyhow::anyhow!("registering the bundled policy: {}", e.message))?;
     let server = tokio::spawn(
         axum::serve(listener, http::router(context))
             .with_graceful_shutdown(async move {
@@ -124,21 +128,23 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
     accepting.store(false, Ordering::SeqCst);
     // The control thread holds the robot, closes the running and queued jobs as interrupted,
     // and exits; its event sink closes with it, which lets the storage writer finish.
+    // Each wait is bounded (2 + 1 + 3 + 2 s), so the process is gone within 10 s.
     let stopped = tokio::time::timeout(
-        Duration::from_secs(3),
+        Duration::from_secs(2),
         cell_handle.ask(|reply| CellCommand::Shutdown { reply }),
     )
     .await;
     if !matches!(stopped, Ok(Ok(()))) {
-        tracing::error!("the control thread did not confirm the stop in 3 s");
+        tracing::error!("the control thread did not confirm the stop in 2 s");
     }
     let _ = stop_streams.send(true);
-    let _ = tokio::task::spawn_blocking(move || control_thread.join()).await;
-    if tokio::time::timeout(Duration::from_secs(4), recorder)
+    let joined = tokio::task::spawn_blocking(move || control_thread.join());
+    let _ = tokio::time::timeout(Duration::from_secs(1), joined).await;
+    if tokio::time::timeout(Duration::from_secs(3), recorder)
         .await
         .is_err()
     {
-        tracing::error!("the storage writer did not finish in 4 s");
+        tracing::error!("the storage writer did not finish in 3 s");
     }
     if tokio::time::timeout(Duration::from_secs(2), server)
         .await

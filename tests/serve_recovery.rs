@@ -65,9 +65,24 @@ fn kill_9_during_a_job_keeps_every_committed_step() {
     );
     assert_eq!(after["steps"].as_i64().unwrap() as usize, stored.len());
 
-    // The restarted service runs new jobs; nothing moved on its own.
+    // Nothing moved on its own after the restart.
     let (_, cell) = server.get("/api/cell", Some(&server.admin));
     assert_eq!(cell["current_job"], serde_json::Value::Null);
+
+    // A latched e-stop stays latched through a crash.
+    let (status, cell) = server.post("/api/cell/estop", Some(&server.admin), None);
+    assert_eq!((status, &cell["estop_latched"]), (200, &json!(true)));
+    let mut server = server;
+    server.kill9();
+    let server = Server::start(dir.path(), &SLOW);
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(cell["estop_latched"], true, "{cell}");
+    let (status, _) = server.post(
+        "/api/jobs",
+        Some(&server.admin),
+        Some(json!({"controller": "expert"})),
+    );
+    assert_eq!(status, 409);
 }
 
 #[test]

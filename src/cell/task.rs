@@ -131,7 +131,10 @@ pub fn spawn(
     };
     let thread = std::thread::Builder::new()
         .name("celld-control".into())
-        .spawn(move || control.run(inbox))
+        .spawn(move || {
+            raise_priority();
+            control.run(inbox)
+        })
         .expect("spawn the control thread");
     (
         CellHandle {
@@ -140,6 +143,38 @@ pub fn spawn(
         },
         thread,
     )
+}
+
+/// Asks the OS to run the control thread ahead of the HTTP workers and the storage writer
+/// (nice −10), so a burst of requests cannot delay a step. Needs CAP_SYS_NICE (the systemd unit
+/// grants it); without it the thread runs at normal priority and says so.
+fn raise_priority() {
+    if let Err(error) = set_thread_nice(-10) {
+        tracing::warn!(%error, "the control thread runs at normal priority (no CAP_SYS_NICE)");
+    }
+}
+
+/// Runs the calling thread behind everything else (nice 10): background evaluations and
+/// training, which must not take time from a running job.
+pub fn lower_priority() {
+    if let Err(error) = set_thread_nice(10) {
+        tracing::warn!(%error, "could not lower a background thread's priority");
+    }
+}
+
+/// Sets the calling thread's nice value (Linux; elsewhere a no-op).
+fn set_thread_nice(nice: i32) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: setpriority only reads its integer arguments; on Linux, PRIO_PROCESS with
+        // who = 0 applies to the calling thread alone.
+        if unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, nice) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
+    Ok(())
 }
 
 struct ControlLoop {

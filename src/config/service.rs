@@ -40,6 +40,7 @@ pub struct ServiceConfig {
     pub fast: bool,
     pub control: ControlConfig,
     pub http: HttpConfig,
+    pub policies: PolicyConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -70,6 +71,28 @@ pub struct HttpConfig {
     pub body_limit_bytes: usize,
 }
 
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PolicyConfig {
+    /// Largest policy upload, bytes (larger is 413).
+    pub max_upload_bytes: usize,
+    /// Success rate an evaluation on this cell must reach before a policy may be activated.
+    pub activation_threshold: f64,
+    /// Episodes of an evaluation when the request does not say (and of the bundled policy's
+    /// evaluation at first start).
+    pub evaluation_episodes: u32,
+}
+
+impl Default for PolicyConfig {
+    fn default() -> Self {
+        PolicyConfig {
+            max_upload_bytes: 64 << 20,
+            activation_threshold: 0.95,
+            evaluation_episodes: 1000,
+        }
+    }
+}
+
 impl Default for ServiceConfig {
     fn default() -> Self {
         ServiceConfig {
@@ -79,6 +102,7 @@ impl Default for ServiceConfig {
             fast: false,
             control: ControlConfig::default(),
             http: HttpConfig::default(),
+            policies: PolicyConfig::default(),
         }
     }
 }
@@ -165,6 +189,21 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|_| invalid("CELLD_BODY_LIMIT_BYTES", "not a whole number"))?
                 }
+                "MAX_POLICY_BYTES" => {
+                    self.policies.max_upload_bytes = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_MAX_POLICY_BYTES", "not a whole number"))?
+                }
+                "ACTIVATION_THRESHOLD" => {
+                    self.policies.activation_threshold = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_ACTIVATION_THRESHOLD", "not a number"))?
+                }
+                "EVALUATION_EPISODES" => {
+                    self.policies.evaluation_episodes = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_EVALUATION_EPISODES", "not a whole number"))?
+                }
                 // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
                 _ => {}
             }
@@ -203,6 +242,28 @@ impl ServiceConfig {
         if self.control.telemetry_buffer == 0 {
             return Err(invalid(
                 "control.telemetry_buffer",
+                "0".into(),
+                "must be ≥ 1",
+            ));
+        }
+        let threshold = self.policies.activation_threshold;
+        if !(0.0..=1.0).contains(&threshold) {
+            return Err(invalid(
+                "policies.activation_threshold",
+                threshold.to_string(),
+                "must lie in [0, 1]",
+            ));
+        }
+        if self.policies.evaluation_episodes == 0 {
+            return Err(invalid(
+                "policies.evaluation_episodes",
+                "0".into(),
+                "must be ≥ 1",
+            ));
+        }
+        if self.policies.max_upload_bytes == 0 {
+            return Err(invalid(
+                "policies.max_upload_bytes",
                 "0".into(),
                 "must be ≥ 1",
             ));

@@ -32,9 +32,22 @@ async fn caller_of(context: &Context, secret: Option<&str>) -> Result<Caller, Ap
     let secret = secret.ok_or_else(|| {
         ApiError::unauthorized("missing token: send `Authorization: Bearer TOKEN`")
     })?;
-    tokens::find(&context.db, secret)
+    let hash = tokens::hash(secret);
+    let known = context
+        .known_callers
+        .read()
+        .ok()
+        .and_then(|k| k.get(&hash).cloned());
+    if let Some(caller) = known {
+        return Ok(caller);
+    }
+    let caller = tokens::find_by_hash(&context.db, &hash)
         .await?
-        .ok_or_else(|| ApiError::unauthorized("unknown token"))
+        .ok_or_else(|| ApiError::unauthorized("unknown token"))?;
+    if let Ok(mut known) = context.known_callers.write() {
+        known.insert(hash, caller.clone());
+    }
+    Ok(caller)
 }
 
 fn bearer(parts: &Parts) -> Result<Option<&str>, ApiError> {

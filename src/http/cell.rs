@@ -4,8 +4,8 @@ use super::Context;
 use super::auth::Auth;
 use super::error::{ApiResult, Json};
 use crate::cell::{CellCommand, CellStatus};
-use crate::storage::audit;
 use crate::storage::tokens::Role;
+use crate::storage::{self, audit};
 use axum::Router;
 use axum::extract::State;
 use axum::routing::{get, post};
@@ -52,6 +52,7 @@ async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
         .cell
         .ask(|reply| CellCommand::EStop { reply })
         .await?;
+    storage::set_cell_flag(&context.db.writer, "estop", true).await?;
     audit::record(
         &context.db,
         &caller.name,
@@ -73,6 +74,7 @@ async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
         .cell
         .ask(|reply| CellCommand::Reset { reply })
         .await?;
+    storage::set_cell_flag(&context.db.writer, "estop", false).await?;
     audit::record(&context.db, &caller.name, "cell.reset", json!({})).await?;
     Ok(Json(view(&context)))
 }

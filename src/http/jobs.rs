@@ -8,8 +8,8 @@ use crate::cell::{CellCommand, ControllerSource, JobSpec, JobStatus};
 use crate::policy;
 use crate::sim::InitialConditions;
 use crate::storage::jobs::{self, Job, JobFilter, NewJob};
-use crate::storage::steps;
 use crate::storage::tokens::Role;
+use crate::storage::{policies, steps};
 use axum::Router;
 use axum::extract::State;
 use axum::http::{StatusCode, header};
@@ -116,7 +116,16 @@ async fn resolve_controller(
     requested: &str,
 ) -> ApiResult<(String, ControllerSource, Option<i64>)> {
     let name = if requested == "active" {
-        context.settings.control.active_controller.clone()
+        match policies::active(&context.db).await? {
+            Some((id, bytes)) => {
+                return Ok((
+                    format!("policy:{id}"),
+                    ControllerSource::Policy { id, bytes },
+                    Some(id),
+                ));
+            }
+            None => context.settings.control.active_controller.clone(),
+        }
     } else {
         requested.to_string()
     };
@@ -124,10 +133,7 @@ async fn resolve_controller(
         let id: i64 = id.parse().map_err(|_| {
             ApiError::unprocessable(format!("controller `{name}`: `policy:` takes a policy id"))
         })?;
-        let bytes: Option<Vec<u8>> = sqlx::query_scalar("SELECT file FROM policies WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&context.db.reader)
-            .await?;
+        let bytes = policies::file(&context.db, id).await?;
         let bytes = bytes.ok_or_else(|| ApiError::not_found(format!("no policy with id {id}")))?;
         return Ok((name, ControllerSource::Policy { id, bytes }, Some(id)));
     }

@@ -7,6 +7,7 @@ pub mod cell;
 pub mod error;
 pub mod jobs;
 pub mod meta;
+pub mod policies;
 pub mod stats;
 pub mod telemetry;
 
@@ -15,11 +16,13 @@ use crate::config::cell::CellConfig;
 use crate::config::service::ServiceConfig;
 use crate::metrics::Metrics;
 use crate::storage::Db;
+use crate::storage::tokens::Caller;
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
 use error::ApiError;
-use std::sync::Arc;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
 use tokio::sync::{broadcast, watch};
 
 /// One telemetry event, serialised once for every subscriber.
@@ -43,6 +46,8 @@ pub struct Context {
     pub accepting: Arc<AtomicBool>,
     /// Becomes true at shutdown, so open streams end.
     pub shutdown: watch::Receiver<bool>,
+    /// Callers already looked up, by token hash (tokens are never changed once made).
+    pub known_callers: Arc<RwLock<HashMap<String, Caller>>>,
 }
 
 impl Context {
@@ -58,6 +63,7 @@ pub fn router(context: Context) -> Router {
         .merge(meta::router())
         .merge(cell::router())
         .merge(jobs::router())
+        .merge(policies::router(context.settings.policies.max_upload_bytes))
         .merge(stats::router())
         .merge(telemetry::router())
         .fallback(|| async { ApiError::not_found("no such route") })
@@ -69,5 +75,38 @@ pub fn router(context: Context) -> Router {
             )
         })
         .layer(DefaultBodyLimit::max(body_limit))
+        .layer(axum::middleware::from_fn_with_state(
+            context.clone(),
+            refuse_announced_oversize,
+        ))
         .with_state(context)
+}
+
+/// Answers 413 from the headers alone when `Content-Length` is over the route's limit, before
+/// any of the body is read (a body without a length is cut at the limit as it is read).
+async fn refuse_announced_oversize(
+    axum::extract::State(context): axum::extract::State<Context>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> axum::response::Response {
+    use axum::response::IntoResponse;
+    let limit = if request.uri().path() == "/api/policies" {
+        context.settings.policies.max_upload_bytes
+    } else {
+        context.settings.http.body_limit_bytes
+    };
+    let announced = request
+        .headers()
+        .get(axum::http::header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    match announced {
+        Some(length) if length > limit as u64 => ApiError::new(
+            axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+            "too_large",
+            format!("length limit exceeded: the body is {length} bytes, the limit is {limit}"),
+        )
+        .into_response(),
+        _ => next.run(request).await,
+    }
 }

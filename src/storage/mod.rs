@@ -7,6 +7,7 @@
 
 pub mod audit;
 pub mod jobs;
+pub mod policies;
 pub mod recorder;
 pub mod steps;
 pub mod tokens;

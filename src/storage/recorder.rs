@@ -84,9 +84,8 @@ async fn write(db: &Db, events: &VecDeque<CellEvent>) -> Result<(), DbError> {
                     CellEvent::JobEnded { job_id, end } => {
                         jobs::mark_ended(&mut *tx, *job_id, end).await?
                     }
-                    CellEvent::EStop { latched } => {
-                        super::set_cell_flag(&mut *tx, "estop", *latched).await?;
-                    }
+                    // The latch is stored by whoever latched it, before they answer.
+                    CellEvent::EStop { .. } => {}
                     CellEvent::Step(_) => unreachable!(),
                 }
             }

@@ -2,6 +2,7 @@
 
 use super::{Db, DbError};
 use crate::cell::StepRecord;
+use crate::sim::RewardTerms;
 use serde::Serialize;
 use serde_json::Value;
 use sqlx::{QueryBuilder, Row, Sqlite};
@@ -77,18 +78,8 @@ pub struct StoredStep {
     pub legs_mm: Value,
     pub verdict: String,
     pub veto_reason: Option<String>,
-    pub reward: Reward,
+    pub reward: RewardTerms,
     pub compute_us: f64,
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Reward {
-    pub global: f64,
-    pub position: f64,
-    pub orientation: f64,
-    pub error: f64,
-    pub step: f64,
-    pub total: f64,
 }
 
 /// Every step of a job, in order.
@@ -110,7 +101,7 @@ pub async fn list(db: &Db, job_id: i64) -> Result<Vec<StoredStep>, DbError> {
             legs_mm: parse(row.get("legs_mm")),
             verdict: row.get("verdict"),
             veto_reason: row.get("veto_reason"),
-            reward: Reward {
+            reward: RewardTerms {
                 global: row.get("reward_global"),
                 position: row.get("reward_position"),
                 orientation: row.get("reward_orientation"),

@@ -48,8 +48,14 @@ pub struct NewToken {
     pub token: String,
 }
 
+/// sha256 of a token's secret, hex: what is stored.
 pub fn hash(secret: &str) -> String {
-    Sha256::digest(secret.as_bytes())
+    hash_bytes(secret.as_bytes())
+}
+
+/// sha256, hex.
+pub fn hash_bytes(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect()
@@ -84,10 +90,10 @@ pub async fn create(
     })
 }
 
-/// The caller a secret belongs to, if any.
-pub async fn find(db: &Db, secret: &str) -> Result<Option<Caller>, DbError> {
+/// The caller whose secret has this [`hash`], if any.
+pub async fn find_by_hash(db: &Db, token_hash: &str) -> Result<Option<Caller>, DbError> {
     let row = sqlx::query("SELECT id, name, role FROM tokens WHERE token_hash = ?")
-        .bind(hash(secret))
+        .bind(token_hash)
         .fetch_optional(&db.reader)
         .await?;
     Ok(row.and_then(|row| {

@@ -32,6 +32,10 @@ impl Server {
             .arg(&db)
             .envs(env.iter().copied())
             .env("CELLD_LOG", "warn")
+            // The bundled policy's evaluation at first start, kept short.
+            .env("CELLD_EVALUATION_EPISODES", "20")
+            // Test servers share two cores; the deadline rule has its own unit test.
+            .env("CELLD_DEADLINE_MS", "5000")
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -105,6 +109,43 @@ impl Server {
             .header("Authorization", format!("Bearer {token}"))
             .header("Content-Type", content_type);
         Self::answer(request.send(body))
+    }
+
+    /// Announces a body of `length` bytes and sends none of it: the server must refuse from
+    /// the headers alone (a client that kept writing could see the connection close before it
+    /// reads the answer).
+    pub fn post_announcing(
+        &self,
+        path: &str,
+        token: &str,
+        content_type: &str,
+        length: usize,
+    ) -> (u16, Value) {
+        use std::io::{Read, Write};
+        let address = self.base.trim_start_matches("http://");
+        let mut stream = std::net::TcpStream::connect(address).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        write!(
+            stream,
+            "POST {path} HTTP/1.1\r\nHost: {address}\r\nAuthorization: Bearer {token}\r\n\
+             Content-Type: {content_type}\r\nContent-Length: {length}\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut answer = Vec::new();
+        let _ = stream.read_to_end(&mut answer);
+        let answer = String::from_utf8_lossy(&answer);
+        let status = answer
+            .split(' ')
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0);
+        let body = answer.split("\r\n\r\n").nth(1).unwrap_or_default();
+        (
+            status,
+            serde_json::from_str(body).unwrap_or(Value::String(body.into())),
+        )
     }
 
     /// A new token of `role` made through the API.

@@ -1,0 +1,262 @@
+//! The policy registry: files with their sha256, metadata and shapes; status `candidate`,
+//! `active` or `retired`; evaluations in the twin, which the activation gate reads.
+
+use super::{Db, DbError, NOW};
+use serde::Serialize;
+use serde_json::Value;
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+/// A registered policy as served (the file itself is served separately).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Policy {
+    pub id: i64,
+    pub name: String,
+    pub sha256: String,
+    pub size_bytes: i64,
+    pub status: String,
+    pub metadata: Value,
+    pub shapes: Value,
+    pub uploaded_by: Option<String>,
+    pub created_at: String,
+    /// The newest evaluation, if any.
+    pub evaluation: Option<Evaluation>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Evaluation {
+    pub id: i64,
+    pub policy_id: i64,
+    pub status: String,
+    pub episodes: i64,
+    pub seed: u64,
+    pub cell_hash: String,
+    pub success_rate: Option<f64>,
+    pub avg_steps: Option<f64>,
+    pub failures: Value,
+    pub error: Option<String>,
+    pub requested_by: String,
+    pub started_at: String,
+    pub finished_at: Option<String>,
+}
+
+/// What an upload stores.
+pub struct NewPolicy<'a> {
+    pub name: &'a str,
+    pub sha256: &'a str,
+    pub file: &'a [u8],
+    pub metadata: Value,
+    pub shapes: Value,
+    pub uploaded_by: &'a str,
+}
+
+fn json_of(text: Option<String>) -> Value {
+    text.and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or(Value::Null)
+}
+
+fn evaluation_from(row: &SqliteRow) -> Evaluation {
+    Evaluation {
+        id: row.get("id"),
+        policy_id: row.get("policy_id"),
+        status: row.get("status"),
+        episodes: row.get("episodes"),
+        seed: row.get::<i64, _>("seed") as u64,
+        cell_hash: row.get("cell_hash"),
+        success_rate: row.get("success_rate"),
+        avg_steps: row.get("avg_steps"),
+        failures: json_of(row.get("failures")),
+        error: row.get("error"),
+        requested_by: row.get("requested_by"),
+        started_at: row.get("started_at"),
+        finished_at: row.get("finished_at"),
+    }
+}
+
+const POLICY_COLUMNS: &str = "id, name, sha256, length(file) AS size_bytes, status, metadata, shapes, uploaded_by, created_at";
+
+async fn with_evaluation(db: &Db, row: &SqliteRow) -> Result<Policy, DbError> {
+    let id: i64 = row.get("id");
+    Ok(Policy {
+        id,
+        name: row.get("name"),
+        sha256: row.get("sha256"),
+        size_bytes: row.get("size_bytes"),
+        status: row.get("status"),
+        metadata: json_of(row.get("metadata")),
+        shapes: json_of(row.get("shapes")),
+        uploaded_by: row.get("uploaded_by"),
+        created_at: row.get("created_at"),
+        evaluation: latest_evaluation(db, id).await?,
+    })
+}
+
+/// Stores a policy, or finds the one with the same bytes. The flag says whether it is new.
+pub async fn insert_or_find(db: &Db, new: &NewPolicy<'_>) -> Result<(Policy, bool), DbError> {
+    let inserted: Option<i64> = sqlx::query_scalar(
+        "INSERT INTO policies (name, sha256, file, metadata, shapes, uploaded_by)
+         VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT (sha256) DO NOTHING RETURNING id",
+    )
+    .bind(new.name)
+    .bind(new.sha256)
+    .bind(new.file)
+    .bind(new.metadata.to_string())
+    .bind(new.shapes.to_string())
+    .bind(new.uploaded_by)
+    .fetch_optional(&db.writer)
+    .await?;
+    let id = match inserted {
+        Some(id) => id,
+        None => {
+            sqlx::query_scalar("SELECT id FROM policies WHERE sha256 = ?")
+                .bind(new.sha256)
+                .fetch_one(&db.writer)
+                .await?
+        }
+    };
+    let policy = get(db, id).await?.ok_or(DbError::RowNotFound)?;
+    Ok((policy, inserted.is_some()))
+}
+
+pub async fn get(db: &Db, id: i64) -> Result<Option<Policy>, DbError> {
+    let row = sqlx::query(&format!(
+        "SELECT {POLICY_COLUMNS} FROM policies WHERE id = ?"
+    ))
+    .bind(id)
+    .fetch_optional(&db.reader)
+    .await?;
+    match row {
+        Some(row) => Ok(Some(with_evaluation(db, &row).await?)),
+        None => Ok(None),
+    }
+}
+
+/// Newest first.
+pub async fn list(db: &Db) -> Result<Vec<Policy>, DbError> {
+    let rows = sqlx::query(&format!(
+        "SELECT {POLICY_COLUMNS} FROM policies ORDER BY id DESC"
+    ))
+    .fetch_all(&db.reader)
+    .await?;
+    let mut policies = Vec::with_capacity(rows.len());
+    for row in &rows {
+        policies.push(with_evaluation(db, row).await?);
+    }
+    Ok(policies)
+}
+
+pub async fn file(db: &Db, id: i64) -> Result<Option<Vec<u8>>, DbError> {
+    sqlx::query_scalar("SELECT file FROM policies WHERE id = ?")
+        .bind(id)
+        .fetch_optional(&db.reader)
+        .await
+}
+
+/// The active policy's id and file, if one is active.
+pub async fn active(db: &Db) -> Result<Option<(i64, Vec<u8>)>, DbError> {
+    let row = sqlx::query("SELECT id, file FROM policies WHERE status = 'active'")
+        .fetch_optional(&db.reader)
+        .await?;
+    Ok(row.map(|row| (row.get("id"), row.get("file"))))
+}
+
+/// Makes `id` the active policy and retires the one before it, in one transaction. Returns the
+/// retired policy's id.
+pub async fn activate(db: &Db, id: i64) -> Result<Option<i64>, DbError> {
+    let mut tx = db.writer.begin().await?;
+    let previous: Option<i64> =
+        sqlx::query_scalar("SELECT id FROM policies WHERE status = 'active' AND id != ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+    sqlx::query("UPDATE policies SET status = 'retired' WHERE status = 'active' AND id != ?")
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+    sqlx::query("UPDATE policies SET status = 'active' WHERE id = ?")
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+    tx.commit().await?;
+    Ok(previous)
+}
+
+pub async fn start_evaluation(
+    db: &Db,
+    policy_id: i64,
+    episodes: i64,
+    seed: u64,
+    cell_hash: &str,
+    requested_by: &str,
+) -> Result<Evaluation, DbError> {
+    let row = sqlx::query(
+        "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, requested_by)
+         VALUES (?, 'running', ?, ?, ?, ?) RETURNING *",
+    )
+    .bind(policy_id)
+    .bind(episodes)
+    .bind(seed as i64)
+    .bind(cell_hash)
+    .bind(requested_by)
+    .fetch_one(&db.writer)
+    .await?;
+    Ok(evaluation_from(&row))
+}
+
+/// Stores an evaluation's result (`Ok`: success rate, avg steps, failures) or its error.
+pub async fn finish_evaluation(
+    db: &Db,
+    id: i64,
+    result: Result<(f64, Option<f64>, Value), String>,
+) -> Result<(), DbError> {
+    let (status, success, steps, failures, error) = match result {
+        Ok((success, steps, failures)) => (
+            "done",
+            Some(success),
+            steps,
+            Some(failures.to_string()),
+            None,
+        ),
+        Err(error) => ("failed", None, None, None, Some(error)),
+    };
+    sqlx::query(&format!(
+        "UPDATE policy_evaluations SET status = ?, success_rate = ?, avg_steps = ?, failures = ?,
+                error = ?, finished_at = {NOW} WHERE id = ?"
+    ))
+    .bind(status)
+    .bind(success)
+    .bind(steps)
+    .bind(failures)
+    .bind(error)
+    .bind(id)
+    .execute(&db.writer)
+    .await?;
+    Ok(())
+}
+
+pub async fn latest_evaluation(db: &Db, policy_id: i64) -> Result<Option<Evaluation>, DbError> {
+    let row = sqlx::query(
+        "SELECT * FROM policy_evaluations WHERE policy_id = ? ORDER BY id DESC LIMIT 1",
+    )
+    .bind(policy_id)
+    .fetch_optional(&db.reader)
+    .await?;
+    Ok(row.as_ref().map(evaluation_from))
+}
+
+/// The latest finished evaluation of `policy_id` on the cell with `cell_hash`.
+pub async fn latest_evaluation_on(
+    db: &Db,
+    policy_id: i64,
+    cell_hash: &str,
+) -> Result<Option<Evaluation>, DbError> {
+    let row = sqlx::query(
+        "SELECT * FROM policy_evaluations WHERE policy_id = ? AND cell_hash = ? AND status = 'done'
+         ORDER BY id DESC LIMIT 1",
+    )
+    .bind(policy_id)
+    .bind(cell_hash)
+    .fetch_optional(&db.reader)
+    .await?;
+    Ok(row.as_ref().map(evaluation_from))
+}

@@ -1,0 +1,329 @@
+//! The policy registry over HTTP: upload checks, evaluation, the activation gate, rollback.
+
+mod serve_support;
+
+use serde_json::{Map, Value, json};
+use serve_support::Server;
+use std::time::{Duration, Instant};
+
+const BUNDLED: &[u8] = include_bytes!("../policies/default.safetensors");
+const BC: &[u8] = include_bytes!("../policies/bc.safetensors");
+
+fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value) {
+    server.post_raw(
+        &format!("/api/policies?name={name}"),
+        token,
+        "application/octet-stream",
+        bytes,
+    )
+}
+
+fn wait_evaluated(server: &Server, id: i64) -> Value {
+    let start = Instant::now();
+    loop {
+        let (_, policy) = server.get(&format!("/api/policies/{id}"), Some(&server.admin));
+        if policy["evaluation"]["status"] != "running" {
+            return policy;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "evaluation never ended: {policy}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn policy_count(server: &Server) -> usize {
+    let (_, list) = server.get("/api/policies", Some(&server.admin));
+    list["items"].as_array().unwrap().len()
+}
+
+#[test]
+fn upload_evaluate_activate_and_roll_back() {
+    let dir = tempfile::tempdir().unwrap();
+    // A threshold of 0 lets the test's short evaluations pass the gate.
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_STEP_PERIOD_MS", "5"),
+            ("CELLD_ACTIVATION_THRESHOLD", "0"),
+        ],
+    );
+    let admin = server.admin.clone();
+
+    // The bundled default is registered at first start (and evaluated there).
+    let (_, list) = server.get("/api/policies", Some(&admin));
+    let bundled = list["items"][0].clone();
+    assert_eq!(bundled["name"], "bundled-default", "{list}");
+
+    let (status, same) = upload(&server, &admin, "again", BUNDLED);
+    assert_eq!(status, 200, "the same bytes are the same policy: {same}");
+    assert_eq!(same["id"], bundled["id"]);
+    let (status, bc) = upload(&server, &admin, "bc", BC);
+    assert_eq!(status, 201, "{bc}");
+    assert_eq!(bc["status"], "candidate");
+    assert_eq!(bc["shapes"]["high.head.weight"], json!([3, 64]));
+    let bc_id = bc["id"].as_i64().unwrap();
+    let bundled_id = bundled["id"].as_i64().unwrap();
+
+    // The file comes back byte for byte.
+    let file = ureq::get(format!("{}/api/policies/{bc_id}/file", server.base))
+        .header("Authorization", format!("Bearer {admin}"))
+        .call()
+        .unwrap()
+        .into_body()
+        .read_to_vec()
+        .unwrap();
+    assert_eq!(file, BC);
+
+    // No evaluation yet: refused.
+    let (status, refused) = server.post(
+        &format!("/api/policies/{bc_id}/activate"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 409, "{refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("no finished evaluation")
+    );
+
+    let (status, evaluation) = server.post(
+        &format!("/api/policies/{bc_id}/evaluate"),
+        Some(&admin),
+        Some(json!({"episodes": 10, "seed": 3})),
+    );
+    assert_eq!(status, 202, "{evaluation}");
+    assert_eq!(evaluation["status"], "running");
+    let evaluated = wait_evaluated(&server, bc_id);
+    let result = &evaluated["evaluation"];
+    assert_eq!(result["status"], "done", "{evaluated}");
+    assert_eq!(result["episodes"], 10);
+    let successes = (result["success_rate"].as_f64().unwrap() * 10.0).round() as u64;
+    let failures: u64 = result["failures"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(
+        successes + failures,
+        10,
+        "every episode is a success or a counted failure"
+    );
+
+    let (status, activated) = server.post(
+        &format!("/api/policies/{bc_id}/activate"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 200, "{activated}");
+    assert_eq!(activated["policy"]["status"], "active");
+
+    // A job on "active" runs and records that policy.
+    let job = server.create_job(&admin, json!({"controller": "active", "seed": 4}));
+    assert_eq!(job["policy_id"], bc_id);
+    assert_eq!(job["controller"], format!("policy:{bc_id}"));
+    let done = server.wait_final(job["id"].as_i64().unwrap());
+    assert!(done["steps"].as_i64().unwrap() > 0, "{done}");
+
+    // Activate the bundled one (evaluated at start), then roll back to bc.
+    wait_evaluated(&server, bundled_id);
+    let (status, swapped) = server.post(
+        &format!("/api/policies/{bundled_id}/activate"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 200, "{swapped}");
+    assert_eq!(swapped["retired"], bc_id);
+    let (_, old) = server.get(&format!("/api/policies/{bc_id}"), Some(&admin));
+    assert_eq!(old["status"], "retired");
+    let (status, back) = server.post(
+        &format!("/api/policies/{bc_id}/activate"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 200, "rollback: {back}");
+    assert_eq!(back["retired"], bundled_id);
+    let job = server.create_job(&admin, json!({"controller": "active"}));
+    assert_eq!(job["policy_id"], bc_id);
+}
+
+#[test]
+fn the_gate_holds_unless_forced_with_a_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[]);
+    let admin = server.admin.clone();
+    let (_, bc) = upload(&server, &admin, "bc", BC);
+    let id = bc["id"].as_i64().unwrap();
+
+    // Evaluated, but below the default 0.95.
+    server.post(
+        &format!("/api/policies/{id}/evaluate"),
+        Some(&admin),
+        Some(json!({"episodes": 5})),
+    );
+    let evaluated = wait_evaluated(&server, id);
+    assert!(evaluated["evaluation"]["success_rate"].as_f64().unwrap() < 0.95);
+    let (status, refused) =
+        server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);
+    assert_eq!(status, 409, "{refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("0.95"),
+        "{refused}"
+    );
+
+    let (status, no_reason) = server.post(
+        &format!("/api/policies/{id}/activate"),
+        Some(&admin),
+        Some(json!({"force": true})),
+    );
+    assert_eq!(status, 422, "{no_reason}");
+    let (status, forced) = server.post(
+        &format!("/api/policies/{id}/activate"),
+        Some(&admin),
+        Some(json!({"force": true, "reason": "commissioning test on the twin"})),
+    );
+    assert_eq!(status, 200, "{forced}");
+    assert_eq!(forced["forced"], true);
+    assert_eq!(forced["policy"]["status"], "active");
+
+    let (_, audit) = server.get("/api/audit", Some(&admin));
+    let entry = audit["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["action"] == "policy.activate")
+        .expect("the forced activation is audited")
+        .clone();
+    assert_eq!(entry["detail"]["force"], true);
+    assert_eq!(entry["detail"]["reason"], "commissioning test on the twin");
+    assert_eq!(entry["actor"], "admin");
+}
+
+/// The safetensors pieces of a good file, to break one thing at a time: tensor name → (header
+/// entry, bytes), laid out again on encoding.
+struct Parts {
+    metadata: Value,
+    tensors: Vec<(String, Value, Vec<u8>)>,
+}
+
+fn parts() -> Parts {
+    let n = u64::from_le_bytes(BUNDLED[..8].try_into().unwrap()) as usize;
+    let header: Map<String, Value> = serde_json::from_slice(&BUNDLED[8..8 + n]).unwrap();
+    let data = &BUNDLED[8 + n..];
+    let mut parts = Parts {
+        metadata: header["__metadata__"].clone(),
+        tensors: Vec::new(),
+    };
+    for (name, info) in header.into_iter().filter(|(k, _)| k != "__metadata__") {
+        let at = |i: usize| info["data_offsets"][i].as_u64().unwrap() as usize;
+        let bytes = data[at(0)..at(1)].to_vec();
+        parts.tensors.push((name, info, bytes));
+    }
+    parts
+}
+
+impl Parts {
+    fn encode(&self) -> Vec<u8> {
+        let mut header = Map::new();
+        header.insert("__metadata__".into(), self.metadata.clone());
+        let mut data = Vec::new();
+        for (name, info, bytes) in &self.tensors {
+            let mut info = info.clone();
+            info["data_offsets"] = json!([data.len(), data.len() + bytes.len()]);
+            data.extend_from_slice(bytes);
+            header.insert(name.clone(), info);
+        }
+        let header = serde_json::to_vec(&header).unwrap();
+        let mut out = (header.len() as u64).to_le_bytes().to_vec();
+        out.extend_from_slice(&header);
+        out.extend_from_slice(&data);
+        out
+    }
+
+    fn tensor(&mut self, name: &str) -> &mut (String, Value, Vec<u8>) {
+        self.tensors.iter_mut().find(|t| t.0 == name).unwrap()
+    }
+}
+
+#[test]
+fn each_malformed_upload_is_refused_with_its_own_message() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[("CELLD_MAX_POLICY_BYTES", "200000")]);
+    let admin = server.admin.clone();
+    let stored_before = policy_count(&server);
+
+    let mut cases: Vec<(&str, Vec<u8>, u16, &str)> = Vec::new();
+    cases.push((
+        "not safetensors",
+        b"PK\x03\x04 a zip file".to_vec(),
+        422,
+        "header",
+    ));
+    cases.push((
+        "truncated",
+        BUNDLED[..BUNDLED.len() - 100].to_vec(),
+        422,
+        "truncated",
+    ));
+    let mut long = BUNDLED.to_vec();
+    long[..8].copy_from_slice(&(BUNDLED.len() as u64).to_le_bytes());
+    cases.push((
+        "header longer than the file",
+        long,
+        422,
+        "longer than the file",
+    ));
+    let mut p = parts();
+    p.tensors.retain(|t| t.0 != "ori.4.bias");
+    cases.push(("missing tensor", p.encode(), 422, "ori.4.bias"));
+    let mut p = parts();
+    p.tensor("obs_mean").1["shape"] = json!([3, 4]);
+    cases.push(("wrong shape", p.encode(), 422, "obs_mean"));
+    let mut p = parts();
+    // F16 with twice the elements: the same bytes, so only the dtype is wrong.
+    p.tensor("pos.0.bias").1["dtype"] = json!("F16");
+    p.tensor("pos.0.bias").1["shape"] = json!([128]);
+    cases.push(("f16", p.encode(), 422, "pos.0.bias"));
+    let mut p = parts();
+    p.tensor("high.head.bias").2[..4].copy_from_slice(&f32::NAN.to_le_bytes());
+    cases.push(("NaN weights", p.encode(), 422, "high.head.bias"));
+    let mut p = parts();
+    p.metadata["format"] = json!("onnx");
+    cases.push(("wrong metadata", p.encode(), 422, "format"));
+    cases.push(("over the cap", vec![0u8; 300_000], 413, "length limit"));
+
+    for (what, bytes, status, named) in cases {
+        let (got, answer) = upload(&server, &admin, "bad", &bytes);
+        assert_eq!(got, status, "{what}: {answer}");
+        let message = answer["error"]["message"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{what}: {answer}"));
+        assert!(
+            message.contains(named),
+            "{what}: `{message}` should name `{named}`"
+        );
+    }
+    let (status, _) = upload(&server, &admin, "", BC);
+    assert_eq!(status, 400, "a policy needs a name");
+    assert_eq!(
+        policy_count(&server),
+        stored_before,
+        "nothing refused was stored"
+    );
+
+    // Roles: only an admin uploads, evaluates or activates.
+    let operator = server.token("operator");
+    let (status, _) = upload(&server, &operator, "bc", BC);
+    assert_eq!(status, 403);
+    let (status, _) = server.post("/api/policies/1/activate", Some(&operator), None);
+    assert_eq!(status, 403);
+    let (status, _) = server.post("/api/policies/1/evaluate", Some(&operator), None);
+    assert_eq!(status, 403);
+}
