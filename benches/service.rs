@@ -90,6 +90,8 @@ fn start_server() -> Server {
         .arg(dir.path().join("celld.db"))
         .env("CELLD_STEP_PERIOD_MS", "20")
         .env("CELLD_LOG", "warn")
+        // The bundled policy's evaluation at first start would share the cores with the figures.
+        .env("CELLD_EVALUATION_EPISODES", "1")
         .stdout(Stdio::piped())
         .spawn()
         .unwrap();
