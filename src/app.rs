@@ -58,6 +58,7 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
         db.clone(),
         events_inbox,
         settings.control.step_batch,
+        cell.config_hash(),
     ));
     let sink = event_sink(metrics.clone(), telemetry.clone(), events);
     let period = settings

@@ -7,6 +7,7 @@
 
 use super::backend::CellBackend;
 use crate::config::cell::CellConfig;
+use crate::learning::demos::DemoStep;
 use crate::policy::{self, Actor, Controller, file::PolicyFile, hierarchical::HierarchicalPolicy};
 use crate::sim::{InitialConditions, Observation, Outcome, PoseErrors, RewardTerms};
 use serde::Serialize;
@@ -44,6 +45,8 @@ pub struct JobSpec {
     pub controller: ControllerSource,
     pub seed: u64,
     pub initial: InitialConditions,
+    /// Record the run as a demonstration (kept when the job succeeds).
+    pub demonstration: bool,
 }
 
 /// A job's lifecycle state, as stored and served.
@@ -98,6 +101,24 @@ pub struct JobEnd {
     pub steps: u32,
     pub reward: f64,
     pub final_errors: Option<PoseErrors>,
+    /// What the controller saw and did at each labelled step, for a demonstration job that
+    /// succeeded.
+    #[serde(skip)]
+    pub demonstration: Option<Vec<DemoStep>>,
+}
+
+impl JobEnd {
+    /// The end of a job that never took a step.
+    pub fn unstarted(status: JobStatus, reason: &str) -> JobEnd {
+        JobEnd {
+            status,
+            failure_reason: Some(reason.to_string()),
+            steps: 0,
+            reward: 0.0,
+            final_errors: None,
+            demonstration: None,
+        }
+    }
 }
 
 /// The control loop's own stop rules (DESIGN.md §8).
@@ -150,6 +171,8 @@ pub struct JobRun {
     stale_steps: u32,
     reward: f64,
     last_errors: Option<PoseErrors>,
+    /// The labelled steps so far, when the job records a demonstration.
+    demonstration: Option<Vec<DemoStep>>,
 }
 
 impl JobRun {
@@ -162,13 +185,7 @@ impl JobRun {
         limits: SafetyLimits,
         now_s: f64,
     ) -> Result<JobRun, JobEnd> {
-        let refuse = |reason: String| JobEnd {
-            status: JobStatus::Failed,
-            failure_reason: Some(reason),
-            steps: 0,
-            reward: 0.0,
-            final_errors: None,
-        };
+        let refuse = |reason: String| JobEnd::unstarted(JobStatus::Failed, &reason);
         let mut controller = spec
             .controller
             .build(cell)
@@ -187,6 +204,7 @@ impl JobRun {
             stale_steps: 0,
             reward: 0.0,
             last_errors: None,
+            demonstration: spec.demonstration.then(Vec::new),
         })
     }
 
@@ -200,6 +218,18 @@ impl JobRun {
     pub fn step(&mut self, backend: &mut dyn CellBackend, clock: &dyn Fn() -> f64) -> StepReport {
         let begin_s = clock();
         let decision = self.controller.act(&self.observation);
+        if let (Some(steps), Some(actor), Some(scale)) =
+            (self.demonstration.as_mut(), decision.actor, decision.scale)
+        {
+            steps.push(DemoStep {
+                episode: 0,
+                step: self.observation.step,
+                state: self.observation.state,
+                action: decision.action.to_array(),
+                actor,
+                scale,
+            });
+        }
         if !decision.action.is_finite() {
             backend.hold();
             return StepReport {
@@ -277,6 +307,10 @@ impl JobRun {
             steps: self.steps,
             reward: self.reward,
             final_errors: self.last_errors,
+            demonstration: self
+                .demonstration
+                .clone()
+                .filter(|_| status == JobStatus::Succeeded),
         }
     }
 }
@@ -297,6 +331,7 @@ mod tests {
             controller: ControllerSource::Builtin(controller.into()),
             seed,
             initial: InitialConditions::from_cell(&cell),
+            demonstration: false,
         }
     }
 

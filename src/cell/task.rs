@@ -245,13 +245,7 @@ impl ControlLoop {
         match command {
             CellCommand::Enqueue(spec) => {
                 if self.status.borrow().estop_latched {
-                    let end = JobEnd {
-                        status: JobStatus::Cancelled,
-                        failure_reason: Some("estop".into()),
-                        steps: 0,
-                        reward: 0.0,
-                        final_errors: None,
-                    };
+                    let end = JobEnd::unstarted(JobStatus::Cancelled, "estop");
                     (self.sink)(CellEvent::JobEnded {
                         job_id: spec.id,
                         end,
@@ -347,13 +341,7 @@ impl ControlLoop {
     }
 
     fn end_unstarted(&mut self, job_id: i64, status: JobStatus, reason: &str) {
-        let end = JobEnd {
-            status,
-            failure_reason: Some(reason.into()),
-            steps: 0,
-            reward: 0.0,
-            final_errors: None,
-        };
+        let end = JobEnd::unstarted(status, reason);
         (self.sink)(CellEvent::JobEnded { job_id, end });
     }
 

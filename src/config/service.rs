@@ -74,7 +74,7 @@ pub struct HttpConfig {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PolicyConfig {
-    /// Largest policy upload, bytes (larger is 413).
+    /// Largest policy upload or demonstration import, bytes (larger is 413).
     pub max_upload_bytes: usize,
     /// Success rate an evaluation on this cell must reach before a policy may be activated.
     pub activation_threshold: f64,

@@ -95,6 +95,7 @@ async fn create(
         controller: source,
         seed,
         initial,
+        demonstration: job.demonstration,
     }))?;
     Ok((StatusCode::CREATED, Json(job)))
 }

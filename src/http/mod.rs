@@ -4,6 +4,7 @@
 
 pub mod auth;
 pub mod cell;
+pub mod demonstrations;
 pub mod error;
 pub mod jobs;
 pub mod meta;
@@ -64,6 +65,9 @@ pub fn router(context: Context) -> Router {
         .merge(cell::router())
         .merge(jobs::router())
         .merge(policies::router(context.settings.policies.max_upload_bytes))
+        .merge(demonstrations::router(
+            context.settings.policies.max_upload_bytes,
+        ))
         .merge(stats::router())
         .merge(telemetry::router())
         .fallback(|| async { ApiError::not_found("no such route") })
@@ -90,7 +94,10 @@ async fn refuse_announced_oversize(
     next: axum::middleware::Next,
 ) -> axum::response::Response {
     use axum::response::IntoResponse;
-    let limit = if request.uri().path() == "/api/policies" {
+    let limit = if matches!(
+        request.uri().path(),
+        "/api/policies" | "/api/demonstrations"
+    ) {
         context.settings.policies.max_upload_bytes
     } else {
         context.settings.http.body_limit_bytes

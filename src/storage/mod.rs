@@ -6,6 +6,7 @@
 //! committed step survives a power cut, not only a killed process; foreign keys on.
 
 pub mod audit;
+pub mod demonstrations;
 pub mod jobs;
 pub mod policies;
 pub mod recorder;

@@ -5,14 +5,22 @@
 //! transaction, so a job never shows more steps than are stored. A failed write is logged and
 //! retried with everything after it; nothing is dropped.
 
+use super::demonstrations::{self, NewDemonstration};
 use super::{Db, DbError, jobs, steps};
 use crate::cell::{CellEvent, StepRecord};
+use crate::learning::demos::DemoEpisode;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::sync::mpsc::UnboundedReceiver;
 
 /// Runs until the event channel closes, then writes what is left.
-pub async fn run(db: Db, mut events: UnboundedReceiver<CellEvent>, batch: usize) {
+/// `cell_hash` names the cell in the demonstrations it records.
+pub async fn run(
+    db: Db,
+    mut events: UnboundedReceiver<CellEvent>,
+    batch: usize,
+    cell_hash: String,
+) {
     let mut pending: VecDeque<CellEvent> = VecDeque::new();
     let mut pending_steps = 0usize;
     let mut tick = tokio::time::interval(Duration::from_millis(100));
@@ -30,12 +38,12 @@ pub async fn run(db: Db, mut events: UnboundedReceiver<CellEvent>, batch: usize)
                         pending_steps += usize::from(matches!(event, CellEvent::Step(_)));
                         pending.push_back(event);
                     }
-                    flush(&db, &mut pending, &mut pending_steps).await;
+                    flush(&db, &mut pending, &mut pending_steps, &cell_hash).await;
                 }
             }
             _ = tick.tick() => {
                 if !pending.is_empty() {
-                    flush(&db, &mut pending, &mut pending_steps).await;
+                    flush(&db, &mut pending, &mut pending_steps, &cell_hash).await;
                 }
             }
         }
@@ -47,13 +55,18 @@ pub async fn run(db: Db, mut events: UnboundedReceiver<CellEvent>, batch: usize)
         if attempt > 0 {
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
-        flush(&db, &mut pending, &mut pending_steps).await;
+        flush(&db, &mut pending, &mut pending_steps, &cell_hash).await;
     }
     tracing::error!(events = pending.len(), "could not store the last events");
 }
 
-async fn flush(db: &Db, pending: &mut VecDeque<CellEvent>, pending_steps: &mut usize) {
-    match write(db, pending).await {
+async fn flush(
+    db: &Db,
+    pending: &mut VecDeque<CellEvent>,
+    pending_steps: &mut usize,
+    cell_hash: &str,
+) {
+    match write(db, pending, cell_hash).await {
         Ok(()) => {
             pending.clear();
             *pending_steps = 0;
@@ -62,7 +75,7 @@ async fn flush(db: &Db, pending: &mut VecDeque<CellEvent>, pending_steps: &mut u
     }
 }
 
-async fn write(db: &Db, events: &VecDeque<CellEvent>) -> Result<(), DbError> {
+async fn write(db: &Db, events: &VecDeque<CellEvent>, cell_hash: &str) -> Result<(), DbError> {
     let mut tx = db.writer.begin().await?;
     let mut run: Vec<StepRecord> = Vec::new();
     for event in events {
@@ -82,7 +95,21 @@ async fn write(db: &Db, events: &VecDeque<CellEvent>) -> Result<(), DbError> {
                         jobs::mark_started(&mut *tx, *job_id).await?
                     }
                     CellEvent::JobEnded { job_id, end } => {
-                        jobs::mark_ended(&mut *tx, *job_id, end).await?
+                        jobs::mark_ended(&mut *tx, *job_id, end).await?;
+                        if let Some(steps) = &end.demonstration {
+                            let episode = DemoEpisode {
+                                steps: steps.clone(),
+                                succeeded: true,
+                            };
+                            let new = NewDemonstration {
+                                name: &format!("job {job_id}"),
+                                source: "recorded",
+                                cell_hash,
+                                job_id: Some(*job_id),
+                                created_by: "celld",
+                            };
+                            demonstrations::insert(&mut *tx, &new, &[episode]).await?;
+                        }
                     }
                     // The latch is stored by whoever latched it, before they answer.
                     CellEvent::EStop { .. } => {}

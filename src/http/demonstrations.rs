@@ -1,0 +1,123 @@
+//! `/api/demonstrations`: import (admin), list and export (viewer), delete (admin). A job with
+//! `"demonstration": true` records one when it succeeds. The format is `learning::demos`'s JSON
+//! Lines, one step a line, which `celld train --demos-file` reads too.
+
+use super::Context;
+use super::auth::Auth;
+use super::error::{ApiError, ApiResult, Json, Path, Query};
+use crate::learning::demos::{self, DemoError};
+use crate::storage::audit;
+use crate::storage::demonstrations::{self, Demonstration, NewDemonstration};
+use crate::storage::tokens::Role;
+use axum::Router;
+use axum::body::Bytes;
+use axum::extract::rejection::BytesRejection;
+use axum::extract::{DefaultBodyLimit, State};
+use axum::http::{StatusCode, header};
+use axum::response::IntoResponse;
+use axum::routing::get;
+use serde::Deserialize;
+use serde_json::{Value, json};
+
+pub fn router(max_import_bytes: usize) -> Router<Context> {
+    Router::new()
+        .route(
+            "/api/demonstrations",
+            axum::routing::post(import)
+                .get(list)
+                .layer(DefaultBodyLimit::max(max_import_bytes)),
+        )
+        .route("/api/demonstrations/{id}", get(export).delete(remove))
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImportQuery {
+    name: Option<String>,
+}
+
+async fn import(
+    State(context): State<Context>,
+    auth: Auth,
+    Query(query): Query<ImportQuery>,
+    body: Result<Bytes, BytesRejection>,
+) -> ApiResult<(StatusCode, Json<Demonstration>)> {
+    let caller = auth.require(Role::Admin)?;
+    let body = body.map_err(|r| ApiError::new(r.status(), "bad_body", r.body_text()))?;
+    let name = query.name.as_deref().map(str::trim).unwrap_or("imported");
+    if name.is_empty() || name.len() > 100 {
+        return Err(ApiError::bad_request("name must be 1 to 100 characters"));
+    }
+    let episodes = demos::read_jsonl(&body[..]).map_err(|e| match e {
+        DemoError::BadLine { .. } => ApiError::unprocessable(format!("nothing imported: {e}")),
+        DemoError::Io(_) => ApiError::bad_request(format!("nothing imported: {e}")),
+    })?;
+    if episodes.is_empty() {
+        return Err(ApiError::unprocessable(
+            "nothing imported: the body has no steps",
+        ));
+    }
+    let id = demonstrations::insert(
+        &context.db.writer,
+        &NewDemonstration {
+            name,
+            source: "imported",
+            cell_hash: &context.cell_config.config_hash(),
+            job_id: None,
+            created_by: &caller.name,
+        },
+        &episodes,
+    )
+    .await?;
+    audit::record(
+        &context.db,
+        &caller.name,
+        "demonstration.import",
+        json!({"demonstration_id": id, "name": name}),
+    )
+    .await?;
+    let stored = demonstrations::get(&context.db, id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("no demonstration with id {id}")))?;
+    Ok((StatusCode::CREATED, Json(stored)))
+}
+
+async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Value>> {
+    auth.require(Role::Viewer)?;
+    Ok(Json(
+        json!({"items": demonstrations::list(&context.db).await?}),
+    ))
+}
+
+async fn export(
+    State(context): State<Context>,
+    auth: Auth,
+    Path(id): Path<i64>,
+) -> ApiResult<impl IntoResponse> {
+    auth.require(Role::Viewer)?;
+    let body = demonstrations::body(&context.db, id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("no demonstration with id {id}")))?;
+    Ok(([(header::CONTENT_TYPE, "application/x-ndjson")], body))
+}
+
+async fn remove(
+    State(context): State<Context>,
+    auth: Auth,
+    Path(id): Path<i64>,
+) -> ApiResult<StatusCode> {
+    let caller = auth.require(Role::Admin)?;
+    if !demonstrations::delete(&context.db, id).await? {
+        return Err(ApiError::not_found(format!(
+            "no demonstration with id {id}"
+        )));
+    }
+    audit::record(
+        &context.db,
+        &caller.name,
+        "demonstration.delete",
+        json!({"demonstration_id": id}),
+    )
+    .await?;
+    Ok(StatusCode::NO_CONTENT)
+}

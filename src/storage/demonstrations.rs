@@ -1,0 +1,112 @@
+//! Demonstrations: JSON Lines bodies (the `learning::demos` format) with their source and cell.
+
+use super::{Db, DbError};
+use crate::learning::demos::{self, DemoEpisode};
+use serde::Serialize;
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+/// A demonstration as listed (the steps are exported separately).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Demonstration {
+    pub id: i64,
+    pub name: String,
+    pub source: String,
+    pub cell_hash: String,
+    pub job_id: Option<i64>,
+    pub episodes: i64,
+    pub steps: i64,
+    pub created_by: Option<String>,
+    pub created_at: String,
+}
+
+fn from_row(row: &SqliteRow) -> Demonstration {
+    Demonstration {
+        id: row.get("id"),
+        name: row.get("name"),
+        source: row.get("source"),
+        cell_hash: row.get("cell_hash"),
+        job_id: row.get("job_id"),
+        episodes: row.get("episodes"),
+        steps: row.get("steps"),
+        created_by: row.get("created_by"),
+        created_at: row.get("created_at"),
+    }
+}
+
+const COLUMNS: &str =
+    "id, name, source, cell_hash, job_id, episodes, steps, created_by, created_at";
+
+/// What a new demonstration is.
+pub struct NewDemonstration<'a> {
+    pub name: &'a str,
+    pub source: &'a str,
+    pub cell_hash: &'a str,
+    pub job_id: Option<i64>,
+    pub created_by: &'a str,
+}
+
+/// Canonical JSON Lines of the episodes.
+pub fn body_of(episodes: &[DemoEpisode]) -> String {
+    let mut out = Vec::new();
+    demos::write_jsonl(episodes, &mut out).expect("writing to memory cannot fail");
+    String::from_utf8(out).expect("JSON is UTF-8")
+}
+
+pub async fn insert<'e>(
+    executor: impl sqlx::SqliteExecutor<'e>,
+    new: &NewDemonstration<'_>,
+    episodes: &[DemoEpisode],
+) -> Result<i64, DbError> {
+    let steps: usize = episodes.iter().map(|e| e.steps.len()).sum();
+    sqlx::query_scalar(
+        "INSERT INTO demonstrations (name, source, cell_hash, job_id, episodes, steps, body, created_by)
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+    )
+    .bind(new.name)
+    .bind(new.source)
+    .bind(new.cell_hash)
+    .bind(new.job_id)
+    .bind(episodes.len() as i64)
+    .bind(steps as i64)
+    .bind(body_of(episodes))
+    .bind(new.created_by)
+    .fetch_one(executor)
+    .await
+}
+
+pub async fn get(db: &Db, id: i64) -> Result<Option<Demonstration>, DbError> {
+    let row = sqlx::query(&format!(
+        "SELECT {COLUMNS} FROM demonstrations WHERE id = ?"
+    ))
+    .bind(id)
+    .fetch_optional(&db.reader)
+    .await?;
+    Ok(row.as_ref().map(from_row))
+}
+
+/// Newest first.
+pub async fn list(db: &Db) -> Result<Vec<Demonstration>, DbError> {
+    let rows = sqlx::query(&format!(
+        "SELECT {COLUMNS} FROM demonstrations ORDER BY id DESC"
+    ))
+    .fetch_all(&db.reader)
+    .await?;
+    Ok(rows.iter().map(from_row).collect())
+}
+
+pub async fn body(db: &Db, id: i64) -> Result<Option<String>, DbError> {
+    sqlx::query_scalar("SELECT body FROM demonstrations WHERE id = ?")
+        .bind(id)
+        .fetch_optional(&db.reader)
+        .await
+}
+
+/// Deletes one; false when there was none.
+pub async fn delete(db: &Db, id: i64) -> Result<bool, DbError> {
+    let done = sqlx::query("DELETE FROM demonstrations WHERE id = ?")
+        .bind(id)
+        .execute(&db.writer)
+        .await?;
+    Ok(done.rows_affected() > 0)
+}
