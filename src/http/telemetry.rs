@@ -12,7 +12,7 @@ use axum::Router;
 use axum::extract::State;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::routing::get;
-use futures_util::Stream;
+use futures_util::{Stream, StreamExt};
 use std::convert::Infallible;
 use tokio::sync::broadcast::error::RecvError;
 use tokio::sync::{broadcast, watch};
@@ -39,28 +39,85 @@ async fn subscribe(
     StreamCaller(auth): StreamCaller,
 ) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
     auth.require(Role::Viewer)?;
-    context.metrics.telemetry_subscribers.inc();
+    let stream = messages(
+        context.telemetry.subscribe(),
+        context.shutdown.clone(),
+        context.metrics.clone(),
+    )
+    .map(|message| Ok(Event::default().event(message.event).data(&*message.data)));
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// One subscriber's messages until shutdown, counted as a subscriber while it lives. Falling
+/// more than the channel's capacity behind yields one `lagged` message with the number
+/// skipped (also counted in the metrics) and continues from the oldest message still held.
+fn messages(
+    receiver: broadcast::Receiver<TelemetryMessage>,
+    shutdown: watch::Receiver<bool>,
+    metrics: Metrics,
+) -> impl Stream<Item = TelemetryMessage> {
+    metrics.telemetry_subscribers.inc();
     let subscription = Subscription {
-        receiver: context.telemetry.subscribe(),
-        shutdown: context.shutdown.clone(),
-        metrics: context.metrics.clone(),
+        receiver,
+        shutdown,
+        metrics,
     };
-    let stream = futures_util::stream::unfold(subscription, |mut sub| async move {
+    futures_util::stream::unfold(subscription, |mut sub| async move {
         if *sub.shutdown.borrow() {
             return None;
         }
-        let event = tokio::select! {
+        let message = tokio::select! {
             message = sub.receiver.recv() => match message {
-                Ok(message) => Event::default().event(message.event).data(&*message.data),
+                Ok(message) => message,
                 Err(RecvError::Lagged(skipped)) => {
                     sub.metrics.telemetry_lagged.inc_by(skipped);
-                    Event::default().event("lagged").data(format!("{{\"skipped\":{skipped}}}"))
+                    TelemetryMessage {
+                        event: "lagged",
+                        data: format!("{{\"skipped\":{skipped}}}").into(),
+                    }
                 }
                 Err(RecvError::Closed) => return None,
             },
             _ = sub.shutdown.changed() => return None,
         };
-        Some((Ok(event), sub))
-    });
-    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+        Some((message, sub))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn message(n: usize) -> TelemetryMessage {
+        TelemetryMessage {
+            event: "step",
+            data: format!("{{\"step\":{n}}}").into(),
+        }
+    }
+
+    #[tokio::test]
+    async fn a_slow_subscriber_skips_ahead_and_is_counted() {
+        let (sender, receiver) = broadcast::channel(4);
+        let (stop, shutdown) = watch::channel(false);
+        let metrics = Metrics::default();
+        let mut stream = Box::pin(messages(receiver, shutdown, metrics.clone()));
+        assert_eq!(metrics.telemetry_subscribers.get(), 1);
+        // Ten events while the subscriber reads nothing: the sender never waits.
+        for n in 1..=10 {
+            sender.send(message(n)).unwrap();
+        }
+        let first = stream.next().await.unwrap();
+        assert_eq!((first.event, &*first.data), ("lagged", "{\"skipped\":6}"));
+        assert_eq!(metrics.telemetry_lagged.get(), 6);
+        for n in 7..=10 {
+            assert_eq!(
+                &*stream.next().await.unwrap().data,
+                format!("{{\"step\":{n}}}")
+            );
+        }
+        stop.send(true).unwrap();
+        assert!(stream.next().await.is_none(), "the stream ends at shutdown");
+        drop(stream);
+        assert_eq!(metrics.telemetry_subscribers.get(), 0);
+    }
 }
