@@ -17,7 +17,7 @@ use crate::http::{self, Context, TelemetryMessage};
 use crate::metrics::Metrics;
 use crate::policy;
 use crate::storage::tokens::{self, Role};
-use crate::storage::{Db, audit, jobs, recorder};
+use crate::storage::{Db, audit, jobs, recorder, training};
 use anyhow::{Context as _, Result, bail};
 use serde_json::json;
 use std::io::Write;
@@ -45,6 +45,9 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
             interrupted,
             "jobs left running or queued by the last run are now interrupted"
         );
+    }
+    if training::fail_leftovers(&db).await? > 0 {
+        tracing::warn!("a training run left running by the last run is marked failed");
     }
     if tokens::count(&db).await? == 0 {
         first_admin_token(&db, &settings.db).await?;
@@ -91,6 +94,7 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
         accepting: accepting.clone(),
         shutdown: shutdown.clone(),
         known_callers: Default::default(),
+        training: Default::default(),
     };
     let listener = tokio::net::TcpListener::bind(settings.listen)
         .await

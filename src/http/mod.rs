@@ -11,6 +11,7 @@ pub mod meta;
 pub mod policies;
 pub mod stats;
 pub mod telemetry;
+pub mod training;
 
 use crate::cell::CellHandle;
 use crate::config::cell::CellConfig;
@@ -23,7 +24,7 @@ use axum::extract::DefaultBodyLimit;
 use error::ApiError;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, RwLock};
 use tokio::sync::{broadcast, watch};
 
 /// One telemetry event, serialised once for every subscriber.
@@ -49,6 +50,8 @@ pub struct Context {
     pub shutdown: watch::Receiver<bool>,
     /// Callers already looked up, by token hash (tokens are never changed once made).
     pub known_callers: Arc<RwLock<HashMap<String, Caller>>>,
+    /// The training run in progress (one at a time).
+    pub training: Arc<Mutex<Option<training::ActiveRun>>>,
 }
 
 impl Context {
@@ -70,6 +73,7 @@ pub fn router(context: Context) -> Router {
         ))
         .merge(stats::router())
         .merge(telemetry::router())
+        .merge(training::router())
         .fallback(|| async { ApiError::not_found("no such route") })
         .method_not_allowed_fallback(|| async {
             ApiError::new(

@@ -6,5 +6,6 @@ pub mod dataset;
 pub mod demos;
 pub mod pipeline;
 pub mod refine;
+pub mod run;
 pub mod selector;
 pub mod td3;

@@ -12,6 +12,7 @@ pub mod policies;
 pub mod recorder;
 pub mod steps;
 pub mod tokens;
+pub mod training;
 
 use sqlx::SqlitePool;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};

@@ -19,6 +19,8 @@ pub struct Policy {
     pub shapes: Value,
     pub uploaded_by: Option<String>,
     pub created_at: String,
+    /// The training run that made it, when it was trained here (lineage).
+    pub training_run_id: Option<i64>,
     /// The newest evaluation, if any.
     pub evaluation: Option<Evaluation>,
 }
@@ -73,7 +75,7 @@ fn evaluation_from(row: &SqliteRow) -> Evaluation {
     }
 }
 
-const POLICY_COLUMNS: &str = "id, name, sha256, length(file) AS size_bytes, status, metadata, shapes, uploaded_by, created_at";
+const POLICY_COLUMNS: &str = "id, name, sha256, length(file) AS size_bytes, status, metadata, shapes, uploaded_by, created_at, training_run_id";
 
 async fn with_evaluation(db: &Db, row: &SqliteRow) -> Result<Policy, DbError> {
     let id: i64 = row.get("id");
@@ -87,6 +89,7 @@ async fn with_evaluation(db: &Db, row: &SqliteRow) -> Result<Policy, DbError> {
         shapes: json_of(row.get("shapes")),
         uploaded_by: row.get("uploaded_by"),
         created_at: row.get("created_at"),
+        training_run_id: row.get("training_run_id"),
         evaluation: latest_evaluation(db, id).await?,
     })
 }

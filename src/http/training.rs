@@ -1,0 +1,343 @@
+//! `/api/training`: start a training run (admin), follow it (viewer), cancel it (admin). One
+//! run at a time, on a thread of its own at low priority, so a running job keeps its timing.
+//! The result is registered as a `candidate` policy linked to the run, and the run to the
+//! demonstrations it learned from.
+
+use super::Context;
+use super::auth::Auth;
+use super::error::{ApiError, ApiResult, Json, Path};
+use crate::learning::demos::{self, DemoEpisode};
+use crate::learning::run::{self, CurvePoint, RunError, TrainingPart, TrainingSettings};
+use crate::sim::EnvOptions;
+use crate::storage::demonstrations::{self, NewDemonstration};
+use crate::storage::tokens::Role;
+use crate::storage::{Db, audit, training};
+use axum::Router;
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::routing::{get, post};
+use serde::Deserialize;
+use serde_json::{Value, json};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+pub fn router() -> Router<Context> {
+    Router::new()
+        .route("/api/training", post(start).get(list))
+        .route("/api/training/{id}", get(read))
+        .route("/api/training/{id}/cancel", post(cancel))
+}
+
+/// The run in progress, if any.
+#[derive(Clone)]
+pub struct ActiveRun {
+    pub id: i64,
+    pub cancel: Arc<AtomicBool>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StartBody {
+    part: Option<TrainingPart>,
+    seed: Option<u64>,
+    /// TD3 episodes.
+    episodes: Option<usize>,
+    /// Stored demonstrations to learn from; none: record `record` expert episodes in the twin.
+    demonstrations: Option<Vec<i64>>,
+    record: Option<usize>,
+    /// Every other setting (`learning::run::TrainingSettings`).
+    settings: Option<TrainingSettings>,
+}
+
+const DEFAULT_RECORDED_EPISODES: usize = 400;
+const MAX_RECORDED_EPISODES: usize = 100_000;
+
+async fn start(
+    State(context): State<Context>,
+    auth: Auth,
+    Json(body): Json<StartBody>,
+) -> ApiResult<(StatusCode, Json<training::TrainingRun>)> {
+    let caller = auth.require(Role::Admin)?;
+    let mut settings = body.settings.unwrap_or_default();
+    if let Some(part) = body.part {
+        settings.part = part;
+    }
+    if let Some(seed) = body.seed {
+        settings.seed = seed;
+    }
+    if let Some(episodes) = body.episodes {
+        settings.td3_episodes = episodes;
+    }
+    settings.check().map_err(ApiError::unprocessable)?;
+    let record = body.record.unwrap_or(DEFAULT_RECORDED_EPISODES);
+    if !(10..=MAX_RECORDED_EPISODES).contains(&record) {
+        return Err(ApiError::unprocessable(format!(
+            "record = {record} is outside 10..={MAX_RECORDED_EPISODES}"
+        )));
+    }
+    // The demonstrations named, read and checked before the run starts.
+    let mut episodes: Vec<DemoEpisode> = Vec::new();
+    let ids = body.demonstrations.unwrap_or_default();
+    for id in &ids {
+        let text = demonstrations::body(&context.db, *id)
+            .await?
+            .ok_or_else(|| ApiError::not_found(format!("no demonstration with id {id}")))?;
+        let read = demos::read_jsonl(text.as_bytes())
+            .map_err(|e| ApiError::unprocessable(format!("demonstration {id}: {e}")))?;
+        episodes.extend(read);
+    }
+
+    let cancel = Arc::new(AtomicBool::new(false));
+    reserve(&context, &cancel)?;
+    let run = match training::start(&context.db, &json!(settings), &ids, &caller.name).await {
+        Ok(run) => run,
+        Err(error) => {
+            *context.training.lock().expect("training lock") = None;
+            return Err(error.into());
+        }
+    };
+    if let Some(active) = context.training.lock().expect("training lock").as_mut() {
+        active.id = run.id;
+    }
+    audit::record(
+        &context.db,
+        &caller.name,
+        "training.start",
+        json!({"training_run_id": run.id, "settings": settings, "demonstrations": ids}),
+    )
+    .await?;
+    let job = RunJob {
+        id: run.id,
+        settings,
+        episodes,
+        record: ids.is_empty().then_some(record),
+        cancel,
+        by: caller.name.clone(),
+    };
+    tokio::spawn(drive(context.clone(), job));
+    Ok((StatusCode::ACCEPTED, Json(run)))
+}
+
+/// Takes the one training slot, or says which run holds it.
+fn reserve(context: &Context, cancel: &Arc<AtomicBool>) -> ApiResult<()> {
+    let mut active = context.training.lock().expect("training lock");
+    if let Some(running) = active.as_ref() {
+        return Err(ApiError::conflict(format!(
+            "training run {} is running; one at a time",
+            running.id
+        )));
+    }
+    // Held from here, so two requests cannot both start; the id follows once stored.
+    *active = Some(ActiveRun {
+        id: 0,
+        cancel: cancel.clone(),
+    });
+    Ok(())
+}
+
+struct RunJob {
+    id: i64,
+    settings: TrainingSettings,
+    episodes: Vec<DemoEpisode>,
+    /// Expert episodes to record first, when no demonstrations were named.
+    record: Option<usize>,
+    cancel: Arc<AtomicBool>,
+    by: String,
+}
+
+/// Live progress, shared between the training thread and the task that stores it.
+#[derive(Default)]
+struct Live {
+    stage: String,
+    progress: f64,
+    curve: Vec<CurvePoint>,
+}
+
+/// Runs a training job to its end and stores what came of it.
+async fn drive(context: Context, job: RunJob) {
+    let outcome = train(&context, &job).await;
+    let db = &context.db;
+    let stored = match outcome {
+        Ok((policy_id, figures)) => {
+            training::finish(
+                db,
+                job.id,
+                "succeeded",
+                Some(policy_id),
+                Some(&figures),
+                None,
+            )
+            .await
+        }
+        Err(RunError::Cancelled) => {
+            training::finish(db, job.id, "cancelled", None, None, Some("cancelled")).await
+        }
+        Err(error) => {
+            training::finish(db, job.id, "failed", None, None, Some(&error.to_string())).await
+        }
+    };
+    if let Err(error) = stored {
+        tracing::error!(%error, run = job.id, "could not store a training run's end");
+    }
+    *context.training.lock().expect("training lock") = None;
+}
+
+async fn train(context: &Context, job: &RunJob) -> Result<(i64, Value), RunError> {
+    let failed = |e: String| RunError::Training(e);
+    let cell = context.cell_config.clone();
+    let mut episodes = job.episodes.clone();
+    if let Some(count) = job.record {
+        let (recorded, seed) = (cell.clone(), job.settings.seed);
+        episodes = on_training_thread(move || {
+            demos::record_expert(&recorded, EnvOptions::from_cell(&recorded), count, seed)
+        })
+        .await
+        .map_err(failed)?;
+        let new = NewDemonstration {
+            name: &format!("training run {} (recorded expert)", job.id),
+            source: "scripted",
+            cell_hash: &cell.config_hash(),
+            job_id: None,
+            created_by: &job.by,
+        };
+        let id = demonstrations::insert(&context.db.writer, &new, &episodes)
+            .await
+            .map_err(|e| failed(e.to_string()))?;
+        training::set_demonstrations(&context.db, job.id, &[id])
+            .await
+            .map_err(|e| failed(e.to_string()))?;
+    }
+    if job.cancel.load(Ordering::SeqCst) {
+        return Err(RunError::Cancelled);
+    }
+
+    let live = Arc::new(Mutex::new(Live::default()));
+    let keeper = tokio::spawn(keep_progress(context.db.clone(), job.id, live.clone()));
+    let (settings, cancel, shared) = (job.settings.clone(), job.cancel.clone(), live.clone());
+    let result = on_training_thread(move || {
+        run::run(
+            &cell,
+            episodes,
+            &settings,
+            &mut |point, progress| {
+                let mut live = shared.lock().expect("live lock");
+                live.stage = point.stage.to_string();
+                live.progress = progress;
+                live.curve.push(point);
+            },
+            &|| cancel.load(Ordering::SeqCst),
+        )
+    })
+    .await
+    .map_err(failed)
+    .and_then(|r| r);
+    keeper.abort();
+    store_progress(&context.db, job.id, &live).await;
+    let (file, figures) = result?;
+    let (policy, _) = super::policies::register(
+        &context.db,
+        &format!("training-{}", job.id),
+        &file.to_bytes(),
+        &job.by,
+    )
+    .await
+    .map_err(|e| failed(e.message))?;
+    Ok((policy.id, figures))
+}
+
+/// Runs `work` on a thread of its own at low priority with a one-thread rayon pool, so
+/// training never takes the cores a running job needs.
+async fn on_training_thread<T: Send + 'static>(
+    work: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, String> {
+    let (reply, answer) = tokio::sync::oneshot::channel();
+    std::thread::Builder::new()
+        .name("celld-training".into())
+        .spawn(move || {
+            crate::cell::task::lower_priority();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .start_handler(|_| crate::cell::task::lower_priority())
+                .build();
+            let result = match pool {
+                Ok(pool) => Ok(pool.install(work)),
+                Err(error) => Err(error.to_string()),
+            };
+            let _ = reply.send(result);
+        })
+        .map_err(|e| e.to_string())?;
+    answer
+        .await
+        .map_err(|_| "the training thread stopped".to_string())?
+}
+
+/// Stores the live progress every half second while the run lasts.
+async fn keep_progress(db: Db, id: i64, live: Arc<Mutex<Live>>) {
+    loop {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        store_progress(&db, id, &live).await;
+    }
+}
+
+async fn store_progress(db: &Db, id: i64, live: &Mutex<Live>) {
+    let (stage, progress, curve) = {
+        let live = live.lock().expect("live lock");
+        (live.stage.clone(), live.progress, json!(live.curve))
+    };
+    if stage.is_empty() {
+        return;
+    }
+    if let Err(error) = training::update(db, id, &stage, progress, &curve).await {
+        tracing::warn!(%error, run = id, "could not store training progress");
+    }
+}
+
+async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Value>> {
+    auth.require(Role::Viewer)?;
+    Ok(Json(json!({"items": training::list(&context.db).await?})))
+}
+
+async fn read(
+    State(context): State<Context>,
+    auth: Auth,
+    Path(id): Path<i64>,
+) -> ApiResult<Json<training::TrainingRun>> {
+    auth.require(Role::Viewer)?;
+    training::get(&context.db, id)
+        .await?
+        .map(Json)
+        .ok_or_else(|| ApiError::not_found(format!("no training run with id {id}")))
+}
+
+async fn cancel(
+    State(context): State<Context>,
+    auth: Auth,
+    Path(id): Path<i64>,
+) -> ApiResult<(StatusCode, Json<Value>)> {
+    let caller = auth.require(Role::Admin)?;
+    let run = training::get(&context.db, id)
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("no training run with id {id}")))?;
+    let active = context.training.lock().expect("training lock").clone();
+    match active {
+        Some(active) if active.id == id => active.cancel.store(true, Ordering::SeqCst),
+        _ => {
+            return Err(ApiError::conflict(format!(
+                "training run {id} is {} and can no longer be cancelled",
+                run.status
+            )));
+        }
+    }
+    audit::record(
+        &context.db,
+        &caller.name,
+        "training.cancel",
+        json!({"training_run_id": id}),
+    )
+    .await?;
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(json!({"id": id, "status": "cancelling"})),
+    ))
+}

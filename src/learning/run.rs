@@ -1,0 +1,266 @@
+//! One training run, demonstrations in, policy file out, as a single function with progress and
+//! cancellation: what `POST /api/training` runs in the background. The stages are those of
+//! `celld train all` (behaviour cloning of both actors, the LSTM selector, then TD3 in the
+//! hierarchy), with the same defaults.
+
+use super::bc::BcConfig;
+use super::demos::DemoEpisode;
+use super::pipeline::{self, step_limits};
+use super::refine::{RefineConfig, Refinement};
+use super::selector::SelectorConfig;
+use crate::config::cell::CellConfig;
+use crate::policy::Actor;
+use crate::policy::file::PolicyFile;
+use crate::sim::EnvOptions;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+
+/// How much of the pipeline a run does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrainingPart {
+    /// Behaviour cloning and the selector: the `bc` policy, no TD3.
+    Bc,
+    /// Every stage, TD3 included.
+    All,
+}
+
+/// A run's settings (the defaults are `celld train all`'s).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainingSettings {
+    pub part: TrainingPart,
+    pub seed: u64,
+    pub actor_width: usize,
+    pub bc_epochs: usize,
+    pub bc_learning_rate: f64,
+    pub lstm_hidden: usize,
+    pub lstm_epochs: usize,
+    pub td3_episodes: usize,
+    /// Validate (and keep the best policy) every this many TD3 episodes; 0: at the end only.
+    pub eval_every: usize,
+    pub eval_episodes: usize,
+}
+
+impl Default for TrainingSettings {
+    fn default() -> Self {
+        TrainingSettings {
+            part: TrainingPart::All,
+            seed: 2026,
+            actor_width: 64,
+            bc_epochs: 60,
+            bc_learning_rate: 0.02,
+            lstm_hidden: 64,
+            lstm_epochs: 60,
+            td3_episodes: 500,
+            eval_every: 50,
+            eval_episodes: 200,
+        }
+    }
+}
+
+impl TrainingSettings {
+    /// Refuses settings no run can use, naming the field.
+    pub fn check(&self) -> Result<(), String> {
+        let positive = [
+            ("actor_width", self.actor_width),
+            ("bc_epochs", self.bc_epochs),
+            ("lstm_hidden", self.lstm_hidden),
+            ("lstm_epochs", self.lstm_epochs),
+            ("eval_episodes", self.eval_episodes),
+        ];
+        for (field, value) in positive {
+            if value == 0 {
+                return Err(format!("{field} must be at least 1"));
+            }
+        }
+        if self.part == TrainingPart::All && self.td3_episodes == 0 {
+            return Err("td3_episodes must be at least 1 (or part \"bc\")".into());
+        }
+        if !(self.bc_learning_rate.is_finite() && self.bc_learning_rate > 0.0) {
+            return Err(format!(
+                "bc_learning_rate = {} must be > 0",
+                self.bc_learning_rate
+            ));
+        }
+        Ok(())
+    }
+
+    fn units(&self) -> usize {
+        let td3 = if self.part == TrainingPart::All {
+            self.td3_episodes
+        } else {
+            0
+        };
+        2 * self.bc_epochs + self.lstm_epochs + td3
+    }
+}
+
+/// One point of a learning curve: BC and LSTM losses by epoch, TD3 returns by episode.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CurvePoint {
+    /// `bc_position`, `bc_orientation`, `lstm` or `td3`.
+    pub stage: &'static str,
+    pub x: usize,
+    pub value: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RunError {
+    #[error("cancelled")]
+    Cancelled,
+    #[error("{0} demonstrated episodes with steps; at least 10 are needed")]
+    TooFewDemonstrations(usize),
+    #[error("{0}")]
+    Training(String),
+}
+
+/// Runs the pipeline on `demos` (a tenth held out for the selector). `report` gets each curve
+/// point and the fraction done; `cancelled` is asked between epochs' reports and TD3 episodes.
+/// Returns the policy file and the run's figures.
+pub fn run(
+    cell: &CellConfig,
+    mut demos: Vec<DemoEpisode>,
+    settings: &TrainingSettings,
+    report: &mut dyn FnMut(CurvePoint, f64),
+    cancelled: &dyn Fn() -> bool,
+) -> Result<(PolicyFile, Value), RunError> {
+    settings.check().map_err(RunError::Training)?;
+    demos.retain(|e| !e.steps.is_empty());
+    if demos.len() < 10 {
+        return Err(RunError::TooFewDemonstrations(demos.len()));
+    }
+    let held_out = demos.split_off(demos.len() - demos.len() / 10);
+    let limits = step_limits(cell);
+    let units = settings.units() as f64;
+    let mut done = 0usize;
+    let failed = |e: candle_core::Error| RunError::Training(e.to_string());
+    let check = || {
+        if cancelled() {
+            Err(RunError::Cancelled)
+        } else {
+            Ok(())
+        }
+    };
+
+    let bc = BcConfig {
+        epochs: settings.bc_epochs,
+        learning_rate: settings.bc_learning_rate,
+        seed: settings.seed,
+        ..BcConfig::default()
+    };
+    let varmap = pipeline::behaviour_clone(
+        &demos,
+        &limits,
+        settings.actor_width,
+        &bc,
+        &mut |actor, epoch, loss| {
+            done += 1;
+            let stage = match actor {
+                Actor::Position => "bc_position",
+                Actor::Orientation => "bc_orientation",
+            };
+            report(
+                CurvePoint {
+                    stage,
+                    x: epoch,
+                    value: loss,
+                },
+                done as f64 / units,
+            );
+        },
+    )
+    .map_err(failed)?;
+    check()?;
+
+    let selector = SelectorConfig {
+        hidden_size: settings.lstm_hidden,
+        epochs: settings.lstm_epochs,
+        batch_size: 8,
+        learning_rate: 5e-3,
+        seed: settings.seed,
+    };
+    let agreement = pipeline::train_lstm(
+        &varmap,
+        &demos,
+        &held_out,
+        &limits,
+        &selector,
+        &mut |epoch, loss| {
+            done += 1;
+            report(
+                CurvePoint {
+                    stage: "lstm",
+                    x: epoch,
+                    value: loss,
+                },
+                done as f64 / units,
+            );
+        },
+    )
+    .map_err(failed)?
+    .held_out_agreement;
+    check()?;
+    let mut figures = json!({"demonstrated_episodes": demos.len() + held_out.len(),
+                             "held_out_agreement": agreement});
+    let provenance = |kind: &str| {
+        BTreeMap::from([
+            (
+                "trained_by".to_string(),
+                "celld serve /api/training".to_string(),
+            ),
+            ("policy_kind".to_string(), kind.to_string()),
+            ("seed".to_string(), settings.seed.to_string()),
+            ("cell".to_string(), cell.name.clone()),
+        ])
+    };
+    if settings.part == TrainingPart::Bc {
+        let file = pipeline::policy_file(&varmap, &limits, &provenance("bc"))
+            .map_err(|e| RunError::Training(e.to_string()))?;
+        return Ok((file, figures));
+    }
+
+    let config = RefineConfig {
+        episodes: settings.td3_episodes,
+        eval_every: settings.eval_every,
+        eval_episodes: settings.eval_episodes,
+        ..RefineConfig::default()
+    };
+    let mut refinement = Refinement::new(
+        cell,
+        EnvOptions::from_cell(cell),
+        varmap,
+        config,
+        true,
+        settings.seed,
+    )
+    .map_err(failed)?;
+    refinement.validate().map_err(failed)?;
+    while refinement.episode() < config.episodes {
+        check()?;
+        let record = refinement.train_episode().map_err(failed)?;
+        done += 1;
+        report(
+            CurvePoint {
+                stage: "td3",
+                x: record.episode,
+                value: record.return_,
+            },
+            done as f64 / units,
+        );
+        let episode = refinement.episode();
+        if config.eval_every > 0 && episode % config.eval_every == 0 {
+            refinement.validate().map_err(failed)?;
+        }
+    }
+    if refinement.validations().last().map(|v| v.episode) != Some(config.episodes) {
+        refinement.validate().map_err(failed)?;
+    }
+    figures["validations"] = json!(refinement.validations());
+    let (best, vars) = refinement.best();
+    figures["best_validation"] = json!(best);
+    let file = pipeline::policy_file(vars, &limits, &provenance("hierarchical"))
+        .map_err(|e| RunError::Training(e.to_string()))?;
+    Ok((file, figures))
+}

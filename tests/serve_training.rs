@@ -1,0 +1,137 @@
+//! Training runs over HTTP: progress and curve while running, one at a time, cancel, and the
+//! lineage demonstrations → run → policy → jobs.
+
+mod serve_support;
+
+use serde_json::{Value, json};
+use serve_support::Server;
+use std::time::{Duration, Instant};
+
+fn tiny(td3_episodes: usize) -> Value {
+    json!({
+        "part": "all",
+        "seed": 5,
+        "episodes": td3_episodes,
+        "record": 12,
+        "settings": {"actor_width": 16, "bc_epochs": 3, "lstm_hidden": 8, "lstm_epochs": 3,
+                     "eval_every": 0, "eval_episodes": 2}
+    })
+}
+
+fn run(server: &Server, id: i64) -> Value {
+    let (status, run) = server.get(&format!("/api/training/{id}"), Some(&server.admin));
+    assert_eq!(status, 200, "{run}");
+    run
+}
+
+fn wait(server: &Server, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let run = run(server, id);
+        if done(&run) {
+            return run;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "run {id} never {what}: {run}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_lineage() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[("CELLD_STEP_PERIOD_MS", "5")]);
+    let admin = server.admin.clone();
+    let viewer = server.token("viewer");
+    let (status, _) = server.post("/api/training", Some(&viewer), Some(tiny(4)));
+    assert_eq!(status, 403);
+    let (status, refused) = server.post(
+        "/api/training",
+        Some(&admin),
+        Some(json!({"settings": {"bc_epochs": 0}})),
+    );
+    assert_eq!(status, 422, "{refused}");
+    assert!(
+        refused["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("bc_epochs")
+    );
+
+    // A long run: its curve is readable while it runs; a second run must wait; it cancels.
+    let (status, long) = server.post("/api/training", Some(&admin), Some(tiny(100_000)));
+    assert_eq!(status, 202, "{long}");
+    let long_id = long["id"].as_i64().unwrap();
+    let seen = wait(&server, long_id, "showed a curve", |r| {
+        r["status"] == "running" && r["curve"].as_array().is_some_and(|c| !c.is_empty())
+    });
+    assert!(seen["progress"].as_f64().unwrap() > 0.0, "{seen}");
+    let (status, busy) = server.post("/api/training", Some(&admin), Some(tiny(4)));
+    assert_eq!(status, 409, "{busy}");
+    let (status, _) = server.post(
+        &format!("/api/training/{long_id}/cancel"),
+        Some(&viewer),
+        None,
+    );
+    assert_eq!(status, 403);
+    let (status, _) = server.post(
+        &format!("/api/training/{long_id}/cancel"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 202);
+    let cancelled = wait(&server, long_id, "ended", |r| r["status"] != "running");
+    assert_eq!(cancelled["status"], "cancelled", "{cancelled}");
+    assert_eq!(cancelled["policy_id"], Value::Null);
+
+    // A short run to the end.
+    let (status, short) = server.post("/api/training", Some(&admin), Some(tiny(4)));
+    assert_eq!(status, 202, "{short}");
+    let id = short["id"].as_i64().unwrap();
+    let done = wait(&server, id, "ended", |r| r["status"] != "running");
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["progress"], 1.0);
+    let stages: Vec<&str> = done["curve"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["stage"].as_str().unwrap())
+        .collect();
+    for stage in ["bc_position", "bc_orientation", "lstm", "td3"] {
+        assert!(stages.contains(&stage), "{stage} missing from the curve");
+    }
+    assert_eq!(stages.iter().filter(|s| **s == "td3").count(), 4);
+
+    // Lineage: demonstrations → run → policy → job.
+    let demonstration = done["demonstration_ids"][0].as_i64().unwrap();
+    let (_, demo) = server.get("/api/demonstrations", Some(&admin));
+    let listed = demo["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|d| d["id"] == demonstration)
+        .expect("the run's demonstrations are stored")
+        .clone();
+    assert_eq!(listed["source"], "scripted");
+    assert_eq!(listed["episodes"], 12);
+    let policy_id = done["policy_id"].as_i64().unwrap();
+    let (_, policy) = server.get(&format!("/api/policies/{policy_id}"), Some(&admin));
+    assert_eq!(policy["status"], "candidate", "{policy}");
+    assert_eq!(policy["training_run_id"], id);
+    assert_eq!(policy["shapes"]["pos.0.weight"], json!([16, 12]));
+    let job = server.create_job(&admin, json!({"controller": format!("policy:{policy_id}")}));
+    assert_eq!(job["policy_id"], policy_id);
+    let finished = server.wait_final(job["id"].as_i64().unwrap());
+    assert!(finished["steps"].as_i64().unwrap() > 0, "{finished}");
+
+    let (_, audit) = server.get("/api/audit", Some(&admin));
+    let actions: Vec<&str> = audit["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["action"].as_str().unwrap())
+        .collect();
+    assert!(actions.contains(&"training.start") && actions.contains(&"training.cancel"));
+}
