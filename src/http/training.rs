@@ -100,13 +100,6 @@ async fn start(
     if let Some(active) = context.training.lock().expect("training lock").as_mut() {
         active.id = run.id;
     }
-    audit::record(
-        &context.db,
-        &caller.name,
-        "training.start",
-        json!({"training_run_id": run.id, "settings": settings, "demonstrations": ids}),
-    )
-    .await?;
     let job = RunJob {
         id: run.id,
         settings,
@@ -116,6 +109,14 @@ async fn start(
         by: caller.name.clone(),
     };
     tokio::spawn(drive(context.clone(), job));
+    // After the spawn: the slot is freed by the run's end whatever happens here.
+    audit::record(
+        &context.db,
+        &caller.name,
+        "training.start",
+        json!({"training_run_id": run.id, "settings": run.settings, "demonstrations": ids}),
+    )
+    .await?;
     Ok((StatusCode::ACCEPTED, Json(run)))
 }
 
