@@ -43,7 +43,7 @@ async fn import(
     body: Result<Bytes, BytesRejection>,
 ) -> ApiResult<(StatusCode, Json<Demonstration>)> {
     let caller = auth.require(Role::Admin)?;
-    let body = body.map_err(|r| ApiError::new(r.status(), "bad_body", r.body_text()))?;
+    let body = body?;
     let name = query.name.as_deref().map(str::trim).unwrap_or("imported");
     if name.is_empty() || name.len() > 100 {
         return Err(ApiError::bad_request("name must be 1 to 100 characters"));

@@ -79,15 +79,7 @@ async fn upload(
         .map(str::trim)
         .filter(|n| !n.is_empty() && n.len() <= 100)
         .ok_or_else(|| ApiError::bad_request("`?name=` (1 to 100 characters) names the policy"))?;
-    let bytes = body.map_err(|r| {
-        let status = r.status();
-        let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
-            "too_large"
-        } else {
-            "bad_request"
-        };
-        ApiError::new(status, code, format!("policy file: {}", r.body_text()))
-    })?;
+    let bytes = body?;
     let (policy, created) = register(&context.db, name, &bytes, &caller.name).await?;
     if created {
         audit::record(

@@ -122,5 +122,11 @@ pub async fn set_cell_flag<'e>(
     Ok(())
 }
 
+/// A JSON text column as a value (null when absent or unreadable).
+pub(crate) fn json_column(text: Option<String>) -> serde_json::Value {
+    text.and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or(serde_json::Value::Null)
+}
+
 /// SQLite's current time in the schema's format.
 pub const NOW: &str = "strftime('%Y-%m-%dT%H:%M:%fZ', 'now')";

@@ -1,7 +1,7 @@
 //! The policy registry: files with their sha256, metadata and shapes; status `candidate`,
 //! `active` or `retired`; evaluations in the twin, which the activation gate reads.
 
-use super::{Db, DbError, NOW};
+use super::{Db, DbError, NOW, json_column};
 use serde::Serialize;
 use serde_json::Value;
 use sqlx::Row;
@@ -52,11 +52,6 @@ pub struct NewPolicy<'a> {
     pub uploaded_by: &'a str,
 }
 
-fn json_of(text: Option<String>) -> Value {
-    text.and_then(|t| serde_json::from_str(&t).ok())
-        .unwrap_or(Value::Null)
-}
-
 fn evaluation_from(row: &SqliteRow) -> Evaluation {
     Evaluation {
         id: row.get("id"),
@@ -67,7 +62,7 @@ fn evaluation_from(row: &SqliteRow) -> Evaluation {
         cell_hash: row.get("cell_hash"),
         success_rate: row.get("success_rate"),
         avg_steps: row.get("avg_steps"),
-        failures: json_of(row.get("failures")),
+        failures: json_column(row.get("failures")),
         error: row.get("error"),
         requested_by: row.get("requested_by"),
         started_at: row.get("started_at"),
@@ -85,8 +80,8 @@ async fn with_evaluation(db: &Db, row: &SqliteRow) -> Result<Policy, DbError> {
         sha256: row.get("sha256"),
         size_bytes: row.get("size_bytes"),
         status: row.get("status"),
-        metadata: json_of(row.get("metadata")),
-        shapes: json_of(row.get("shapes")),
+        metadata: json_column(row.get("metadata")),
+        shapes: json_column(row.get("shapes")),
         uploaded_by: row.get("uploaded_by"),
         created_at: row.get("created_at"),
         training_run_id: row.get("training_run_id"),

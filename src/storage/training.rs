@@ -1,6 +1,6 @@
 //! Training runs: settings, the demonstrations used, progress and curve, the policy made.
 
-use super::{Db, DbError, NOW};
+use super::{Db, DbError, NOW, json_column};
 use serde::Serialize;
 use serde_json::Value;
 use sqlx::Row;
@@ -23,21 +23,16 @@ pub struct TrainingRun {
     pub finished_at: Option<String>,
 }
 
-fn json_of(text: Option<String>) -> Value {
-    text.and_then(|t| serde_json::from_str(&t).ok())
-        .unwrap_or(Value::Null)
-}
-
 fn from_row(row: &SqliteRow) -> TrainingRun {
     TrainingRun {
         id: row.get("id"),
         status: row.get("status"),
-        settings: json_of(row.get("settings")),
-        demonstration_ids: json_of(row.get("demonstration_ids")),
+        settings: json_column(row.get("settings")),
+        demonstration_ids: json_column(row.get("demonstration_ids")),
         stage: row.get("stage"),
         progress: row.get("progress"),
-        curve: json_of(row.get("curve")),
-        figures: json_of(row.get("figures")),
+        curve: json_column(row.get("curve")),
+        figures: json_column(row.get("figures")),
         policy_id: row.get("policy_id"),
         error: row.get("error"),
         created_by: row.get("created_by"),
