@@ -49,9 +49,11 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
     if training::fail_leftovers(&db).await? > 0 {
         tracing::warn!("a training run left running by the last run is marked failed");
     }
-    if tokens::count(&db).await? == 0 {
-        first_admin_token(&db, &settings.db).await?;
-    }
+    let first_token = if tokens::count(&db).await? == 0 {
+        Some(first_admin_token(&db, &settings.db).await?)
+    } else {
+        None
+    };
     let estop_latched = db.cell_flag("estop").await?;
 
     let metrics = Metrics::default();
@@ -122,7 +124,17 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
         settings.db.display()
     );
     println!("celld: listening on http://{address}");
-    println!("celld: dashboard http://{address}/ , API http://{address}/api/openapi.json");
+    match &first_token {
+        // The token rides in the fragment, which the browser never sends to a server.
+        Some(token) => {
+            println!("celld: dashboard (signs in as admin) http://{address}/#token={token}")
+        }
+        None => println!(
+            "celld: dashboard http://{address}/ (sign in with a token, such as the one in {})",
+            admin_token_path(&settings.db).display()
+        ),
+    }
+    println!("celld: API http://{address}/api/openapi.json");
     if estop_latched {
         println!("celld: the e-stop is latched from before; POST /api/cell/reset to clear it");
     }
@@ -235,8 +247,9 @@ pub fn admin_token_path(db: &Path) -> PathBuf {
     db.with_file_name("admin.token")
 }
 
-/// Makes the first admin token, prints it once and writes it beside the database (mode 0600).
-async fn first_admin_token(db: &Db, db_path: &Path) -> Result<()> {
+/// Makes the first admin token, prints it once and writes it beside the database (mode 0600);
+/// returns the secret for the sign-in URL.
+async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
     let token = tokens::create(db, Role::Admin, "admin", "celld serve (first start)").await?;
     let path = admin_token_path(db_path);
     let mut options = std::fs::OpenOptions::new();
@@ -259,7 +272,7 @@ async fn first_admin_token(db: &Db, db_path: &Path) -> Result<()> {
         path.display(),
         token.token
     );
-    Ok(())
+    Ok(token.token)
 }
 
 /// `celld token create`: a new token in the database, printed once.

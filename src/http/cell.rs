@@ -26,6 +26,8 @@ struct CellView {
     cell: String,
     queue_length: usize,
     accepting_jobs: bool,
+    /// The names a job's `controller` takes besides `active` and `policy:<id>`.
+    controllers: Vec<&'static str>,
 }
 
 fn view(context: &Context) -> CellView {
@@ -35,6 +37,11 @@ fn view(context: &Context) -> CellView {
         status,
         cell: context.cell_config.name.clone(),
         accepting_jobs: context.accepting_jobs(),
+        controllers: crate::policy::BUILTIN_CONTROLLERS
+            .iter()
+            .chain(&crate::policy::LEARNED_CONTROLLERS)
+            .copied()
+            .collect(),
     }
 }
 

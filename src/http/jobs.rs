@@ -4,6 +4,7 @@
 use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Json, Path, Query};
+use super::stats::check_time_range;
 use crate::cell::{CellCommand, ControllerSource, JobSpec, JobStatus};
 use crate::policy;
 use crate::sim::InitialConditions;
@@ -147,6 +148,9 @@ async fn resolve_controller(
 pub struct ListQuery {
     status: Option<String>,
     controller: Option<String>,
+    policy_id: Option<i64>,
+    since: Option<String>,
+    until: Option<String>,
     limit: Option<i64>,
     offset: Option<i64>,
 }
@@ -181,9 +185,13 @@ async fn list(
             "offset = {offset} is negative"
         )));
     }
+    check_time_range(&query.since, &query.until)?;
     let filter = JobFilter {
         status,
         controller: query.controller,
+        policy_id: query.policy_id,
+        since: query.since,
+        until: query.until,
         limit,
         offset,
     };

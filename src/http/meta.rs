@@ -1,5 +1,5 @@
-//! Health, Prometheus metrics and the OpenAPI document (no token), tokens and the audit log
-//! (admin).
+//! Health, Prometheus metrics and the OpenAPI document (no token), the caller's own token
+//! (any role), tokens and the audit log (admin).
 
 use super::Context;
 use super::auth::Auth;
@@ -22,6 +22,7 @@ pub fn router() -> Router<Context> {
         .route("/api/health", get(health))
         .route("/metrics", get(metrics))
         .route("/api/openapi.json", get(openapi))
+        .route("/api/me", get(me))
         .route("/api/tokens", post(create_token))
         .route("/api/audit", get(read_audit))
 }
@@ -59,6 +60,21 @@ async fn metrics(State(context): State<Context>) -> impl IntoResponse {
 
 async fn openapi() -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "application/json")], OPENAPI)
+}
+
+/// Who the token belongs to and what its role may do (the dashboard shows only that).
+async fn me(auth: Auth) -> Json<Value> {
+    let caller = &auth.0;
+    Json(json!({
+        "token_id": caller.token_id,
+        "name": caller.name,
+        "role": caller.role,
+        "may": {
+            "view": true,
+            "operate": caller.role >= Role::Operator,
+            "administer": caller.role >= Role::Admin,
+        },
+    }))
 }
 
 #[derive(Debug, Deserialize)]

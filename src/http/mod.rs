@@ -4,6 +4,7 @@
 
 pub mod auth;
 pub mod cell;
+pub mod dashboard;
 pub mod demonstrations;
 pub mod error;
 pub mod jobs;
@@ -64,6 +65,7 @@ impl Context {
 pub fn router(context: Context) -> Router {
     let body_limit = context.settings.http.body_limit_bytes;
     Router::new()
+        .merge(dashboard::router())
         .merge(meta::router())
         .merge(cell::router())
         .merge(jobs::router())

@@ -39,15 +39,7 @@ async fn read(
             )));
         }
     };
-    for (field, value) in [("since", &query.since), ("until", &query.until)] {
-        if let Some(value) = value
-            && !is_iso_time(value)
-        {
-            return Err(ApiError::bad_request(format!(
-                "{field} `{value}` is not a UTC date or time like 2026-11-22 or 2026-11-22T08:00:00Z"
-            )));
-        }
-    }
+    check_time_range(&query.since, &query.until)?;
     let (total, groups) = jobs::stats(
         &context.db,
         query.since.as_deref(),
@@ -56,6 +48,20 @@ async fn read(
     )
     .await?;
     Ok(Json(json!({"total": total, "groups": groups})))
+}
+
+/// Refuses (400) a `since` or `until` that is not an ISO time [`is_iso_time`] takes.
+pub fn check_time_range(since: &Option<String>, until: &Option<String>) -> ApiResult<()> {
+    for (field, value) in [("since", since), ("until", until)] {
+        if let Some(value) = value
+            && !is_iso_time(value)
+        {
+            return Err(ApiError::bad_request(format!(
+                "{field} `{value}` is not a UTC date or time like 2026-11-22 or 2026-11-22T08:00:00Z"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// `YYYY-MM-DD`, optionally followed by `THH:MM[:SS[.fff]][Z]`: the prefixes of the stored

@@ -118,19 +118,29 @@ async fn get_from(pool: &sqlx::SqlitePool, id: i64) -> Result<Option<Job>, DbErr
 pub struct JobFilter {
     pub status: Option<JobStatus>,
     pub controller: Option<String>,
+    pub policy_id: Option<i64>,
+    /// Created at or after (ISO 8601 text, compared as text like the stored times).
+    pub since: Option<String>,
+    /// Created before.
+    pub until: Option<String>,
     pub limit: i64,
     pub offset: i64,
 }
 
 /// Newest first, and the total that matches the filter.
 pub async fn list(db: &Db, filter: &JobFilter) -> Result<(Vec<Job>, i64), DbError> {
-    let condition = "(?1 IS NULL OR status = ?1) AND (?2 IS NULL OR controller = ?2)";
+    let condition = "(?1 IS NULL OR status = ?1) AND (?2 IS NULL OR controller = ?2)
+        AND (?3 IS NULL OR policy_id = ?3) AND (?4 IS NULL OR created_at >= ?4)
+        AND (?5 IS NULL OR created_at < ?5)";
     let status = filter.status.map(|s| s.as_str());
     let rows = sqlx::query(&format!(
-        "SELECT * FROM jobs WHERE {condition} ORDER BY id DESC LIMIT ?3 OFFSET ?4"
+        "SELECT * FROM jobs WHERE {condition} ORDER BY id DESC LIMIT ?6 OFFSET ?7"
     ))
     .bind(status)
     .bind(&filter.controller)
+    .bind(filter.policy_id)
+    .bind(&filter.since)
+    .bind(&filter.until)
     .bind(filter.limit)
     .bind(filter.offset)
     .fetch_all(&db.reader)
@@ -138,6 +148,9 @@ pub async fn list(db: &Db, filter: &JobFilter) -> Result<(Vec<Job>, i64), DbErro
     let total: i64 = sqlx::query_scalar(&format!("SELECT COUNT(*) FROM jobs WHERE {condition}"))
         .bind(status)
         .bind(&filter.controller)
+        .bind(filter.policy_id)
+        .bind(&filter.since)
+        .bind(&filter.until)
         .fetch_one(&db.reader)
         .await?;
     Ok((rows.iter().map(job_from).collect(), total))

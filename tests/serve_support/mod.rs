@@ -11,6 +11,8 @@ pub struct Server {
     child: Child,
     pub base: String,
     pub admin: String,
+    /// The dashboard link `celld serve` printed, which signs in as admin (first start only).
+    pub signin_url: Option<String>,
     pub db: PathBuf,
     agent: ureq::Agent,
 }
@@ -50,6 +52,16 @@ impl Server {
                 break address.trim().to_string();
             }
         };
+        let mut signin_url = None;
+        for line in lines.by_ref() {
+            let line = line.unwrap();
+            if let Some(url) = line.strip_prefix("celld: dashboard (signs in as admin) ") {
+                signin_url = Some(url.trim().to_string());
+            }
+            if line.starts_with("celld: API ") {
+                break;
+            }
+        }
         // Keep draining stdout so the server never blocks on a full pipe.
         std::thread::spawn(move || for _ in lines.by_ref() {});
         let admin = std::fs::read_to_string(dir.join("admin.token"))
@@ -60,6 +72,7 @@ impl Server {
             child,
             base,
             admin,
+            signin_url,
             db,
             agent: agent(),
         }

@@ -1,0 +1,71 @@
+// Expert demonstrations: list and export for everyone; import and delete for admins. Recording
+// one is a job started with "Record as demonstration" on the live page.
+
+import {
+  api, download, h, may, showBanner, showError, table, when,
+} from './lib.js';
+
+export async function render(page) {
+  const list = h('div', { id: 'demonstration-list' });
+  page.main.append(
+    h('h1', { text: 'Demonstrations' }),
+    h('p', { class: 'muted', text: 'Expert trajectories the learning pipeline imitates. To record one in the cell, start a job with "Record as demonstration" on the live page; its steps are stored here when it succeeds.' }),
+    may.administer() ? importCard() : null,
+    h('section', { class: 'card' }, list));
+
+  async function refresh() {
+    const { items } = await api('/api/demonstrations');
+    const rows = items.map((demo) => h('tr', {},
+      h('td', { text: demo.id }),
+      h('td', { text: demo.name }),
+      h('td', { text: demo.source }),
+      h('td', {}, demo.job_id ? h('a', { href: `#/jobs/${demo.job_id}`, text: `job ${demo.job_id}` }) : '–'),
+      h('td', { text: demo.episodes }),
+      h('td', { text: demo.steps }),
+      h('td', { text: demo.cell_hash }),
+      h('td', { text: `${when(demo.created_at)}${demo.created_by ? ` by ${demo.created_by}` : ''}` }),
+      h('td', {}, h('div', { class: 'row' },
+        h('button', { type: 'button', class: 'secondary', text: 'Export', onclick: () => download(`/api/demonstrations/${demo.id}`, `${demo.name}.jsonl`).catch((e) => showError(e, 'Exporting')) }),
+        may.administer() ? h('button', { type: 'button', class: 'danger', text: 'Delete', onclick: () => remove(demo) }) : null))));
+    list.replaceChildren(items.length
+      ? table(['id', 'name', 'source', 'job', 'episodes', 'steps', 'cell', 'created', ''], rows)
+      : h('p', { class: 'muted', text: 'No demonstration is stored yet.' }));
+  }
+
+  async function remove(demo) {
+    if (!confirm(`Delete demonstration ${demo.id} (${demo.name}, ${demo.steps} steps)? Export it first if it may be needed again.`)) return;
+    try {
+      await api(`/api/demonstrations/${demo.id}`, { method: 'DELETE' });
+      showBanner(`Demonstration ${demo.id} deleted.`, 'info');
+    } catch (error) {
+      showError(error, 'Deleting');
+    }
+    refresh().catch((e) => showError(e, 'Listing demonstrations'));
+  }
+
+  function importCard() {
+    const file = h('input', { id: 'demonstration-file', type: 'file', accept: '.jsonl,.ndjson,application/x-ndjson', required: true });
+    const name = h('input', { id: 'demonstration-name', placeholder: 'name (default: the file name)' });
+    return h('section', { class: 'card stack' },
+      h('h2', { text: 'Import' }),
+      h('p', { class: 'muted', text: 'JSON Lines, one step a line: {"episode", "step", "state": [12], "action": [6], "actor", "scale"} (the export format). A bad line is refused with its number and nothing is stored.' }),
+      h('form', {
+        class: 'inline row',
+        onsubmit: async (event) => {
+          event.preventDefault();
+          const chosen = file.files[0];
+          if (!chosen) return;
+          const label = name.value.trim() || chosen.name.replace(/\.(jsonl|ndjson)$/, '');
+          try {
+            const demo = await api(`/api/demonstrations?name=${encodeURIComponent(label)}`, { method: 'POST', body: chosen, type: 'application/x-ndjson' });
+            showBanner(`Imported demonstration ${demo.id}: ${demo.episodes} episodes, ${demo.steps} steps.`, 'info');
+            refresh().catch(() => {});
+          } catch (error) {
+            showError(error, 'Import');
+          }
+        },
+      }, h('label', {}, 'File', file), h('label', {}, 'Name', name), h('button', { type: 'submit', text: 'Import' })));
+  }
+
+  await refresh();
+}

@@ -1,0 +1,122 @@
+// The policy registry: list with evaluation results; for admins upload, evaluate and activate
+// (the activation gate's answer is shown as the server gives it).
+
+import {
+  api, download, fmt, h, may, percent, pill, showError, table, when,
+} from './lib.js';
+
+export async function render(page) {
+  const answer = h('div', { id: 'policy-answer', class: 'answer', hidden: true });
+  const list = h('div', { id: 'policy-list' });
+  /** True while an evaluation is in progress: the list is then refreshed every 2 s. */
+  let following = false;
+  page.main.append(
+    h('h1', { text: 'Policies' }),
+    may.administer() ? uploadCard() : null,
+    h('section', { class: 'card stack' }, answer, list));
+
+  function say(text, kind) {
+    answer.hidden = false;
+    answer.className = `answer ${kind}`;
+    answer.textContent = text;
+  }
+
+  async function refresh() {
+    const { items } = await api('/api/policies');
+    const rows = items.map((policy) => h('tr', { 'data-policy-id': policy.id },
+      h('td', { text: policy.id }),
+      h('td', { text: policy.name }),
+      h('td', {}, pill(policy.status)),
+      h('td', { title: policy.sha256, text: policy.sha256.slice(0, 12) }),
+      h('td', { text: `${(policy.size_bytes / 1024).toFixed(0)} KiB` }),
+      h('td', { text: when(policy.created_at) }),
+      h('td', {}, policy.training_run_id ? h('a', { href: `#/training/${policy.training_run_id}`, text: `run ${policy.training_run_id}` }) : (policy.uploaded_by ?? '–')),
+      h('td', { class: 'wrap' }, evaluationText(policy.evaluation)),
+      h('td', {}, actions(policy))));
+    list.replaceChildren(items.length
+      ? table(['id', 'name', 'status', 'sha256', 'size', 'registered', 'from', 'latest evaluation (Table 5 protocol)', ''], rows)
+      : h('p', { class: 'muted', text: 'No policy is registered yet.' }));
+    return items.some((p) => p.evaluation && ['queued', 'running'].includes(p.evaluation.status));
+  }
+
+  function actions(policy) {
+    const cell = h('div', { class: 'row' },
+      h('button', { type: 'button', class: 'secondary', text: 'Download', onclick: () => download(`/api/policies/${policy.id}/file`, `${policy.name}.safetensors`).catch((e) => showError(e, 'Downloading')) }),
+      h('a', { href: `#/jobs?policy_id=${policy.id}`, text: 'jobs' }));
+    if (!may.administer()) return cell;
+    const episodes = h('input', { type: 'number', min: 1, max: 100000, value: 1000, title: 'episodes', style: 'width:6rem' });
+    cell.append(
+      episodes,
+      h('button', {
+        type: 'button', class: 'secondary', text: 'Evaluate',
+        onclick: async () => {
+          try {
+            await api(`/api/policies/${policy.id}/evaluate`, { method: 'POST', json: { episodes: Number(episodes.value) } });
+            say(`Evaluating policy ${policy.id} over ${episodes.value} episodes in the background.`, 'accepted');
+            following = true;
+            refresh().catch(() => {});
+          } catch (error) {
+            say(`Evaluation refused (${error.status}): ${error.message}`, 'refused');
+          }
+        },
+      }),
+      policy.status === 'active' ? null : h('button', { type: 'button', text: 'Activate', onclick: () => activate(policy) }));
+    return cell;
+  }
+
+  async function activate(policy, force) {
+    const body = force ? { force: true, reason: force } : {};
+    try {
+      const result = await api(`/api/policies/${policy.id}/activate`, { method: 'POST', json: body });
+      say(`Policy ${policy.id} is active${result.forced ? ' (forced past the gate, audited)' : ': it passed the gate'}${result.retired ? `; policy ${result.retired} retired (activate it again to roll back)` : ''}.`, 'accepted');
+    } catch (error) {
+      if (error.status !== 409) {
+        say(`Activation refused (${error.status}): ${error.message}`, 'refused');
+        return;
+      }
+      say(`The gate refused: ${error.message}`, 'refused');
+      const reason = prompt(`The gate refused policy ${policy.id}:\n${error.message}\n\nTo activate it anyway, give a reason (it is audited). Cancel keeps the current policy.`);
+      if (reason && reason.trim()) return activate(policy, reason.trim());
+    }
+    refresh().catch((e) => showError(e, 'Listing policies'));
+  }
+
+  function uploadCard() {
+    const file = h('input', { id: 'policy-file', type: 'file', accept: '.safetensors', required: true });
+    const name = h('input', { id: 'policy-name', placeholder: 'name (default: the file name)' });
+    return h('section', { class: 'card stack' },
+      h('h2', { text: 'Upload a policy' }),
+      h('p', { class: 'muted', text: 'A safetensors file in the layout of DESIGN.md §6 (PyTorch state_dict names, f32). It is checked before anything is stored, and registered as a candidate: evaluate it, then activate it.' }),
+      h('form', {
+        class: 'inline row',
+        onsubmit: async (event) => {
+          event.preventDefault();
+          const chosen = file.files[0];
+          if (!chosen) return;
+          const label = name.value.trim() || chosen.name.replace(/\.safetensors$/, '');
+          try {
+            const policy = await api(`/api/policies?name=${encodeURIComponent(label)}`, { method: 'POST', body: chosen, type: 'application/octet-stream' });
+            say(`Registered policy ${policy.id} (${policy.name}), status ${policy.status}.`, 'accepted');
+            refresh().catch(() => {});
+          } catch (error) {
+            say(`Upload refused (${error.status} ${error.code}): ${error.message}`, 'refused');
+          }
+        },
+      }, h('label', {}, 'File', file), h('label', {}, 'Name', name), h('button', { type: 'submit', text: 'Upload' })));
+  }
+
+  // Evaluations run in the background: follow them while any is in progress.
+  following = await refresh();
+  page.every(2000, async () => {
+    if (following) following = await refresh().catch(() => true);
+  });
+}
+
+function evaluationText(evaluation) {
+  if (!evaluation) return 'not evaluated';
+  if (evaluation.status !== 'done') {
+    return `${evaluation.status}${evaluation.error ? `: ${evaluation.error}` : ''} (${evaluation.episodes} episodes)`;
+  }
+  const failures = Object.entries(evaluation.failures || {}).map(([why, n]) => `${why} ${n}`).join(', ');
+  return `success ${percent(evaluation.success_rate)}, ${fmt(evaluation.avg_steps, 1)} steps on average, ${evaluation.episodes} episodes (seed ${evaluation.seed}, cell ${evaluation.cell_hash})${failures ? `; failures: ${failures}` : ''}`;
+}

@@ -1,0 +1,274 @@
+//! The dashboard in a real headless Chromium against a real `celld serve --fast` with a fresh
+//! database: sign in with the printed link, start a job from the page and watch it succeed,
+//! see its plots drawn, e-stop and reset, the policy gate's answer, what a viewer may not do,
+//! a tablet-sized window, and the message when the server goes away. Screenshots are saved
+//! under `target/tmp/dashboard-screenshots/` for a person to look at.
+
+mod browser_support;
+mod serve_support;
+
+use browser_support::Browser;
+use serde_json::{Value, json};
+use serve_support::Server;
+use std::path::PathBuf;
+use std::time::Duration;
+
+const WAIT: Duration = Duration::from_secs(30);
+
+fn screenshots() -> PathBuf {
+    PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("dashboard-screenshots")
+}
+
+/// Runs `script` (which may use `arguments[0]`) and returns its value.
+fn js(browser: &Browser, script: &str) -> Value {
+    browser.execute(script, vec![])
+}
+
+/// How many points each dataset of the chart on `canvas_id` holds, and how many of the drawn
+/// elements Chart.js placed inside the plot area.
+fn chart_points(browser: &Browser, canvas_id: &str) -> (Vec<u64>, u64) {
+    let answer = browser.execute(
+        "const chart = Chart.getChart(document.getElementById(arguments[0]));
+         if (!chart) return null;
+         const area = chart.chartArea;
+         let inside = 0;
+         chart.data.datasets.forEach((_, i) => chart.getDatasetMeta(i).data.forEach((e) => {
+           if (e.x >= area.left - 1 && e.x <= area.right + 1 && e.y >= area.top - 1 && e.y <= area.bottom + 1) inside++;
+         }));
+         return { counts: chart.data.datasets.map((d) => d.data.length), inside };",
+        vec![json!(canvas_id)],
+    );
+    assert!(!answer.is_null(), "no chart on #{canvas_id}");
+    let counts = answer["counts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n.as_u64().unwrap())
+        .collect();
+    (counts, answer["inside"].as_u64().unwrap())
+}
+
+/// Pixels of the canvas painted within ±12 of the colour `rgb`: proof that a series was drawn,
+/// independent of the chart library's own bookkeeping.
+fn painted_pixels(browser: &Browser, canvas_id: &str, rgb: [u8; 3]) -> u64 {
+    browser
+        .execute(
+            "const canvas = document.getElementById(arguments[0]);
+             const pixels = canvas.getContext('2d').getImageData(0, 0, canvas.width, canvas.height).data;
+             const [r, g, b] = arguments[1];
+             let n = 0;
+             for (let i = 0; i < pixels.length; i += 4) {
+               if (pixels[i + 3] > 200 && Math.abs(pixels[i] - r) <= 12 && Math.abs(pixels[i + 1] - g) <= 12 && Math.abs(pixels[i + 2] - b) <= 12) n++;
+             }
+             return n;",
+            vec![json!(canvas_id), json!(rgb)],
+        )
+        .as_u64()
+        .unwrap()
+}
+
+fn text_of(browser: &Browser, css: &str) -> String {
+    if browser.exists(css) {
+        browser.find(css).text()
+    } else {
+        String::new()
+    }
+}
+
+#[test]
+fn dashboard_drives_the_cell_in_a_real_browser() {
+    let Some(browser) = Browser::start() else {
+        if std::env::var_os("CI").is_some() {
+            panic!("CI is set but chromedriver is not installed (.ci/run installs it)");
+        }
+        eprintln!("skipping the browser test: chromedriver is not installed");
+        return;
+    };
+    let shots = screenshots();
+    browser.set_screenshot_dir(Some(&shots));
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = Server::start(dir.path(), &[("CELLD_FAST", "true")]);
+    let signin_url = server
+        .signin_url
+        .clone()
+        .expect("the first start prints a sign-in link");
+    assert!(signin_url.contains("#token="), "{signin_url}");
+    browser.set_window_size(1366, 900);
+
+    // Sign in with the printed link; the token leaves the address bar.
+    browser.goto(&signin_url);
+    browser.wait_until("signed in as admin", WAIT, |b| {
+        text_of(b, "#whoami").contains("admin")
+    });
+    assert!(
+        !browser.current_url().contains("token="),
+        "the token stays out of the address: {}",
+        browser.current_url()
+    );
+
+    // Start a job from the page and watch it reach `succeeded` in the live view.
+    browser.wait_until("the controller list", WAIT, |b| {
+        b.exists("#start-controller option[value=expert]")
+    });
+    browser.select_value("#start-controller", "expert");
+    browser.find("#start-seed").send_keys("7");
+    browser.find("#start-job").click();
+    browser.wait_until("the job succeeds in the live view", WAIT, |b| {
+        b.exists("#live-job[data-status=succeeded]")
+    });
+    let job_id: i64 = browser
+        .find("#live-job")
+        .attribute("data-job-id")
+        .unwrap()
+        .parse()
+        .unwrap();
+    let (_, job) = server.get(&format!("/api/jobs/{job_id}"), Some(&server.admin));
+    assert_eq!(job["status"], "succeeded");
+    assert_eq!(job["controller"], "expert");
+    assert_eq!(job["seed"], 7, "the page sent the seed typed in");
+    let steps = job["steps"].as_u64().unwrap();
+    assert!(steps > 10, "{job}");
+    // Every stored step is on the live plots, inside their plot areas.
+    browser.wait_until("the live plots hold every step", WAIT, |b| {
+        chart_points(b, "chart-live-errors").0 == vec![steps, steps]
+    });
+    let (legs, inside) = chart_points(&browser, "chart-live-legs");
+    assert_eq!(legs, vec![steps; 6]);
+    assert_eq!(inside, 6 * steps);
+    let (actors, _) = chart_points(&browser, "chart-live-actor");
+    assert_eq!(actors.iter().sum::<u64>(), steps, "one bar per step");
+    assert!(painted_pixels(&browser, "chart-live-errors", [31, 95, 191]) > 100);
+    browser.screenshot(&shots.join("1-live-after-job.png"));
+
+    // The job's page: status, plots drawn, CSV download offered.
+    browser
+        .find(&format!("#live-job a[href='#/jobs/{job_id}']"))
+        .click();
+    browser.wait_until("the job page", WAIT, |b| {
+        text_of(b, "#job-status") == "succeeded"
+    });
+    browser.wait_until("the job plots hold every step", WAIT, |b| {
+        chart_points(b, "chart-job-trajectory").0.first() == Some(&steps)
+    });
+    for (canvas, per_step) in [
+        ("chart-job-errors", 2),
+        ("chart-job-legs", 6),
+        ("chart-job-trajectory", 1),
+        ("chart-job-trajectory-side", 1),
+    ] {
+        let (_, inside) = chart_points(&browser, canvas);
+        assert!(
+            inside >= per_step * steps,
+            "{canvas}: {inside} points inside the plot area, expected {}",
+            per_step * steps
+        );
+    }
+    assert!(painted_pixels(&browser, "chart-job-errors", [31, 95, 191]) > 100);
+    assert!(painted_pixels(&browser, "chart-job-trajectory", [27, 127, 59]) > 50);
+    assert!(browser.find("#job-csv").is_displayed());
+    browser.screenshot(&shots.join("2-job-page.png"));
+
+    // History: the job is listed, the stats charts are drawn.
+    browser.goto(&format!("{}/#/jobs", server.base));
+    browser.wait_until("the history table", WAIT, |b| {
+        b.exists(&format!("a[href='#/jobs/{job_id}']"))
+    });
+    assert_eq!(
+        chart_points(&browser, "chart-stats-controller").0,
+        vec![1, 1]
+    );
+    browser.screenshot(&shots.join("3-history.png"));
+
+    // E-stop acts at once; reset asks first (the confirmation is answered yes here).
+    browser.goto(&format!("{}/#/live", server.base));
+    browser.wait_until("the e-stop button", WAIT, |b| b.exists("#estop"));
+    browser.find("#estop").click();
+    browser.wait_until("the e-stop shows latched", WAIT, |b| {
+        b.exists("#estop-state[data-latched=true]")
+    });
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(cell["estop_latched"], true);
+    assert!(browser.find("#start-job").property("disabled") == json!(true));
+    browser.screenshot(&shots.join("4-estop-latched.png"));
+    js(&browser, "window.confirm = () => true;");
+    browser.find("#reset").click();
+    browser.wait_until("the e-stop shows clear", WAIT, |b| {
+        b.exists("#estop-state[data-latched=false]")
+    });
+
+    // Policies: activating the bundled policy shows the gate's refusal (its short first-start
+    // evaluation is far below the threshold); declining to force keeps things as they were.
+    browser.goto(&format!("{}/#/policies", server.base));
+    browser.wait_until("the bundled policy is listed", WAIT, |b| {
+        b.exists("tr[data-policy-id='1']")
+    });
+    js(&browser, "window.prompt = () => null;");
+    browser
+        .find("tr[data-policy-id='1'] button:last-child")
+        .click();
+    browser.wait_until("the gate's answer", WAIT, |b| {
+        text_of(b, "#policy-answer").contains("activation needs")
+    });
+    let (_, policy) = server.get("/api/policies/1", Some(&server.admin));
+    assert_ne!(policy["status"], "active");
+    browser.screenshot(&shots.join("5-policy-gate.png"));
+
+    // A tablet: nothing wider than the window.
+    browser.set_window_size(768, 1024);
+    browser.goto(&format!("{}/#/live", server.base));
+    browser.wait_until("the live page", WAIT, |b| b.exists("#chart-live-errors"));
+    let overflow = js(
+        &browser,
+        "return document.documentElement.scrollWidth - document.documentElement.clientWidth;",
+    );
+    assert!(
+        overflow.as_i64().unwrap() <= 0,
+        "wider than a tablet by {overflow} px"
+    );
+    browser.screenshot(&shots.join("6-tablet.png"));
+    browser.set_window_size(1366, 900);
+
+    // A viewer signs in with the form and sees no start, cancel, e-stop or reset button.
+    let viewer = server.token("viewer");
+    browser.find("#signout").click();
+    browser.wait_until("the sign-in form", WAIT, |b| b.exists("#token"));
+    browser.find("#token").send_keys(&viewer);
+    browser.find("#signin-submit").click();
+    browser.wait_until("signed in as viewer", WAIT, |b| {
+        text_of(b, "#whoami").contains("viewer")
+    });
+    browser.wait_until("the live page for a viewer", WAIT, |b| {
+        b.exists("#viewer-note")
+    });
+    for control in [
+        "#start-job",
+        "#estop",
+        "#cancel-job",
+        "#reset",
+        "#start-form",
+    ] {
+        assert!(!browser.exists(control), "a viewer sees {control}");
+    }
+    browser.goto(&format!("{}/#/policies", server.base));
+    browser.wait_until("the policy list for a viewer", WAIT, |b| {
+        b.exists("tr[data-policy-id='1']")
+    });
+    assert!(
+        !browser.exists("#policy-file"),
+        "a viewer sees the upload form"
+    );
+    browser.screenshot(&shots.join("7-viewer.png"));
+
+    // The server goes away: the page says so.
+    browser.goto(&format!("{}/#/live", server.base));
+    browser.wait_until("the live page with the last job", WAIT, |b| {
+        b.exists(&format!("#live-job[data-job-id='{job_id}']"))
+    });
+    server.kill9();
+    browser.wait_until("the unreachable message", WAIT, |b| {
+        text_of(b, "#link-state") == "unreachable"
+            && text_of(b, "#banner-text").contains("does not answer")
+    });
+    browser.screenshot(&shots.join("8-server-unreachable.png"));
+    eprintln!("screenshots in {}", shots.display());
+}
