@@ -87,6 +87,27 @@ fn jobs_run_in_order_and_every_step_is_stored() {
     assert_eq!(page["items"].as_array().unwrap().len(), 1);
     assert_eq!(page["items"][0]["id"], id(&second), "newest first");
 
+    // Time filters compare with the stored creation times; the policy filter with the job's
+    // policy (the bundled one is registered as policy 1 at the first start).
+    let since_first = format!("/api/jobs?since={}", a["created_at"].as_str().unwrap());
+    let policy_job = server.create_job(&operator, json!({"controller": "policy:1", "seed": 3}));
+    server.wait_final(id(&policy_job));
+    for (query, expected) in [
+        (since_first.as_str(), 3),
+        ("/api/jobs?since=2999-01-01", 0),
+        ("/api/jobs?until=2000-01-01", 0),
+        ("/api/jobs?until=2999-01-01T00:00:00Z", 3),
+        ("/api/jobs?policy_id=1", 1),
+        ("/api/jobs?policy_id=1&status=running", 0),
+        ("/api/jobs?policy_id=2", 0),
+    ] {
+        let (status, page) = server.get(query, Some(&operator));
+        assert_eq!(status, 200, "{query}: {page}");
+        assert_eq!(page["total"], expected, "{query}: {page}");
+    }
+    let (_, page) = server.get("/api/jobs?policy_id=1", Some(&operator));
+    assert_eq!(page["items"][0]["id"], id(&policy_job));
+
     let (_, stats) = server.get("/api/stats?by=controller", Some(&operator));
     assert_eq!(stats["total"]["succeeded"], 2, "{stats}");
     assert_eq!(stats["groups"][0]["key"], "expert");
@@ -224,6 +245,20 @@ fn roles_are_enforced() {
     }
     let (_, jobs) = server.get("/api/jobs", Some(&viewer));
     assert_eq!(jobs["total"], 0, "refused requests created nothing");
+
+    // Each token can read what its own role may do (the dashboard shows only that).
+    assert_eq!(server.get("/api/me", None).0, 401);
+    for (token, role, operate, administer) in [
+        (&viewer, "viewer", false, false),
+        (&operator, "operator", true, false),
+        (&server.admin, "admin", true, true),
+    ] {
+        let (status, me) = server.get("/api/me", Some(token));
+        assert_eq!(status, 200);
+        assert_eq!(me["role"], role);
+        assert_eq!(me["may"]["operate"], operate, "{me}");
+        assert_eq!(me["may"]["administer"], administer, "{me}");
+    }
 }
 
 #[test]
@@ -308,14 +343,19 @@ fn bad_input_is_named_and_leaves_the_running_job_alone() {
     assert_eq!(status, 404, "{answer}");
     let (status, _) = server.get("/api/jobs/first", Some(&operator));
     assert_eq!(status, 400);
-    let (status, answer) = server.get("/api/stats?since=yesterday", Some(&operator));
+    for query in ["/api/stats?since=yesterday", "/api/jobs?until=yesterday"] {
+        let (status, answer) = server.get(query, Some(&operator));
+        assert_eq!(status, 400, "{query}");
+        assert!(
+            answer["error"]["message"]
+                .as_str()
+                .unwrap()
+                .contains("yesterday"),
+            "{answer}"
+        );
+    }
+    let (status, _) = server.get("/api/jobs?policy_id=bundled", Some(&operator));
     assert_eq!(status, 400);
-    assert!(
-        answer["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("yesterday")
-    );
     let (status, answer) = server.get("/api/nowhere", Some(&operator));
     assert_eq!(status, 404);
     assert!(answer["error"].is_object());
