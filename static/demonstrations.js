@@ -7,11 +7,12 @@ import {
 
 export async function render(page) {
   const list = h('div', { id: 'demonstration-list' });
-  page.main.append(
+  // h() drops the null a role without the form gets.
+  page.main.append(h('div', { class: 'stack' },
     h('h1', { text: 'Demonstrations' }),
     h('p', { class: 'muted', text: 'Expert trajectories the learning pipeline imitates. To record one in the cell, start a job with "Record as demonstration" on the live page; its steps are stored here when it succeeds.' }),
     may.administer() ? importCard() : null,
-    h('section', { class: 'card' }, list));
+    h('section', { class: 'card' }, list)));
 
   async function refresh() {
     const { items } = await api('/api/demonstrations');

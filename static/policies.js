@@ -10,10 +10,11 @@ export async function render(page) {
   const list = h('div', { id: 'policy-list' });
   /** True while an evaluation is in progress: the list is then refreshed every 2 s. */
   let following = false;
-  page.main.append(
+  // h() drops the null a role without the form gets.
+  page.main.append(h('div', { class: 'stack' },
     h('h1', { text: 'Policies' }),
     may.administer() ? uploadCard() : null,
-    h('section', { class: 'card stack' }, answer, list));
+    h('section', { class: 'card stack' }, answer, list)));
 
   function say(text, kind) {
     answer.hidden = false;

@@ -9,10 +9,11 @@ import {
 export async function render(page) {
   if (page.args[0]) return renderRun(page, page.args[0]);
   const list = h('div', { id: 'training-list' });
-  page.main.append(
+  // h() drops the null a role without the form gets.
+  page.main.append(h('div', { class: 'stack' },
     h('h1', { text: 'Training runs' }),
     may.administer() ? await startCard() : null,
-    h('section', { class: 'card' }, list));
+    h('section', { class: 'card' }, list)));
 
   async function refresh() {
     const { items } = await api('/api/training');
@@ -86,6 +87,7 @@ async function renderRun(page, id) {
   const actions = h('div', { class: 'row' });
   const lossCanvas = h('canvas', { id: 'chart-training-loss' });
   const td3Canvas = h('canvas', { id: 'chart-training-td3' });
+  const td3Note = h('p', { class: 'muted' });
   page.main.append(header,
     h('section', { class: 'card stack' }, summary, actions),
     h('div', { style: 'height:1rem' }),
@@ -94,7 +96,7 @@ async function renderRun(page, id) {
         h('p', { class: 'muted', text: 'BC actors (MSE) and the LSTM selector, by epoch, log scale' }),
         h('div', { class: 'chart' }, lossCanvas)),
       h('section', { class: 'card' }, h('h2', { text: 'TD3 return' }),
-        h('p', { class: 'muted', text: 'Return of each TD3 episode in the twin' }),
+        td3Note,
         h('div', { class: 'chart' }, td3Canvas))));
   let charts = [];
   page.onCleanup(() => charts.forEach((c) => c.destroy()));
@@ -113,8 +115,8 @@ async function renderRun(page, id) {
       ['started', `${when(run.started_at)} by ${run.created_by}`],
       ['finished', when(run.finished_at)],
     ]));
-    actions.replaceChildren(run.status === 'running' && may.administer()
-      ? h('button', {
+    actions.replaceChildren(...(run.status === 'running' && may.administer()
+      ? [h('button', {
         type: 'button', class: 'danger', text: 'Cancel run',
         onclick: async () => {
           if (!confirm(`Cancel training run ${run.id}? It stops between stages or TD3 episodes; nothing is registered.`)) return;
@@ -124,9 +126,12 @@ async function renderRun(page, id) {
             showError(error, 'Cancelling');
           }
         },
-      })
-      : null);
+      })]
+      : []));
     const curve = run.curve || [];
+    td3Note.textContent = run.settings.part === 'bc'
+      ? 'This run has no TD3 stage (part bc).'
+      : 'Return of each TD3 episode in the twin';
     charts.forEach((c) => c.destroy());
     charts = [
       curveChart(lossCanvas, { x: 'epoch', y: 'loss' }, curve.filter((p) => p.stage !== 'td3'), { log: true }),

@@ -257,6 +257,8 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         !browser.exists("#policy-file"),
         "a viewer sees the upload form"
     );
+    let page_text = text_of(&browser, "#view");
+    assert!(!page_text.contains("null"), "{page_text}");
     browser.screenshot(&shots.join("7-viewer.png"));
 
     // The server goes away: the page says so.
