@@ -2,7 +2,7 @@
 // one is a job started with "Record as demonstration" on the live page.
 
 import {
-  api, download, h, may, showBanner, showError, table, when,
+  api, download, h, may, showBanner, showError, table, uploadCard, when,
 } from './lib.js';
 
 export async function render(page) {
@@ -45,27 +45,21 @@ export async function render(page) {
   }
 
   function importCard() {
-    const file = h('input', { id: 'demonstration-file', type: 'file', accept: '.jsonl,.ndjson,application/x-ndjson', required: true });
-    const name = h('input', { id: 'demonstration-name', placeholder: 'name (default: the file name)' });
-    return h('section', { class: 'card stack' },
-      h('h2', { text: 'Import' }),
-      h('p', { class: 'muted', text: 'JSON Lines, one step a line: {"episode", "step", "state": [12], "action": [6], "actor", "scale"} (the export format). A bad line is refused with its number and nothing is stored.' }),
-      h('form', {
-        class: 'inline row',
-        onsubmit: async (event) => {
-          event.preventDefault();
-          const chosen = file.files[0];
-          if (!chosen) return;
-          const label = name.value.trim() || chosen.name.replace(/\.(jsonl|ndjson)$/, '');
-          try {
-            const demo = await api(`/api/demonstrations?name=${encodeURIComponent(label)}`, { method: 'POST', body: chosen, type: 'application/x-ndjson' });
-            showBanner(`Imported demonstration ${demo.id}: ${demo.episodes} episodes, ${demo.steps} steps.`, 'info');
-            refresh().catch(() => {});
-          } catch (error) {
-            showError(error, 'Import');
-          }
-        },
-      }, h('label', {}, 'File', file), h('label', {}, 'Name', name), h('button', { type: 'submit', text: 'Import' })));
+    return uploadCard({
+      id: 'demonstration',
+      title: 'Import',
+      action: 'Import',
+      note: 'JSON Lines, one step a line: {"episode", "step", "state": [12], "action": [6], "actor", "scale"} (the export format). A bad line is refused with its number and nothing is stored.',
+      accept: '.jsonl,.ndjson,application/x-ndjson',
+      extension: /\.(jsonl|ndjson)$/,
+      path: '/api/demonstrations',
+      type: 'application/x-ndjson',
+      done: (demo) => {
+        showBanner(`Imported demonstration ${demo.id}: ${demo.episodes} episodes, ${demo.steps} steps.`, 'info');
+        refresh().catch(() => {});
+      },
+      failed: (error) => showError(error, 'Import'),
+    });
   }
 
   await refresh();

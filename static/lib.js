@@ -183,6 +183,32 @@ export function table(headings, rows) {
       h('tbody', {}, rows)));
 }
 
+/**
+ * A card whose form sends one chosen file as the body of `POST path?name=NAME` (content type
+ * `type`); the name defaults to the file's name less `extension`. `done(answer)` or
+ * `failed(error)` follows.
+ */
+export function uploadCard({ id, title, action, note, accept, extension, path, type, done, failed }) {
+  const file = h('input', { id: `${id}-file`, type: 'file', accept, required: true });
+  const name = h('input', { id: `${id}-name`, placeholder: 'name (default: the file name)' });
+  const send = async (event) => {
+    event.preventDefault();
+    const chosen = file.files[0];
+    if (!chosen) return;
+    const label = name.value.trim() || chosen.name.replace(extension, '');
+    try {
+      done(await api(`${path}?name=${encodeURIComponent(label)}`, { method: 'POST', body: chosen, type }));
+    } catch (error) {
+      failed(error);
+    }
+  };
+  return h('section', { class: 'card stack' },
+    h('h2', { text: title }),
+    h('p', { class: 'muted', text: note }),
+    h('form', { class: 'inline row', onsubmit: send },
+      h('label', {}, 'File', file), h('label', {}, 'Name', name), h('button', { type: 'submit', text: action })));
+}
+
 // ---- numbers and times
 
 export function fmt(value, digits = 2) {

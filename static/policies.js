@@ -2,7 +2,7 @@
 // (the activation gate's answer is shown as the server gives it).
 
 import {
-  api, download, fmt, h, may, percent, pill, showError, table, when,
+  api, download, fmt, h, may, percent, pill, showError, table, uploadCard, when,
 } from './lib.js';
 
 export async function render(page) {
@@ -13,7 +13,7 @@ export async function render(page) {
   // h() drops the null a role without the form gets.
   page.main.append(h('div', { class: 'stack' },
     h('h1', { text: 'Policies' }),
-    may.administer() ? uploadCard() : null,
+    may.administer() ? policyUploadCard() : null,
     h('section', { class: 'card stack' }, answer, list)));
 
   function say(text, kind) {
@@ -82,28 +82,22 @@ export async function render(page) {
     refresh().catch((e) => showError(e, 'Listing policies'));
   }
 
-  function uploadCard() {
-    const file = h('input', { id: 'policy-file', type: 'file', accept: '.safetensors', required: true });
-    const name = h('input', { id: 'policy-name', placeholder: 'name (default: the file name)' });
-    return h('section', { class: 'card stack' },
-      h('h2', { text: 'Upload a policy' }),
-      h('p', { class: 'muted', text: 'A safetensors file in the layout of DESIGN.md §6 (PyTorch state_dict names, f32). It is checked before anything is stored, and registered as a candidate: evaluate it, then activate it.' }),
-      h('form', {
-        class: 'inline row',
-        onsubmit: async (event) => {
-          event.preventDefault();
-          const chosen = file.files[0];
-          if (!chosen) return;
-          const label = name.value.trim() || chosen.name.replace(/\.safetensors$/, '');
-          try {
-            const policy = await api(`/api/policies?name=${encodeURIComponent(label)}`, { method: 'POST', body: chosen, type: 'application/octet-stream' });
-            say(`Registered policy ${policy.id} (${policy.name}), status ${policy.status}.`, 'accepted');
-            refresh().catch(() => {});
-          } catch (error) {
-            say(`Upload refused (${error.status} ${error.code}): ${error.message}`, 'refused');
-          }
-        },
-      }, h('label', {}, 'File', file), h('label', {}, 'Name', name), h('button', { type: 'submit', text: 'Upload' })));
+  function policyUploadCard() {
+    return uploadCard({
+      id: 'policy',
+      title: 'Upload a policy',
+      action: 'Upload',
+      note: 'A safetensors file in the layout of DESIGN.md §6 (PyTorch state_dict names, f32). It is checked before anything is stored, and registered as a candidate: evaluate it, then activate it.',
+      accept: '.safetensors',
+      extension: /\.safetensors$/,
+      path: '/api/policies',
+      type: 'application/octet-stream',
+      done: (policy) => {
+        say(`Registered policy ${policy.id} (${policy.name}), status ${policy.status}.`, 'accepted');
+        refresh().catch(() => {});
+      },
+      failed: (error) => say(`Upload refused (${error.status} ${error.code}): ${error.message}`, 'refused'),
+    });
   }
 
   // Evaluations run in the background: follow them while any is in progress.

@@ -213,6 +213,24 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     assert_ne!(policy["status"], "active");
     browser.screenshot(&shots.join("5-policy-gate.png"));
 
+    // Upload through the form: the bundled `bc` policy file becomes policy 2, as stored.
+    let file = concat!(env!("CARGO_MANIFEST_DIR"), "/policies/bc.safetensors");
+    browser.find("#policy-file").send_keys(file);
+    browser.find("#policy-name").send_keys("bc from the page");
+    browser
+        .find("form:has(#policy-file) button[type=submit]")
+        .click();
+    browser.wait_until("the upload's answer", WAIT, |b| {
+        text_of(b, "#policy-answer").contains("Registered policy 2")
+    });
+    let (_, uploaded) = server.get("/api/policies/2", Some(&server.admin));
+    assert_eq!(uploaded["name"], "bc from the page");
+    assert_eq!(
+        uploaded["size_bytes"].as_u64().unwrap(),
+        std::fs::metadata(file).unwrap().len()
+    );
+    assert!(browser.exists("tr[data-policy-id='2']"));
+
     // A tablet: nothing wider than the window.
     browser.set_window_size(768, 1024);
     browser.goto(&format!("{}/#/live", server.base));
