@@ -53,7 +53,8 @@ const telemetry = {
 
 // ---- routing: #/page/arg?query
 
-let current = { cleanups: [] };
+/** The page on show; leaving it runs its cleanups. */
+let current = { close() {} };
 
 function route() {
   const [path, query = ''] = location.hash.replace(/^#\/?/, '').split('?');
@@ -62,10 +63,10 @@ function route() {
 }
 
 async function show() {
-  for (const cleanup of current.cleanups) cleanup();
-  const main = document.getElementById('view');
+  current.close();
+  const view = document.getElementById('view');
   if (!session.token || !session.me) {
-    renderSignIn(main);
+    renderSignIn(view);
     return;
   }
   const { name, args, query } = route();
@@ -73,29 +74,39 @@ async function show() {
   for (const link of document.querySelectorAll('#nav a')) {
     link.classList.toggle('current', link.dataset.page === name);
   }
+  // Each page draws into its own element: a render still awaiting the server when the user
+  // moves on fills a detached element, and what it registers afterwards is cleaned up at once.
   const page = {
-    main,
+    main: h('div'),
     args,
     query,
     telemetry,
     cleanups: [],
-    onCleanup(fn) { this.cleanups.push(fn); },
+    closed: false,
+    close() {
+      this.closed = true;
+      for (const cleanup of this.cleanups.splice(0)) cleanup();
+    },
+    onCleanup(fn) {
+      if (this.closed) fn();
+      else this.cleanups.push(fn);
+    },
     /** Runs `fn` every `ms` while the page is shown. */
     every(ms, fn) {
       const timer = setInterval(fn, ms);
-      this.cleanups.push(() => clearInterval(timer));
+      this.onCleanup(() => clearInterval(timer));
     },
   };
   current = page;
-  main.replaceChildren();
+  view.replaceChildren(page.main);
   if (!render) {
-    main.append(h('section', { class: 'card' }, h('h1', { text: 'No such page' }), h('a', { href: '#/live', text: 'Back to the live cell' })));
+    page.main.append(h('section', { class: 'card' }, h('h1', { text: 'No such page' }), h('a', { href: '#/live', text: 'Back to the live cell' })));
     return;
   }
   try {
     await render(page);
   } catch (error) {
-    showError(error, `Opening ${name}`);
+    if (!page.closed) showError(error, `Opening ${name}`);
   }
 }
 
