@@ -170,6 +170,25 @@ impl Server {
     }
 }
 
+/// Clients in a plant run on other machines; here they share this one, so keep them (and this
+/// thread, which they inherit it from) off the CPU the server gives its control thread under
+/// `control.cpu` (the same plan; with `CELLD_CONTROL_CPU=off` they may run anywhere).
+fn stay_off_the_control_cpu() {
+    use assembly_cell::cell::cpu;
+    let choice = std::env::var("CELLD_CONTROL_CPU")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_default();
+    let available = cpu::available().unwrap();
+    if let Ok(Some(placement)) = cpu::plan(&available, choice) {
+        cpu::pin_current_thread(&placement.others).unwrap();
+        println!(
+            "server control thread on CPU {}; load generators on CPUs {:?}",
+            placement.control, placement.others
+        );
+    }
+}
+
 /// The load generators share this machine's two cores with the server; in a plant they run
 /// elsewhere. At nice 10 they take the CPU the server leaves, as remote clients would.
 fn behave_as_remote_client() {
@@ -237,6 +256,7 @@ fn load(
 
 fn service(jobs: u64) {
     let server = Arc::new(start_server());
+    stay_off_the_control_cpu();
     // Warm up (first policy build, page cache).
     server.run_jobs(1, 1000);
 

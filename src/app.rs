@@ -9,6 +9,7 @@
 //!                                   └──▶ metrics
 //! ```
 
+use crate::cell::cpu::{self, CpuPlan};
 use crate::cell::task::{self, CellEvent, LoopSettings};
 use crate::cell::{CellCommand, JobStatus, SafetyLimits, TwinBackend};
 use crate::config::cell::CellConfig;
@@ -27,8 +28,24 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use tokio::sync::{broadcast, mpsc, watch};
 
-/// Runs the service until SIGINT or SIGTERM.
-pub async fn serve(settings: ServiceConfig) -> Result<()> {
+/// Places the threads (`control.cpu`), starts the async runtime and runs the service until
+/// SIGINT or SIGTERM.
+pub fn run(settings: ServiceConfig) -> Result<()> {
+    let available = cpu::available().context("reading this process's CPUs")?;
+    let placement = cpu::plan(&available, settings.control.cpu)?;
+    if let Some(placement) = &placement {
+        // Before any thread starts: the runtime's workers and every thread after them inherit
+        // this set; only the control thread leaves it, for its own CPU.
+        cpu::pin_current_thread(&placement.others)
+            .with_context(|| format!("keeping the service on CPUs {:?}", placement.others))?;
+    }
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(serve(settings, placement))
+}
+
+async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()> {
     settings.validate()?;
     let cell = match &settings.cell {
         Some(path) => CellConfig::load(path)?,
@@ -76,6 +93,7 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
             max_stale_steps: settings.control.max_stale_steps,
         },
         estop_latched,
+        cpu: placement.as_ref().map(|p| p.control),
     };
     let (cell_handle, control_thread) = task::spawn(
         cell.clone(),
@@ -124,6 +142,12 @@ pub async fn serve(settings: ServiceConfig) -> Result<()> {
         settings.db.display()
     );
     println!("celld: listening on http://{address}");
+    if let Some(placement) = &placement {
+        println!(
+            "celld: the control thread has CPU {} to itself; everything else runs on CPUs {:?}",
+            placement.control, placement.others
+        );
+    }
     match &first_token {
         // The token rides in the fragment, which the browser never sends to a server.
         Some(token) => {

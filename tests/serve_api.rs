@@ -453,3 +453,73 @@ fn openapi_describes_every_route() {
     }
     assert!(declared >= 14, "found only {declared} routes");
 }
+
+/// With `control.cpu = auto` on a machine with two or more CPUs, the kernel keeps the control
+/// thread on one CPU and every other thread of the server off it.
+#[cfg(target_os = "linux")]
+#[test]
+fn control_thread_has_a_cpu_of_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_CONTROL_CPU", "auto"),
+            ("CELLD_STEP_PERIOD_MS", "20"),
+        ],
+    );
+    let allowed = |task: &std::path::Path| {
+        let status = std::fs::read_to_string(task.join("status")).unwrap_or_default();
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+            .map(|l| l.trim().to_string())
+            .unwrap_or_default()
+    };
+    let mut control = Vec::new();
+    let mut others = Vec::new();
+    for task in std::fs::read_dir(format!("/proc/{}/task", server.pid())).unwrap() {
+        let task = task.unwrap().path();
+        let name = std::fs::read_to_string(task.join("comm")).unwrap_or_default();
+        if name.trim() == "celld-control" {
+            control.push(allowed(&task));
+        } else {
+            others.push(allowed(&task));
+        }
+    }
+    assert_eq!(control.len(), 1, "one control thread");
+    let cpus = std::thread::available_parallelism().unwrap().get();
+    if cpus < 2 {
+        assert!(
+            others.iter().all(|o| *o == control[0]),
+            "no placement on one CPU"
+        );
+        return;
+    }
+    let control_cpu = &control[0];
+    assert!(
+        control_cpu.parse::<usize>().is_ok(),
+        "the control thread is on exactly one CPU: {control_cpu}"
+    );
+    for other in &others {
+        assert!(
+            !cpu_list(other).contains(&control_cpu.parse().unwrap()),
+            "a service thread may run on the control CPU {control_cpu}: {other}"
+        );
+    }
+    // A job still runs to the end with the threads placed.
+    let operator = server.token("operator");
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 4}));
+    assert_eq!(server.wait_final(id(&job))["status"], "succeeded");
+}
+
+/// The CPUs of a kernel list like `0-2,5`.
+#[cfg(target_os = "linux")]
+fn cpu_list(text: &str) -> Vec<usize> {
+    text.split(',')
+        .filter(|part| !part.is_empty())
+        .flat_map(|part| match part.split_once('-') {
+            Some((a, b)) => (a.parse().unwrap()..=b.parse().unwrap()).collect::<Vec<usize>>(),
+            None => vec![part.parse().unwrap()],
+        })
+        .collect()
+}

@@ -5,6 +5,7 @@
 //! that owns the robot, runs the queue in order and reports events to whoever `app.rs` wires in.
 
 pub mod backend;
+pub mod cpu;
 pub mod job;
 pub mod task;
 

@@ -101,6 +101,8 @@ pub struct LoopSettings {
     pub limits: SafetyLimits,
     /// Whether the e-stop was latched when the service last stopped.
     pub estop_latched: bool,
+    /// The CPU the thread keeps to itself (`cell::cpu`); none: wherever the kernel puts it.
+    pub cpu: Option<usize>,
 }
 
 /// Starts the control thread. `sink` receives every event in order.
@@ -133,6 +135,11 @@ pub fn spawn(
         .name("celld-control".into())
         .spawn(move || {
             raise_priority();
+            if let Some(cpu) = control.settings.cpu
+                && let Err(error) = super::cpu::pin_current_thread(&[cpu])
+            {
+                tracing::warn!(%error, cpu, "the control thread could not move to its CPU");
+            }
             control.run(inbox)
         })
         .expect("spawn the control thread");

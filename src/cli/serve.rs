@@ -66,7 +66,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         settings.fast = true;
     }
     init_logging();
-    runtime()?.block_on(app::serve(settings))
+    app::run(settings)
 }
 
 pub fn token(command: TokenCommand) -> Result<()> {

@@ -5,6 +5,7 @@
 //! variables, command-line flags. Every key is documented in `deploy/celld.example.toml`.
 
 use serde::Deserialize;
+use std::fmt;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
@@ -62,6 +63,61 @@ pub struct ControlConfig {
     /// Telemetry events buffered per subscriber; a subscriber further behind skips ahead and
     /// is counted as lagging.
     pub telemetry_buffer: usize,
+    /// The CPU the control thread keeps to itself (`cell::cpu`).
+    pub cpu: ControlCpu,
+}
+
+/// `control.cpu`: which CPU the control thread gets to itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ControlCpu {
+    /// The last CPU this process may use, when it may use two or more.
+    #[default]
+    Auto,
+    /// No placement: every thread may run anywhere.
+    Off,
+    /// This CPU (as the kernel numbers them).
+    Cpu(usize),
+}
+
+impl std::str::FromStr for ControlCpu {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        match text.trim() {
+            "auto" => Ok(ControlCpu::Auto),
+            "off" => Ok(ControlCpu::Off),
+            number => number
+                .parse()
+                .map(ControlCpu::Cpu)
+                .map_err(|_| format!("`{text}` is not auto, off or a CPU number")),
+        }
+    }
+}
+
+impl fmt::Display for ControlCpu {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ControlCpu::Auto => f.write_str("auto"),
+            ControlCpu::Off => f.write_str("off"),
+            ControlCpu::Cpu(cpu) => write!(f, "{cpu}"),
+        }
+    }
+}
+
+/// In TOML: `"auto"`, `"off"` or a CPU number.
+impl<'de> Deserialize<'de> for ControlCpu {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Number(usize),
+            Text(String),
+        }
+        match Raw::deserialize(deserializer)? {
+            Raw::Number(cpu) => Ok(ControlCpu::Cpu(cpu)),
+            Raw::Text(text) => text.parse().map_err(serde::de::Error::custom),
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -116,6 +172,7 @@ impl Default for ControlConfig {
             max_stale_steps: 4,
             step_batch: 256,
             telemetry_buffer: 1024,
+            cpu: ControlCpu::Auto,
         }
     }
 }
@@ -178,6 +235,11 @@ impl ServiceConfig {
                             .parse()
                             .map_err(|_| invalid("CELLD_STEP_PERIOD_MS", "not a number"))?,
                     )
+                }
+                "CONTROL_CPU" => {
+                    self.control.cpu = value
+                        .parse()
+                        .map_err(|reason: String| invalid("CELLD_CONTROL_CPU", &reason))?
                 }
                 "DEADLINE_MS" => {
                     self.control.deadline_ms = value

@@ -32,6 +32,9 @@ impl Server {
         let mut child = Command::new(env!("CARGO_BIN_EXE_celld"))
             .args(["serve", "--listen", "127.0.0.1:0", "--db"])
             .arg(&db)
+            // Test servers share two cores; `control_thread_has_a_cpu_of_its_own` checks the
+            // placement itself.
+            .env("CELLD_CONTROL_CPU", "off")
             .envs(env.iter().copied())
             .env("CELLD_LOG", "warn")
             // The bundled policy's evaluation at first start, kept short.

@@ -1,0 +1,172 @@
+//! A CPU of its own for the control thread. Everything else in the service (HTTP workers,
+//! SQLite, evaluations, training) runs on the other CPUs, so a burst of requests can take
+//! neither the control step's core nor its caches. Threads inherit their creator's CPU set, so
+//! the process restricts itself before it starts any thread and the control thread then moves
+//! to its own CPU.
+
+pub use crate::config::service::ControlCpu;
+
+/// Where the threads go.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CpuPlan {
+    /// The control thread's CPU.
+    pub control: usize,
+    /// Every other thread's CPUs.
+    pub others: Vec<usize>,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CpuPlanError {
+    #[error("control.cpu = {cpu}, but this process may use only CPUs {available:?}")]
+    NotAvailable { cpu: usize, available: Vec<usize> },
+    #[error(
+        "control.cpu = {cpu}, but that is the only CPU this process may use: nothing would be left for the rest of the service (use auto or off)"
+    )]
+    OnlyCpu { cpu: usize },
+}
+
+/// The placement for `choice` given the CPUs the process may use; `None` when every thread
+/// stays anywhere (`off`, or `auto` with a single CPU).
+pub fn plan(available: &[usize], choice: ControlCpu) -> Result<Option<CpuPlan>, CpuPlanError> {
+    let control = match choice {
+        ControlCpu::Off => return Ok(None),
+        ControlCpu::Auto => match available.iter().max() {
+            Some(&last) if available.len() >= 2 => last,
+            _ => return Ok(None),
+        },
+        ControlCpu::Cpu(cpu) if !available.contains(&cpu) => {
+            return Err(CpuPlanError::NotAvailable {
+                cpu,
+                available: available.to_vec(),
+            });
+        }
+        ControlCpu::Cpu(cpu) if available.len() < 2 => return Err(CpuPlanError::OnlyCpu { cpu }),
+        ControlCpu::Cpu(cpu) => cpu,
+    };
+    Ok(Some(CpuPlan {
+        control,
+        others: available
+            .iter()
+            .copied()
+            .filter(|&c| c != control)
+            .collect(),
+    }))
+}
+
+/// The CPUs the calling thread may run on.
+pub fn available() -> std::io::Result<Vec<usize>> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: `set` is a plain bit array that sched_getaffinity fills; the size passed is its
+        // own.
+        unsafe {
+            let mut set: libc::cpu_set_t = std::mem::zeroed();
+            if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok((0..libc::CPU_SETSIZE as usize)
+                .filter(|&cpu| libc::CPU_ISSET(cpu, &set))
+                .collect())
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    Ok((0..std::thread::available_parallelism().map_or(1, |n| n.get())).collect())
+}
+
+/// Keeps the calling thread (and the threads it starts from now on) on `cpus`. A no-op
+/// outside Linux.
+pub fn pin_current_thread(cpus: &[usize]) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: `set` is a plain bit array built with the libc helpers; sched_setaffinity only
+        // reads it, for the calling thread (pid 0).
+        unsafe {
+            let mut set: libc::cpu_set_t = std::mem::zeroed();
+            for &cpu in cpus {
+                libc::CPU_SET(cpu, &mut set);
+            }
+            if libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = cpus;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde::Deserialize;
+
+    #[test]
+    fn auto_takes_the_last_cpu_when_there_are_two_or_more() {
+        assert_eq!(
+            plan(&[0, 1], ControlCpu::Auto).unwrap(),
+            Some(CpuPlan {
+                control: 1,
+                others: vec![0]
+            })
+        );
+        assert_eq!(
+            plan(&[2, 5, 7], ControlCpu::Auto).unwrap().unwrap().others,
+            vec![2, 5]
+        );
+        assert_eq!(plan(&[3], ControlCpu::Auto).unwrap(), None);
+        assert_eq!(plan(&[0, 1, 2, 3], ControlCpu::Off).unwrap(), None);
+    }
+
+    #[test]
+    fn a_named_cpu_must_be_available_and_not_the_only_one() {
+        assert_eq!(
+            plan(&[0, 1, 2], ControlCpu::Cpu(0)).unwrap(),
+            Some(CpuPlan {
+                control: 0,
+                others: vec![1, 2]
+            })
+        );
+        assert_eq!(
+            plan(&[0, 1], ControlCpu::Cpu(4)),
+            Err(CpuPlanError::NotAvailable {
+                cpu: 4,
+                available: vec![0, 1]
+            })
+        );
+        assert_eq!(
+            plan(&[1], ControlCpu::Cpu(1)),
+            Err(CpuPlanError::OnlyCpu { cpu: 1 })
+        );
+    }
+
+    #[test]
+    fn settings_text_round_trips() {
+        for choice in [ControlCpu::Auto, ControlCpu::Off, ControlCpu::Cpu(3)] {
+            assert_eq!(choice.to_string().parse::<ControlCpu>(), Ok(choice));
+        }
+        assert!("fast".parse::<ControlCpu>().unwrap_err().contains("fast"));
+        #[derive(Deserialize)]
+        struct Holder {
+            cpu: ControlCpu,
+        }
+        let number: Holder = toml::from_str("cpu = 2").unwrap();
+        assert_eq!(number.cpu, ControlCpu::Cpu(2));
+        let text: Holder = toml::from_str("cpu = \"off\"").unwrap();
+        assert_eq!(text.cpu, ControlCpu::Off);
+    }
+
+    /// The calling thread can be moved onto one of its CPUs and back (the kernel agrees).
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn pinning_moves_the_thread() {
+        std::thread::spawn(|| {
+            let all = available().unwrap();
+            pin_current_thread(&all[..1]).unwrap();
+            assert_eq!(available().unwrap(), all[..1].to_vec());
+            pin_current_thread(&all).unwrap();
+            assert_eq!(available().unwrap(), all);
+        })
+        .join()
+        .unwrap();
+    }
+}
