@@ -27,7 +27,7 @@ export async function render(page) {
   plots.mount();
   page.onCleanup(() => plots.destroy());
 
-  /** The job on show: its id, status and whether its stored steps were loaded. */
+  /** The job on show: its id and last known status. */
   let shown = { id: null, status: null };
 
   function showJob(job) {
