@@ -51,6 +51,8 @@ export class StepPlots {
         chartCard('Segment I trajectory, side view', `chart-${prefix}-trajectory-side`, 'x against z (along the camera axis), mm')));
     this.pending = false;
     this.charts = [];
+    this.lastStep = 0;
+    this.gap = false;
   }
 
   /** Creates the charts; call once `element` is in the document. */
@@ -105,12 +107,17 @@ export class StepPlots {
     this.vetoCount.textContent = '0';
     this.vetoesNone.hidden = false;
     this.lastStep = 0;
+    this.gap = false;
     this.redraw();
   }
 
-  /** Steps arrive in order; one already shown (a repeat after a refetch) is skipped. */
+  /**
+   * Steps arrive in order; one already shown (a repeat after a refetch) is skipped, and one
+   * that skips ahead (events lost to a reconnect) sets `gap` so the caller can reload.
+   */
   add(step) {
-    if (step.step <= (this.lastStep || 0)) return;
+    if (step.step <= this.lastStep) return;
+    if (step.step !== this.lastStep + 1) this.gap = true;
     this.lastStep = step.step;
     const s = step.state;
     const x = step.step;

@@ -95,7 +95,7 @@ export async function render(page) {
     } else if (kind === 'cell') {
       refreshCell().catch(() => {});
     } else if (kind === 'lagged' && shown.id !== null) {
-      load(shown.id).catch((e) => showError(e, 'Catching up'));
+      plots.gap = true;
     }
   }));
 
@@ -103,6 +103,11 @@ export async function render(page) {
   page.every(2000, async () => {
     try {
       const cell = await refreshCell();
+      if (plots.gap && shown.id !== null) {
+        // Events were lost (a lagging or reconnected stream): redraw from the stored steps.
+        plots.reset();
+        await load(shown.id);
+      }
       if (cell.current_job !== null && cell.current_job !== shown.id) await load(cell.current_job);
       else if (shown.id !== null && !FINAL_STATUSES.includes(shown.status)) await load(shown.id);
     } catch (_) { /* the heartbeat reports an unreachable server */ }
