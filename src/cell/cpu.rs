@@ -25,13 +25,18 @@ pub enum CpuPlanError {
     OnlyCpu { cpu: usize },
 }
 
+/// `auto` isolates a CPU only when at least this many are available: on fewer, the CPU it
+/// takes from HTTP, SQLite, evaluations and training is too large a share. Name a CPU to
+/// isolate one on a smaller machine.
+pub const AUTO_FROM_CPUS: usize = 4;
+
 /// The placement for `choice` given the CPUs the process may use; `None` when every thread
 /// stays anywhere (`off`, or `auto` with a single CPU).
 pub fn plan(available: &[usize], choice: ControlCpu) -> Result<Option<CpuPlan>, CpuPlanError> {
     let control = match choice {
         ControlCpu::Off => return Ok(None),
         ControlCpu::Auto => match available.iter().max() {
-            Some(&last) if available.len() >= 2 => last,
+            Some(&last) if available.len() >= AUTO_FROM_CPUS => last,
             _ => return Ok(None),
         },
         ControlCpu::Cpu(cpu) if !available.contains(&cpu) => {
@@ -101,18 +106,22 @@ mod tests {
     use serde::Deserialize;
 
     #[test]
-    fn auto_takes_the_last_cpu_when_there_are_two_or_more() {
+    fn auto_takes_the_last_cpu_when_there_are_four_or_more() {
         assert_eq!(
-            plan(&[0, 1], ControlCpu::Auto).unwrap(),
+            plan(&[0, 1, 2, 3], ControlCpu::Auto).unwrap(),
             Some(CpuPlan {
-                control: 1,
-                others: vec![0]
+                control: 3,
+                others: vec![0, 1, 2]
             })
         );
         assert_eq!(
-            plan(&[2, 5, 7], ControlCpu::Auto).unwrap().unwrap().others,
-            vec![2, 5]
+            plan(&[2, 5, 7, 8, 9], ControlCpu::Auto)
+                .unwrap()
+                .unwrap()
+                .others,
+            vec![2, 5, 7, 8]
         );
+        assert_eq!(plan(&[0, 1, 2], ControlCpu::Auto).unwrap(), None);
         assert_eq!(plan(&[3], ControlCpu::Auto).unwrap(), None);
         assert_eq!(plan(&[0, 1, 2, 3], ControlCpu::Off).unwrap(), None);
     }

@@ -70,7 +70,8 @@ pub struct ControlConfig {
 /// `control.cpu`: which CPU the control thread gets to itself.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ControlCpu {
-    /// The last CPU this process may use, when it may use two or more.
+    /// The last CPU this process may use, when it may use four or more
+    /// (`cell::cpu::AUTO_FROM_CPUS`).
     #[default]
     Auto,
     /// No placement: every thread may run anywhere.
