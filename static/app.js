@@ -2,7 +2,7 @@
 // Each page is a module whose `render(page)` fills `page.main` and registers its cleanups.
 
 import {
-  api, forgetToken, h, hideBanner, linkState, may, saveToken, session, showBanner, showError,
+  api, forgetToken, h, hideBanner, linkState, saveToken, session, showBanner, showError,
 } from './lib.js';
 import * as live from './live.js';
 import * as jobs from './jobs.js';
@@ -91,9 +91,16 @@ async function show() {
       if (this.closed) fn();
       else this.cleanups.push(fn);
     },
-    /** Runs `fn` every `ms` while the page is shown. */
+    /**
+     * Runs `fn` every `ms` while the page is shown, until it returns (or resolves to) `true`.
+     * A failed run is left to the next one (the heartbeat reports an unreachable server).
+     */
     every(ms, fn) {
-      const timer = setInterval(fn, ms);
+      const timer = setInterval(async () => {
+        try {
+          if ((await fn()) === true) clearInterval(timer);
+        } catch (_) { /* the next run retries */ }
+      }, ms);
       this.onCleanup(() => clearInterval(timer));
     },
   };
@@ -202,6 +209,4 @@ async function start() {
   show();
 }
 
-// Exposed for the browser test and for anyone debugging in the console.
-window.celld = { session, may };
 start();

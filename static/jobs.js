@@ -140,8 +140,7 @@ async function renderJob(page, id) {
 
   if (!(await refresh())) {
     // Still running or queued: follow it until it ends.
-    const timer = setInterval(() => refresh().then((ended) => { if (ended) clearInterval(timer); }).catch(() => {}), 1000);
-    page.onCleanup(() => clearInterval(timer));
+    page.every(1000, refresh);
   }
   if (may.operate()) {
     actions.append(h('button', {

@@ -101,16 +101,14 @@ export async function render(page) {
 
   // The stream can drop events (a reconnect); a slow poll keeps the page right regardless.
   page.every(2000, async () => {
-    try {
-      const cell = await refreshCell();
-      if (plots.gap && shown.id !== null) {
-        // Events were lost (a lagging or reconnected stream): redraw from the stored steps.
-        plots.reset();
-        await load(shown.id);
-      }
-      if (cell.current_job !== null && cell.current_job !== shown.id) await load(cell.current_job);
-      else if (shown.id !== null && !FINAL_STATUSES.includes(shown.status)) await load(shown.id);
-    } catch (_) { /* the heartbeat reports an unreachable server */ }
+    const cell = await refreshCell();
+    if (plots.gap && shown.id !== null) {
+      // Events were lost (a lagging or reconnected stream): redraw from the stored steps.
+      plots.reset();
+      await load(shown.id);
+    }
+    if (cell.current_job !== null && cell.current_job !== shown.id) await load(cell.current_job);
+    else if (shown.id !== null && !FINAL_STATUSES.includes(shown.status)) await load(shown.id);
   });
 
   const cell = await refreshCell();

@@ -72,7 +72,7 @@ export async function render(page) {
   }
 
   await refresh();
-  page.every(2000, () => refresh().catch(() => {}));
+  page.every(2000, refresh);
 }
 
 function progressBar(progress) {
@@ -141,7 +141,6 @@ async function renderRun(page, id) {
   }
 
   if (!(await refresh())) {
-    const timer = setInterval(() => refresh().then((ended) => { if (ended) clearInterval(timer); }).catch(() => {}), 1000);
-    page.onCleanup(() => clearInterval(timer));
+    page.every(1000, refresh);
   }
 }
