@@ -3,6 +3,7 @@
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
+use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, eval};
 use assembly_cell::sim::{EnvOptions, InitialConditions};
 use clap::{Args, Parser, Subcommand, ValueEnum};
@@ -57,7 +58,8 @@ enum PolicyCommand {
 
 #[derive(Args)]
 struct EvalArgs {
-    /// Controller: expert, visual-servo, spiral, or the path of a policy file (.safetensors).
+    /// Controller: expert, visual-servo, spiral, da-dmp, hierarchical, bc, td3, or the path of a
+    /// policy file (.safetensors, hierarchical or flat, told apart by its `format` metadata).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).
@@ -178,7 +180,7 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let policy_file = controller_file(&args.controller);
     let factory: policy::ControllerFactory = match &policy_file {
         Some(path) => {
-            let loaded = HierarchicalPolicy::from_path(path)
+            let loaded = LearnedPolicy::from_path(path)
                 .with_context(|| format!("--controller {}", path.display()))?;
             Box::new(move || Box::new(loaded.clone()))
         }

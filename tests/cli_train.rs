@@ -139,3 +139,132 @@ fn bad_training_requests_are_refused_before_any_work() {
     assert!(stderr(&file).contains("no/such.jsonl: no such file"));
     assert!(!out.join("demos.jsonl").exists(), "no work was done");
 }
+
+const TINY_FLAT: [&str; 12] = [
+    "--demos",
+    "12",
+    "--flat-hidden",
+    "16",
+    "--eval-every",
+    "2",
+    "--eval-episodes",
+    "4",
+    "--checkpoint-every",
+    "1",
+    "--seed",
+    "7",
+];
+
+fn train_flat(out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["train", "flat", "--out", out.to_str().unwrap()];
+    args.extend_from_slice(&TINY_FLAT);
+    args.extend_from_slice(extra);
+    celld(&args)
+}
+
+#[test]
+fn train_flat_makes_a_td3_policy_resumes_and_is_deterministic() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    let first = train_flat(&a, &["--td3-episodes", "3"]);
+    assert!(first.status.success(), "{}", stderr(&first));
+    for name in [
+        "demos.jsonl",
+        "td3-flat_checkpoint.safetensors",
+        "td3-flat_progress.json",
+        "td3-flat_curve.csv",
+        "td3-flat_curve.json",
+        "td3-flat-policy.safetensors",
+        "run.json",
+    ] {
+        assert!(a.join(name).is_file(), "{name} missing");
+    }
+    // No stage of the hierarchy ran.
+    assert!(!a.join("bc.safetensors").exists());
+    let curve = std::fs::read_to_string(a.join("td3-flat_curve.csv")).unwrap();
+    assert_eq!(curve.lines().next(), Some("episode,return,success,steps"));
+    assert_eq!(curve.lines().count(), 1 + 3);
+    // The JSON curve has the shape `celld report --curve` reads, with the validations.
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("td3-flat_curve.json")).unwrap()).unwrap();
+    assert_eq!(json["episodes"].as_array().unwrap().len(), 3);
+    assert_eq!(json["episodes"][2]["episode"], 2);
+    assert!(json["episodes"][0]["return"].is_number());
+    let validated: Vec<u64> = json["validations"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["episode"].as_u64().unwrap())
+        .collect();
+    assert_eq!(validated, vec![2, 3]);
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("run.json")).unwrap()).unwrap();
+    assert!(run["td3-flat"]["wall_s"].is_number(), "{run}");
+
+    // The policy is a flat policy file that `celld eval --controller FILE` runs.
+    let policy = a.join("td3-flat-policy.safetensors");
+    let eval = celld(&[
+        "eval",
+        "--controller",
+        policy.to_str().unwrap(),
+        "--episodes",
+        "2",
+    ]);
+    assert!(eval.status.success(), "{}", stderr(&eval));
+
+    // The same seed gives the same files.
+    let second = train_flat(&b, &["--td3-episodes", "3"]);
+    assert!(second.status.success(), "{}", stderr(&second));
+    for name in ["td3-flat-policy.safetensors", "td3-flat_curve.csv"] {
+        assert_eq!(
+            std::fs::read(a.join(name)).unwrap(),
+            std::fs::read(b.join(name)).unwrap(),
+            "{name} differs between two runs with one seed"
+        );
+    }
+
+    // A second run into the same directory refuses to overwrite it…
+    let again = train_flat(&a, &["--td3-episodes", "3"]);
+    assert!(!again.status.success());
+    assert!(stderr(&again).contains("--resume"), "{}", stderr(&again));
+    // …and with --resume, it continues from its checkpoint.
+    let more = train_flat(&a, &["--td3-episodes", "5", "--resume"]);
+    assert!(more.status.success(), "{}", stderr(&more));
+    assert!(
+        stderr(&more).contains("resuming flat TD3 at episode 3"),
+        "{}",
+        stderr(&more)
+    );
+    let progress: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("td3-flat_progress.json")).unwrap()).unwrap();
+    assert_eq!(progress["episode"], 5);
+    assert_eq!(progress["curve"].as_array().unwrap().len(), 5);
+}
+
+#[test]
+fn bad_flat_training_requests_are_refused_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let none = train_flat(&out, &["--td3-episodes", "0"]);
+    assert!(!none.status.success());
+    assert!(
+        stderr(&none).contains("--td3-episodes must be at least 1"),
+        "{}",
+        stderr(&none)
+    );
+    let narrow = celld(&[
+        "train",
+        "flat",
+        "--out",
+        out.to_str().unwrap(),
+        "--flat-hidden",
+        "0",
+    ]);
+    assert!(!narrow.status.success());
+    assert!(
+        stderr(&narrow).contains("--flat-hidden must be at least 1"),
+        "{}",
+        stderr(&narrow)
+    );
+    assert!(!out.join("demos.jsonl").exists(), "no work was done");
+}

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 const BUNDLED: &[u8] = include_bytes!("../policies/default.safetensors");
 const BC: &[u8] = include_bytes!("../policies/bc.safetensors");
+const TD3: &[u8] = include_bytes!("../policies/td3.safetensors");
 
 fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value) {
     server.post_raw(
@@ -149,6 +150,58 @@ fn upload_evaluate_activate_and_roll_back() {
     assert_eq!(back["retired"], bundled_id);
     let job = server.create_job(&admin, json!({"controller": "active"}));
     assert_eq!(job["policy_id"], bc_id);
+}
+
+#[test]
+fn a_flat_td3_policy_uploads_evaluates_and_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_STEP_PERIOD_MS", "5"),
+            ("CELLD_ACTIVATION_THRESHOLD", "0"),
+        ],
+    );
+    let admin = server.admin.clone();
+    let (status, td3) = upload(&server, &admin, "td3", TD3);
+    assert_eq!(status, 201, "{td3}");
+    assert_eq!(td3["metadata"]["format"], "assembly-cell/flat-policy");
+    assert_eq!(td3["shapes"]["actor.4.weight"], json!([6, 256]));
+    let id = td3["id"].as_i64().unwrap();
+    let (status, evaluation) = server.post(
+        &format!("/api/policies/{id}/evaluate"),
+        Some(&admin),
+        Some(json!({"episodes": 5, "seed": 3})),
+    );
+    assert_eq!(status, 202, "{evaluation}");
+    let evaluated = wait_evaluated(&server, id);
+    assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
+    let (status, activated) =
+        server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);
+    assert_eq!(status, 200, "{activated}");
+    let job = server.create_job(&admin, json!({"controller": "active", "seed": 4}));
+    assert_eq!(job["controller"], format!("policy:{id}"));
+    let done = server.wait_final(job["id"].as_i64().unwrap());
+    assert!(done["steps"].as_i64().unwrap() > 0, "{done}");
+    // The bundled one by name.
+    let job = server.create_job(&admin, json!({"controller": "td3", "seed": 5}));
+    let done = server.wait_final(job["id"].as_i64().unwrap());
+    assert!(done["steps"].as_i64().unwrap() > 0, "{done}");
+
+    // A flat file that breaks its format is refused naming the tensor: renaming a tensor in
+    // the header (same length, so the layout holds) leaves `actor.4.bias` missing.
+    let header_len = u64::from_le_bytes(TD3[..8].try_into().unwrap()) as usize;
+    let header = std::str::from_utf8(&TD3[8..8 + header_len]).unwrap();
+    let mut broken = TD3[..8].to_vec();
+    broken.extend_from_slice(header.replace("actor.4.bias", "actor.9.bias").as_bytes());
+    broken.extend_from_slice(&TD3[8 + header_len..]);
+    let (status, refused) = upload(&server, &admin, "broken", &broken);
+    assert_eq!(status, 422, "{refused}");
+    let message = refused["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("tensor `actor.4.bias` is missing: a flat policy"),
+        "{message}"
+    );
 }
 
 #[test]

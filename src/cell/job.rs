@@ -8,7 +8,8 @@
 use super::backend::CellBackend;
 use crate::config::cell::CellConfig;
 use crate::learning::demos::DemoStep;
-use crate::policy::{self, Actor, Controller, file::PolicyFile, hierarchical::HierarchicalPolicy};
+use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
+use crate::policy::{self, Actor, Controller};
 use crate::sim::{InitialConditions, Observation, Outcome, PoseErrors, RewardTerms};
 use serde::Serialize;
 
@@ -28,10 +29,10 @@ impl ControllerSource {
                 policy::builtin(name, cell).map_err(|e| e.to_string())
             }
             ControllerSource::Policy { id, bytes } => {
-                let file =
-                    PolicyFile::from_bytes(bytes).map_err(|e| format!("policy {id}: {e}"))?;
-                let policy = HierarchicalPolicy::from_file(&file)
+                let file = LearnedPolicyFile::from_bytes(bytes)
                     .map_err(|e| format!("policy {id}: {e}"))?;
+                let policy =
+                    LearnedPolicy::from_file(&file).map_err(|e| format!("policy {id}: {e}"))?;
                 Ok(Box::new(policy.with_name(format!("policy:{id}"))))
             }
         }

@@ -8,14 +8,14 @@
 //! - Table 5: avg steps, avg reward and success of every controller on the reference cell.
 //! - Table 6: the same on phi200, without retraining.
 //! - Fig. 7: learning curves (return and success, moving averages) of the `--curve` files
-//!   written by `celld train td3` (td3_curve.json).
+//!   written by `celld train td3` (td3_curve.json) and `celld train flat` (td3-flat_curve.json).
 
 use super::svg;
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::learning::refine::EpisodeRecord;
 use assembly_cell::policy::eval::{self, EvalSummary};
-use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, ControllerFactory};
 use assembly_cell::sim::{EnvOptions, InitialConditions};
 use clap::Args;
@@ -34,10 +34,12 @@ pub struct ReportArgs {
     out: PathBuf,
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Learned policies to tabulate, as LABEL=FILE (repeatable); default: the bundled ones.
+    /// Learned policies to tabulate, as LABEL=FILE (hierarchical or flat; repeatable); default:
+    /// the bundled ones.
     #[arg(long = "policy")]
     policies: Vec<String>,
-    /// Learning curves for Fig. 7, as LABEL=td3_curve.json (repeatable).
+    /// Learning curves for Fig. 7, as LABEL=td3_curve.json or LABEL=td3-flat_curve.json
+    /// (repeatable).
     #[arg(long = "curve")]
     curves: Vec<String>,
 }
@@ -69,7 +71,7 @@ fn labelled(value: &str, flag: &str) -> Result<(String, PathBuf)> {
 
 fn learned(label: String, path: PathBuf) -> Result<Controller> {
     // Checked now, before any work starts.
-    let loaded = HierarchicalPolicy::from_path(&path)
+    let loaded = LearnedPolicy::from_path(&path)
         .with_context(|| format!("--policy {label}={}", path.display()))?
         .with_name(label.clone());
     Ok(Controller {

@@ -1,4 +1,5 @@
-//! `celld train bc|lstm|td3|all`: the training pipeline over a run directory.
+//! `celld train bc|lstm|td3|all`: the training pipeline over a run directory; `celld train flat`:
+//! the flat TD3 baseline (one 6-DoF actor, no BC, no hierarchy) in the same kind of directory.
 //!
 //! A run directory holds each stage's output, so a stage is a checkpoint and a run resumes:
 //!
@@ -9,15 +10,20 @@
 //! | `lstm.safetensors`, `lstm_curve.csv`, `bc-policy.safetensors` | `train lstm`: + the selector |
 //! | `td3_checkpoint.safetensors`, `td3_progress.json` | `train td3`, every `--checkpoint-every` episodes |
 //! | `td3_curve.csv`, `td3_curve.json`, `policy.safetensors` | `train td3`: curve, best policy |
+//! | `td3-flat_checkpoint.safetensors`, `td3-flat_progress.json` | `train flat`, every `--checkpoint-every` episodes |
+//! | `td3-flat_curve.csv`, `td3-flat_curve.json`, `td3-flat-policy.safetensors` | `train flat`: curve, best policy |
 //! | `run.json` | every stage: settings, figures, wall times |
 
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::learning::bc::BcConfig;
+use assembly_cell::learning::dataset::Normaliser;
 use assembly_cell::learning::demos::{self, DemoEpisode};
+use assembly_cell::learning::flat::{FlatConfig, FlatProgress, FlatTraining};
 use assembly_cell::learning::pipeline::{self, step_limits};
-use assembly_cell::learning::refine::{RefineConfig, RefineProgress, Refinement};
+use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgress, Refinement};
 use assembly_cell::learning::selector::SelectorConfig;
+use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::Actor;
 use assembly_cell::sim::EnvOptions;
 use clap::{Args, Subcommand};
@@ -39,6 +45,10 @@ pub enum TrainCommand {
     Td3(TrainArgs),
     /// Every stage in turn: demonstrations, bc, lstm, td3.
     All(TrainArgs),
+    /// The flat TD3 baseline (`td3`): one 6-DoF actor trained by TD3 from fresh weights, without
+    /// behaviour cloning and without the hierarchy. Uses the demonstrations' states only, for
+    /// the input normaliser. Writes td3-flat-policy.safetensors and td3-flat_curve.csv/.json.
+    Flat(TrainArgs),
 }
 
 #[derive(Args, Clone)]
@@ -83,6 +93,7 @@ pub struct TrainArgs {
     /// Episodes per LSTM batch.
     #[arg(long, default_value_t = 8)]
     lstm_batch: usize,
+    /// TD3 episodes (`train td3` and `train flat`).
     #[arg(long, default_value_t = 500)]
     td3_episodes: usize,
     /// Start TD3 from freshly initialised actors instead of the BC actors.
@@ -95,6 +106,9 @@ pub struct TrainArgs {
     eval_episodes: usize,
     #[arg(long, default_value_t = 50)]
     checkpoint_every: usize,
+    /// Hidden width of the flat baseline's actor and critics (`train flat`; TD3's own 256).
+    #[arg(long, default_value_t = Td3Config::default().hidden)]
+    flat_hidden: usize,
 }
 
 const DEMOS: &str = "demos.jsonl";
@@ -104,6 +118,9 @@ const BC_POLICY: &str = "bc-policy.safetensors";
 const TD3_CHECKPOINT: &str = "td3_checkpoint.safetensors";
 const TD3_PROGRESS: &str = "td3_progress.json";
 const POLICY: &str = "policy.safetensors";
+const FLAT_CHECKPOINT: &str = "td3-flat_checkpoint.safetensors";
+const FLAT_PROGRESS: &str = "td3-flat_progress.json";
+const FLAT_POLICY: &str = "td3-flat-policy.safetensors";
 
 pub fn run(command: TrainCommand) -> Result<()> {
     let (args, stages): (TrainArgs, &[Stage]) = match command {
@@ -111,6 +128,7 @@ pub fn run(command: TrainCommand) -> Result<()> {
         TrainCommand::Lstm(a) => (a, &[Stage::Lstm]),
         TrainCommand::Td3(a) => (a, &[Stage::Td3]),
         TrainCommand::All(a) => (a, &[Stage::Bc, Stage::Lstm, Stage::Td3]),
+        TrainCommand::Flat(a) => (a, &[Stage::Flat]),
     };
     let run = Run::open(args)?;
     for stage in stages {
@@ -124,6 +142,7 @@ enum Stage {
     Bc,
     Lstm,
     Td3,
+    Flat,
 }
 
 struct Run {
@@ -147,6 +166,7 @@ impl Run {
             ("--lstm-batch", args.lstm_batch),
             ("--eval-episodes", args.eval_episodes),
             ("--checkpoint-every", args.checkpoint_every),
+            ("--flat-hidden", args.flat_hidden),
         ];
         for (name, value) in positive {
             if value == 0 {
@@ -223,6 +243,7 @@ impl Run {
             Stage::Bc => self.bc(),
             Stage::Lstm => self.lstm(),
             Stage::Td3 => self.td3(),
+            Stage::Flat => self.flat(),
         }
     }
 
@@ -455,8 +476,23 @@ impl Run {
     }
 
     fn write_curve(&self, refinement: &Refinement) -> Result<()> {
+        self.write_curve_files(
+            "td3_curve",
+            refinement.curve(),
+            json!(refinement.validations()),
+        )
+    }
+
+    /// `{stem}.csv` (episode, return, success, steps) and `{stem}.json` (episodes and
+    /// validations; what `celld report --curve` reads).
+    fn write_curve_files(
+        &self,
+        stem: &str,
+        curve: &[EpisodeRecord],
+        validations: Value,
+    ) -> Result<()> {
         let mut csv = String::from("episode,return,success,steps\n");
-        for r in refinement.curve() {
+        for r in curve {
             csv.push_str(&format!(
                 "{},{},{},{}\n",
                 r.episode,
@@ -465,15 +501,127 @@ impl Run {
                 r.steps
             ));
         }
-        std::fs::write(self.path("td3_curve.csv"), csv)?;
+        std::fs::write(self.path(&format!("{stem}.csv")), csv)?;
         std::fs::write(
-            self.path("td3_curve.json"),
+            self.path(&format!("{stem}.json")),
             serde_json::to_vec_pretty(&json!({
-                "episodes": refinement.curve(),
-                "validations": refinement.validations(),
+                "episodes": curve,
+                "validations": validations,
             }))?,
         )?;
         Ok(())
+    }
+
+    /// The flat TD3 baseline: fresh weights, no BC, no hierarchy; the demonstrations are read
+    /// (or recorded) for their states only, to fit the input normaliser.
+    fn flat(&self) -> Result<()> {
+        let checkpoint = self.path(FLAT_CHECKPOINT);
+        let progress_path = self.path(FLAT_PROGRESS);
+        let resuming = self.args.resume && checkpoint.is_file() && progress_path.is_file();
+        if !resuming && !self.should_run(FLAT_POLICY)? {
+            return Ok(());
+        }
+        if !resuming && checkpoint.exists() {
+            bail!(
+                "{} exists; pass --resume to continue it, or choose another --out",
+                checkpoint.display()
+            );
+        }
+        if self.args.td3_episodes == 0 {
+            bail!("--td3-episodes must be at least 1");
+        }
+        let (mut demos, held_out) = self.demos()?;
+        demos.extend(held_out);
+        let config = FlatConfig {
+            episodes: self.args.td3_episodes,
+            eval_every: self.args.eval_every,
+            eval_episodes: self.args.eval_episodes,
+            td3: Td3Config {
+                hidden: self.args.flat_hidden,
+                ..Td3Config::default()
+            },
+            ..FlatConfig::default()
+        };
+        let mut training = FlatTraining::new(
+            &self.cell,
+            self.options,
+            &Normaliser::fit(&demos),
+            config,
+            self.args.seed,
+        )?;
+        if resuming {
+            let tensors = candle_core::safetensors::load(&checkpoint, &candle_core::Device::Cpu)?;
+            let progress: FlatProgress = serde_json::from_slice(&std::fs::read(&progress_path)?)
+                .with_context(|| format!("{}", progress_path.display()))?;
+            training.restore(&tensors, progress)?;
+            eprintln!("resuming flat TD3 at episode {}", training.episode());
+        }
+        let started = Instant::now();
+        let bar = bar(config.episodes as u64, "flat");
+        bar.set_position(training.episode() as u64);
+        let checkpoint_every = self.args.checkpoint_every;
+        let result = training.run(&mut |training, record, validation| {
+            bar.inc(1);
+            let done = training.episode();
+            if let Some(v) = validation {
+                bar.set_message(format!(
+                    "validation success {:.3}, return {:.1}",
+                    v.success_rate, v.avg_reward
+                ));
+            } else if done % 10 == 0 {
+                bar.set_message(format!(
+                    "episode return {:.1}, steps {}",
+                    record.return_, record.steps
+                ));
+            }
+            if done % checkpoint_every == 0 || done == config.episodes {
+                let (tensors, progress) = training.checkpoint();
+                let partial = checkpoint.with_extension("partial");
+                candle_core::safetensors::save(&tensors, &partial)?;
+                std::fs::rename(&partial, &checkpoint)?;
+                std::fs::write(
+                    &progress_path,
+                    serde_json::to_vec(&progress).map_err(candle_core::Error::wrap)?,
+                )?;
+            }
+            Ok(())
+        });
+        if let Err(error) = result {
+            bar.abandon();
+            bail!(
+                "flat TD3 stopped at episode {} (no policy written): {error}; the last good checkpoint is {}",
+                training.episode(),
+                checkpoint.display()
+            );
+        }
+        bar.finish_and_clear();
+        self.write_curve_files(
+            "td3-flat_curve",
+            training.curve(),
+            json!(training.validations()),
+        )?;
+        let (best, vars) = training.best();
+        training
+            .policy_file(vars, &self.provenance("td3"))?
+            .save(self.path(FLAT_POLICY))?;
+        if let Some(best) = best {
+            eprintln!(
+                "flat TD3: best validation at episode {}: success {:.3}, avg steps {:.2}, avg return {:.1}",
+                best.episode,
+                best.success_rate,
+                best.avg_steps.unwrap_or(f64::NAN),
+                best.avg_reward
+            );
+        }
+        self.note(
+            "td3-flat",
+            started,
+            json!({
+                "best": best,
+                "validations": training.validations(),
+                "config": format!("{config:?}"),
+            }),
+        )
     }
 
     fn provenance(&self, kind: &str) -> BTreeMap<String, String> {

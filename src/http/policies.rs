@@ -5,8 +5,7 @@ use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Json, Path, Query};
 use crate::policy::eval;
-use crate::policy::file::PolicyFile;
-use crate::policy::hierarchical::HierarchicalPolicy;
+use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
 use crate::policy::{Controller, ControllerFactory};
 use crate::sim::EnvOptions;
 use crate::storage::policies::{self, Evaluation, NewPolicy, Policy};
@@ -42,9 +41,10 @@ pub struct UploadQuery {
     name: Option<String>,
 }
 
-/// Checks a policy file as an upload is checked, and stores it (or finds the same bytes).
+/// Checks a policy file (hierarchical or flat, by its `format` metadata) as an upload is checked,
+/// and stores it (or finds the same bytes).
 pub async fn register(db: &Db, name: &str, bytes: &[u8], by: &str) -> ApiResult<(Policy, bool)> {
-    let file = PolicyFile::from_bytes(bytes)
+    let file = LearnedPolicyFile::from_bytes(bytes)
         .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, e.code(), e.to_string()))?;
     let shapes: serde_json::Map<String, Value> = file
         .shapes()
@@ -211,8 +211,8 @@ pub async fn spawn_evaluation(
     let evaluation_id = evaluation.id;
     tokio::spawn(async move {
         let work = tokio::task::spawn_blocking(move || -> Result<_, String> {
-            let file = PolicyFile::from_bytes(&bytes).map_err(|e| e.to_string())?;
-            let policy = HierarchicalPolicy::from_file(&file).map_err(|e| e.to_string())?;
+            let file = LearnedPolicyFile::from_bytes(&bytes).map_err(|e| e.to_string())?;
+            let policy = LearnedPolicy::from_file(&file).map_err(|e| e.to_string())?;
             let factory: ControllerFactory =
                 Box::new(move || Box::new(policy.clone()) as Box<dyn Controller>);
             let pool = rayon::ThreadPoolBuilder::new()

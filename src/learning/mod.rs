@@ -4,6 +4,7 @@
 pub mod bc;
 pub mod dataset;
 pub mod demos;
+pub mod flat;
 pub mod pipeline;
 pub mod refine;
 pub mod run;

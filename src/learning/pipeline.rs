@@ -10,7 +10,7 @@ use super::demos::DemoEpisode;
 use super::selector::{SelectorConfig, agreement, init_selector, sequences, train_selector};
 use crate::config::cell::CellConfig;
 use crate::policy::Actor;
-use crate::policy::file::{PolicyFile, PolicyFileError, TENSOR_NAMES};
+use crate::policy::file::{PolicyFile, PolicyFileError, PolicyKind, TENSOR_NAMES};
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
 use rand::SeedableRng;
@@ -145,6 +145,7 @@ pub fn policy_file(
         let Some(var) = data.get(name) else {
             return Err(PolicyFileError::MissingTensor {
                 name: name.to_string(),
+                kind: PolicyKind::Hierarchical,
             });
         };
         let tensor = var.as_tensor();

@@ -278,7 +278,7 @@ impl HierarchicalNet {
 /// product runs as a sum of scaled columns, which the compiler vectorises without reordering any
 /// reduction.
 #[derive(Debug, Clone)]
-struct Dense {
+pub(crate) struct Dense {
     outputs: usize,
     /// W transposed: column j of W (the weights of input j) at `wt[j * outputs..]`.
     wt: Vec<f32>,
@@ -287,7 +287,7 @@ struct Dense {
 
 impl Dense {
     /// From PyTorch's row-major [out, in] weights.
-    fn new(w: &[f32], b: Vec<f32>, inputs: usize) -> Self {
+    pub(crate) fn new(w: &[f32], b: Vec<f32>, inputs: usize) -> Self {
         let outputs = b.len();
         assert_eq!(w.len(), inputs * outputs, "weights of a dense layer");
         let mut wt = vec![0.0; w.len()];
@@ -308,7 +308,7 @@ impl Dense {
     }
 
     /// y = W x + b.
-    fn forward(&self, x: &[f32], y: &mut [f32]) {
+    pub(crate) fn forward(&self, x: &[f32], y: &mut [f32]) {
         let n = self.outputs;
         let y = &mut y[..n];
         y.copy_from_slice(&self.b);

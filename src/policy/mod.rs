@@ -7,7 +7,9 @@ pub mod dmp;
 pub mod eval;
 pub mod expert;
 pub mod file;
+pub mod flat;
 pub mod hierarchical;
+pub mod learned;
 pub mod run;
 pub mod spiral;
 pub mod visual_servo;
@@ -63,24 +65,26 @@ pub trait Controller: Send {
 /// The controllers that need no learning, by name.
 pub const BUILTIN_CONTROLLERS: [&str; 4] = ["expert", "visual-servo", "spiral", "da-dmp"];
 
-/// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3, the default policy)
-/// and `bc` (the same BC actors and selector without TD3). Made by `celld train all`; see the
-/// README.
-pub const LEARNED_CONTROLLERS: [&str; 2] = ["hierarchical", "bc"];
+/// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3, the default policy),
+/// `bc` (the same BC actors and selector without TD3), both made by `celld train all`, and `td3`
+/// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
+/// flat`). See the README.
+pub const LEARNED_CONTROLLERS: [&str; 3] = ["hierarchical", "bc", "td3"];
 
 /// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
 pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
     match name {
         "hierarchical" => Some(include_bytes!("../../policies/default.safetensors")),
         "bc" => Some(include_bytes!("../../policies/bc.safetensors")),
+        "td3" => Some(include_bytes!("../../policies/td3.safetensors")),
         _ => None,
     }
 }
 
-fn load_bundled(name: &str) -> Option<hierarchical::HierarchicalPolicy> {
+fn load_bundled(name: &str) -> Option<learned::LearnedPolicy> {
     let bytes = bundled_policy(name)?;
-    let file = file::PolicyFile::from_bytes(bytes).expect("bundled policies are valid");
-    let policy = hierarchical::HierarchicalPolicy::from_file(&file).expect("bundled policy loads");
+    let file = learned::LearnedPolicyFile::from_bytes(bytes).expect("bundled policies are valid");
+    let policy = learned::LearnedPolicy::from_file(&file).expect("bundled policy loads");
     Some(policy.with_name(name))
 }
 

@@ -1,0 +1,181 @@
+//! A learned policy of either kind — hierarchical (DESIGN.md §6) or the flat TD3 baseline
+//! (`super::flat`) — chosen by the file's `__metadata__["format"]`. This is what a policy file
+//! given by path (`celld eval --controller FILE`, `celld report --policy`), an uploaded policy
+//! and a bundled policy load as. A file whose format is not the flat one is checked as a
+//! hierarchical policy file, with that loader's messages.
+
+use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
+use super::flat::{FlatPolicy, FlatPolicyFile};
+use super::hierarchical::HierarchicalPolicy;
+use super::{Controller, Decision};
+use crate::sim::Observation;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// A checked policy file of either kind.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LearnedPolicyFile {
+    Hierarchical(PolicyFile),
+    Flat(FlatPolicyFile),
+}
+
+impl LearnedPolicyFile {
+    /// Parses and checks a policy file of the kind its metadata declares.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, PolicyFileError> {
+        match PolicyKind::declared_by(bytes) {
+            PolicyKind::Flat => FlatPolicyFile::from_bytes(bytes).map(Self::Flat),
+            PolicyKind::Hierarchical => PolicyFile::from_bytes(bytes).map(Self::Hierarchical),
+        }
+    }
+
+    /// Reads and checks a policy file of either kind.
+    pub fn from_path(path: impl AsRef<Path>) -> Result<Self, PolicyFileError> {
+        Self::from_bytes(&super::file::read_path(path.as_ref())?)
+    }
+
+    pub fn kind(&self) -> PolicyKind {
+        match self {
+            Self::Hierarchical(_) => PolicyKind::Hierarchical,
+            Self::Flat(_) => PolicyKind::Flat,
+        }
+    }
+
+    /// Name → shape of every tensor, in the file's order.
+    pub fn shapes(&self) -> Vec<(String, Vec<usize>)> {
+        match self {
+            Self::Hierarchical(f) => f.shapes(),
+            Self::Flat(f) => f.shapes(),
+        }
+    }
+
+    /// The checked metadata.
+    pub fn metadata(&self) -> &PolicyMetadata {
+        match self {
+            Self::Hierarchical(f) => f.metadata(),
+            Self::Flat(f) => f.metadata(),
+        }
+    }
+
+    /// `__metadata__` exactly as stored.
+    pub fn raw_metadata(&self) -> &BTreeMap<String, String> {
+        match self {
+            Self::Hierarchical(f) => f.raw_metadata(),
+            Self::Flat(f) => f.raw_metadata(),
+        }
+    }
+}
+
+/// A runnable learned policy of either kind.
+#[derive(Debug, Clone)]
+pub enum LearnedPolicy {
+    // Boxed: both are several hundred bytes inline (normalisers, layers, scratch).
+    Hierarchical(Box<HierarchicalPolicy>),
+    Flat(Box<FlatPolicy>),
+}
+
+impl LearnedPolicy {
+    /// The policy of a checked file, on the CPU (named "hierarchical" or "td3").
+    pub fn from_file(file: &LearnedPolicyFile) -> candle_core::Result<Self> {
+        Ok(match file {
+            LearnedPolicyFile::Hierarchical(f) => {
+                Self::Hierarchical(Box::new(HierarchicalPolicy::from_file(f)?))
+            }
+            LearnedPolicyFile::Flat(f) => Self::Flat(Box::new(FlatPolicy::from_file(f))),
+        })
+    }
+
+    /// Parses, checks and loads a policy file's bytes.
+    pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Self> {
+        Ok(Self::from_file(&LearnedPolicyFile::from_bytes(bytes)?)?)
+    }
+
+    /// Reads, checks and loads a policy file; the controller is named after the file's stem.
+    pub fn from_path(path: impl AsRef<Path>) -> anyhow::Result<Self> {
+        let path = path.as_ref();
+        let policy = Self::from_file(&LearnedPolicyFile::from_path(path)?)?;
+        Ok(match path.file_stem() {
+            Some(stem) => policy.with_name(stem.to_string_lossy()),
+            None => policy,
+        })
+    }
+
+    /// Renames the controller.
+    pub fn with_name(self, name: impl Into<String>) -> Self {
+        match self {
+            Self::Hierarchical(p) => Self::Hierarchical(Box::new(p.with_name(name))),
+            Self::Flat(p) => Self::Flat(Box::new(p.with_name(name))),
+        }
+    }
+
+    pub fn kind(&self) -> PolicyKind {
+        match self {
+            Self::Hierarchical(_) => PolicyKind::Hierarchical,
+            Self::Flat(_) => PolicyKind::Flat,
+        }
+    }
+}
+
+impl Controller for LearnedPolicy {
+    fn name(&self) -> &str {
+        match self {
+            Self::Hierarchical(p) => p.name(),
+            Self::Flat(p) => p.name(),
+        }
+    }
+
+    fn reset(&mut self, seed: u64) {
+        match self {
+            Self::Hierarchical(p) => Controller::reset(p.as_mut(), seed),
+            Self::Flat(p) => p.reset(seed),
+        }
+    }
+
+    fn act(&mut self, observation: &Observation) -> Decision {
+        match self {
+            Self::Hierarchical(p) => p.act(observation),
+            Self::Flat(p) => p.act(observation),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::policy::flat::TENSOR_NAMES;
+
+    fn flat_bytes() -> Vec<u8> {
+        let tensors = TENSOR_NAMES
+            .iter()
+            .map(|&n| {
+                let shape = match n {
+                    "actor.0.weight" => vec![4, 12],
+                    "actor.2.weight" => vec![4, 4],
+                    "actor.4.weight" => vec![6, 4],
+                    "actor.4.bias" => vec![6],
+                    "obs_mean" | "obs_std" => vec![12],
+                    _ => vec![4],
+                };
+                let len = shape.iter().product();
+                (n.to_string(), shape, vec![0.5; len])
+            })
+            .collect();
+        FlatPolicyFile::new(tensors, FlatPolicyFile::standard_metadata(5.0, 1.0))
+            .unwrap()
+            .to_bytes()
+    }
+
+    #[test]
+    fn either_kind_loads_by_its_format() {
+        let flat = LearnedPolicy::from_bytes(&flat_bytes()).unwrap();
+        assert_eq!((flat.kind(), flat.name()), (PolicyKind::Flat, "td3"));
+        let file = LearnedPolicyFile::from_bytes(&flat_bytes()).unwrap();
+        assert_eq!(file.shapes()[4], ("actor.4.weight".to_string(), vec![6, 4]));
+        let bundled = crate::policy::bundled_policy("hierarchical").unwrap();
+        let hierarchical = LearnedPolicy::from_bytes(bundled).unwrap();
+        assert_eq!(hierarchical.kind(), PolicyKind::Hierarchical);
+        assert_eq!(hierarchical.with_name("x").name(), "x");
+        // Anything else is refused as a hierarchical file is.
+        let e = LearnedPolicyFile::from_bytes(b"12345678").unwrap_err();
+        assert_eq!(e, PolicyFile::from_bytes(b"12345678").unwrap_err());
+    }
+}
