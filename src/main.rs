@@ -58,8 +58,9 @@ enum PolicyCommand {
 
 #[derive(Args)]
 struct EvalArgs {
-    /// Controller: expert, visual-servo, spiral, da-dmp, hierarchical, bc, td3, or the path of a
-    /// policy file (.safetensors, hierarchical or flat, told apart by its `format` metadata).
+    /// Controller: expert, expert-state-only, visual-servo, spiral, da-dmp, hierarchical, bc,
+    /// td3, or the path of a policy file (.safetensors, hierarchical or flat, told apart by its
+    /// `format` metadata).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).

@@ -127,6 +127,30 @@ fn bad_training_requests_are_refused_before_any_work() {
     let lr = celld(&["train", "bc", "--out", out.to_str().unwrap(), "--bc-lr=-1"]);
     assert!(!lr.status.success());
     assert!(stderr(&lr).contains("--bc-lr must be a finite number > 0"));
+    let sigma = celld(&[
+        "train",
+        "bc",
+        "--out",
+        out.to_str().unwrap(),
+        "--norm-tilt-std-deg",
+        "0",
+    ]);
+    assert!(!sigma.status.success());
+    assert!(stderr(&sigma).contains("--norm-tilt-std-deg must be a finite number > 0"));
+    let demonstrator = celld(&[
+        "train",
+        "all",
+        "--out",
+        out.to_str().unwrap(),
+        "--demonstrator",
+        "spiral",
+    ]);
+    assert!(!demonstrator.status.success());
+    assert!(
+        stderr(&demonstrator).contains("--demonstrator spiral: not a demonstrator"),
+        "{}",
+        stderr(&demonstrator)
+    );
     let file = celld(&[
         "train",
         "bc",

@@ -17,6 +17,7 @@
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::learning::bc::BcConfig;
+use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::dataset::Normaliser;
 use assembly_cell::learning::demos::{self, DemoEpisode};
 use assembly_cell::learning::flat::{FlatConfig, FlatProgress, FlatTraining};
@@ -68,6 +69,10 @@ pub struct TrainArgs {
     /// Expert episodes to record in the twin.
     #[arg(long, default_value_t = 400)]
     demos: usize,
+    /// The scripted expert that records them: `expert-state-only` (decides on what the policy
+    /// sees) or `expert` (also uses the state filter's σ and drift).
+    #[arg(long, default_value = demos::DEFAULT_DEMONSTRATOR)]
+    demonstrator: String,
     /// Read the demonstrations from this JSON Lines file instead of recording them.
     #[arg(long)]
     demos_file: Option<PathBuf>,
@@ -82,6 +87,19 @@ pub struct TrainArgs {
     /// Weight of the lateral (x, y) components in the position actor's BC loss.
     #[arg(long, default_value_t = 1.0)]
     bc_lateral_weight: f64,
+    /// How many times each insertion step (from 1.5 mm above the entrance) appears in the
+    /// position actor's BC samples.
+    #[arg(long, default_value_t = BcConfig::default().insertion_repeat)]
+    bc_insertion_repeat: usize,
+    /// σ (mm) of P_x, P_y in the goal-centred input normaliser.
+    #[arg(long, default_value_t = GoalScales::default().lateral_mm)]
+    norm_lateral_std_mm: f64,
+    /// σ (mm) of P_z in the goal-centred input normaliser.
+    #[arg(long, default_value_t = GoalScales::default().depth_mm)]
+    norm_depth_std_mm: f64,
+    /// σ (deg) of O_x, O_y in the goal-centred input normaliser.
+    #[arg(long, default_value_t = GoalScales::default().tilt_deg)]
+    norm_tilt_std_deg: f64,
     /// LSTM hidden size (H).
     #[arg(long, default_value_t = 64)]
     lstm_hidden: usize,
@@ -161,6 +179,7 @@ impl Run {
         let positive = [
             ("--actor-width", args.actor_width),
             ("--bc-epochs", args.bc_epochs),
+            ("--bc-insertion-repeat", args.bc_insertion_repeat),
             ("--lstm-hidden", args.lstm_hidden),
             ("--lstm-epochs", args.lstm_epochs),
             ("--lstm-batch", args.lstm_batch),
@@ -183,10 +202,20 @@ impl Run {
             ("--bc-lr", args.bc_lr),
             ("--lstm-lr", args.lstm_lr),
             ("--bc-lateral-weight", args.bc_lateral_weight),
+            ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
+            ("--norm-depth-std-mm", args.norm_depth_std_mm),
+            ("--norm-tilt-std-deg", args.norm_tilt_std_deg),
         ] {
             if !(lr.is_finite() && lr > 0.0) {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
+        }
+        if !demos::DEMONSTRATORS.contains(&args.demonstrator.as_str()) {
+            bail!(
+                "--demonstrator {}: not a demonstrator; known: {}",
+                args.demonstrator,
+                demos::DEMONSTRATORS.join(", ")
+            );
         }
         if let Some(path) = &args.demos_file
             && !path.is_file()
@@ -259,10 +288,14 @@ impl Run {
                 }
                 None => {
                     let started = Instant::now();
-                    eprintln!("recording {} expert demonstrations…", self.args.demos);
-                    let episodes = demos::record_expert(
+                    eprintln!(
+                        "recording {} demonstrations of {}…",
+                        self.args.demos, self.args.demonstrator
+                    );
+                    let episodes = demos::record(
                         &self.cell,
                         self.options,
+                        &self.args.demonstrator,
                         self.args.demos,
                         self.args.seed,
                     );
@@ -299,6 +332,13 @@ impl Run {
             learning_rate: self.args.bc_lr,
             seed: self.args.seed,
             lateral_weight: self.args.bc_lateral_weight,
+            insertion_repeat: self.args.bc_insertion_repeat,
+            insertion_from_pz_mm: pipeline::insertion_from_pz_mm(&self.cell),
+            goal_scales: GoalScales {
+                lateral_mm: self.args.norm_lateral_std_mm,
+                depth_mm: self.args.norm_depth_std_mm,
+                tilt_deg: self.args.norm_tilt_std_deg,
+            },
             ..BcConfig::default()
         };
         let bar = bar(2 * config.epochs as u64, "bc");

@@ -191,12 +191,22 @@ async fn train(context: &Context, job: &RunJob) -> Result<(i64, Value), RunError
     if let Some(count) = job.record {
         let (recorded, seed) = (cell.clone(), job.settings.seed);
         episodes = on_training_thread(move || {
-            demos::record_expert(&recorded, EnvOptions::from_cell(&recorded), count, seed)
+            demos::record(
+                &recorded,
+                EnvOptions::from_cell(&recorded),
+                demos::DEFAULT_DEMONSTRATOR,
+                count,
+                seed,
+            )
         })
         .await
         .map_err(failed)?;
         let new = NewDemonstration {
-            name: &format!("training run {} (recorded expert)", job.id),
+            name: &format!(
+                "training run {} (recorded {})",
+                job.id,
+                demos::DEFAULT_DEMONSTRATOR
+            ),
             source: "scripted",
             cell_hash: &cell.config_hash(),
             job_id: None,

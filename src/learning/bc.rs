@@ -6,8 +6,8 @@
 //! ±1/√fan_in), because candle's CPU random generator cannot be seeded; training is then
 //! deterministic under the seed.
 
-use super::dataset::{Normaliser, StepLabels, StepLimits};
-use super::demos::DemoEpisode;
+use super::dataset::{GoalScales, Normaliser, StepLabels, StepLimits};
+use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
 use crate::policy::hierarchical::ActorNet;
 use candle_core::{DType, Device, Tensor, Var};
@@ -27,6 +27,15 @@ pub struct BcConfig {
     /// moves during insertion are a few µm beside a millimetre-long z step: unweighted, the
     /// loss lets their errors through.
     pub lateral_weight: f64,
+    /// Each position step at or past the standoff (P_z ≥ `insertion_from_pz_mm`) appears this
+    /// many times in the position actor's samples: insertion needs micrometre precision that
+    /// an unweighted loss spends on the approach (docs/learning.md, session 4: success 0.050
+    /// with 1, 0.326 with 20).
+    pub insertion_repeat: usize,
+    /// P_z (mm) from which a position step counts as insertion: 1.5 mm above the entrance.
+    pub insertion_from_pz_mm: f64,
+    /// The fixed σ of the goal-centred input normaliser ([`Normaliser::goal_centred`]).
+    pub goal_scales: GoalScales,
 }
 
 impl Default for BcConfig {
@@ -37,6 +46,9 @@ impl Default for BcConfig {
             learning_rate: 1e-3,
             seed: 0,
             lateral_weight: 1.0,
+            insertion_repeat: 20,
+            insertion_from_pz_mm: -61.5,
+            goal_scales: GoalScales::default(),
         }
     }
 }
@@ -85,19 +97,49 @@ pub fn vars_under(varmap: &VarMap, prefix: &str) -> Vec<Var> {
     named.into_iter().map(|(_, v)| v.clone()).collect()
 }
 
-/// The (normalised state, direction label) pairs of the steps that used `actor`.
+/// The (normalised state, direction label) pairs of the steps that used `actor`; holds have
+/// no direction and are left out.
 pub fn actor_samples(
     episodes: &[DemoEpisode],
     actor: Actor,
     normaliser: &Normaliser,
     limits: &StepLimits,
 ) -> Vec<([f32; 12], [f32; 3])> {
+    samples_where(episodes, actor, normaliser, limits, |_| true)
+}
+
+/// The position actor's samples, with those at or past `config.insertion_from_pz_mm` repeated
+/// `config.insertion_repeat` times in all.
+pub fn position_samples(
+    episodes: &[DemoEpisode],
+    normaliser: &Normaliser,
+    limits: &StepLimits,
+    config: &BcConfig,
+) -> Vec<([f32; 12], [f32; 3])> {
+    let mut samples = actor_samples(episodes, Actor::Position, normaliser, limits);
+    let inserting = samples_where(episodes, Actor::Position, normaliser, limits, |s| {
+        s.state[8] >= config.insertion_from_pz_mm
+    });
+    for _ in 1..config.insertion_repeat {
+        samples.extend_from_slice(&inserting);
+    }
+    samples
+}
+
+fn samples_where(
+    episodes: &[DemoEpisode],
+    actor: Actor,
+    normaliser: &Normaliser,
+    limits: &StepLimits,
+    keep: impl Fn(&DemoStep) -> bool,
+) -> Vec<([f32; 12], [f32; 3])> {
     episodes
         .iter()
         .flat_map(|e| &e.steps)
-        .filter(|s| s.actor == actor)
-        .map(|s| {
-            let labels = StepLabels::of(s, limits);
+        .filter(|s| s.actor == actor && keep(s))
+        .map(|s| (s, StepLabels::of(s, limits)))
+        .filter(|(_, labels)| !labels.is_hold())
+        .map(|(s, labels)| {
             (
                 normaliser.apply(&s.state),
                 labels.direction.map(|v| v as f32),

@@ -6,12 +6,16 @@
 //!   sigmoid(ω3);
 //! - the actor's label a = clamp(Δ / (s · limit), −0.95, 0.95), the target of its tanh output.
 //!
-//! The floor s_min decides which network carries the size of small moves. Below it the actor's
-//! label is proportional to the move, a smooth function of the state that an MLP fits well;
-//! above it the actor gives a direction and the selector the size. Orientation moves are short
-//! (≤ 1 deg, proportional to the error), so their scale is held at 0.98 and the orientation
-//! actor learns the whole move; position moves span 5 mm to microns, so their scale follows the
-//! move down to 0.05 (0.25 mm), below which the position actor is proportional.
+//! The floor s_min = 0.2 decides which network carries the size of small moves. Below it the
+//! actor's label is proportional to the move, a smooth function of the state that an MLP fits
+//! well; above it the actor gives a direction and the selector the size. A lower floor makes
+//! the selector size the fine moves, and a sigmoid output is not precise enough for that: the
+//! last insertion step overshot and tilts of 0.02–0.04° were never corrected (docs/learning.md,
+//! session 5: success 0.135 with floors of 0.05 / 0.98, 0.374 with 0.2 / 0.2).
+//!
+//! A hold (the expert's deliberate zero move, looking again before it goes in) is labelled with
+//! the scale [`HOLD_SCALE`] and no direction: the selector learns to wait, the actors never see
+//! it.
 //!
 //! The 0.9 keeps the labels off tanh's and the sigmoid's asymptotes, where a squared loss cannot
 //! get to them; a full 5 mm step comes back as 0.95 · 0.98 · 5 = 4.66 mm.
@@ -21,8 +25,11 @@ use crate::policy::Actor;
 
 /// Largest scale label.
 const MAX_SCALE: f64 = 0.98;
-/// Smallest position scale label: moves below 0.05 · 0.9 · limit are the actor's to size.
-const MIN_POSITION_SCALE: f64 = 0.05;
+/// Smallest scale label of a move: moves below 0.2 · 0.9 · limit are the actor's to size.
+const MIN_SCALE: f64 = 0.2;
+
+/// Scale label of a hold: almost no move, whatever the actor's output.
+pub const HOLD_SCALE: f64 = 0.002;
 
 /// Floor of the normalisation σ, so that a constant input does not divide by zero.
 const MIN_STD: f64 = 1e-3;
@@ -51,8 +58,46 @@ impl Normaliser {
         Normaliser { mean, std }
     }
 
+    /// Centres the relative pose on the goal (P = 0, O_x = O_y = 0) with fixed σ, keeping the
+    /// fitted mean and σ of A1..A6 and O_z. Fitted over the demonstrations, the σ of P_x, P_y
+    /// is millimetres and that of the tilt degrees, so the micrometre and hundredth-of-a-degree
+    /// errors that decide insertion would be lost in the actors' first layer.
+    pub fn goal_centred(mut self, scales: GoalScales) -> Self {
+        let fixed = [
+            (6, scales.lateral_mm),
+            (7, scales.lateral_mm),
+            (8, scales.depth_mm),
+            (9, scales.tilt_deg),
+            (10, scales.tilt_deg),
+        ];
+        for (i, std) in fixed {
+            self.mean[i] = 0.0;
+            self.std[i] = std;
+        }
+        self
+    }
+
     pub fn apply(&self, state: &[f64; 12]) -> [f32; 12] {
         std::array::from_fn(|i| ((state[i] - self.mean[i]) / self.std[i]) as f32)
+    }
+}
+
+/// The σ of [`Normaliser::goal_centred`]: P_x, P_y (mm), P_z (mm), O_x, O_y (deg).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GoalScales {
+    pub lateral_mm: f64,
+    pub depth_mm: f64,
+    pub tilt_deg: f64,
+}
+
+impl Default for GoalScales {
+    /// The best of docs/learning.md's experiments (sessions 4 and 5).
+    fn default() -> Self {
+        GoalScales {
+            lateral_mm: 0.3,
+            depth_mm: 5.0,
+            tilt_deg: 0.03,
+        }
     }
 }
 
@@ -75,12 +120,19 @@ pub struct StepLabels {
 
 impl StepLabels {
     pub fn of(step: &DemoStep, limits: &StepLimits) -> Self {
-        let (components, limit, min_scale) = match step.actor {
-            Actor::Position => (&step.action[0..3], limits.position_mm, MIN_POSITION_SCALE),
-            Actor::Orientation => (&step.action[3..6], limits.orientation_deg, MAX_SCALE),
+        let (components, limit) = match step.actor {
+            Actor::Position => (&step.action[0..3], limits.position_mm),
+            Actor::Orientation => (&step.action[3..6], limits.orientation_deg),
         };
         let largest = components.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let scale = (largest / (0.9 * limit)).clamp(min_scale, MAX_SCALE);
+        if largest == 0.0 {
+            return StepLabels {
+                actor: step.actor,
+                scale: HOLD_SCALE,
+                direction: [0.0; 3],
+            };
+        }
+        let scale = (largest / (0.9 * limit)).clamp(MIN_SCALE, MAX_SCALE);
         let direction =
             std::array::from_fn(|i| (components[i] / (scale * limit)).clamp(-0.95, 0.95));
         StepLabels {
@@ -88,6 +140,11 @@ impl StepLabels {
             scale,
             direction,
         }
+    }
+
+    /// Whether the step is a hold (no move: no direction to learn).
+    pub fn is_hold(&self) -> bool {
+        self.direction == [0.0; 3]
     }
 
     /// The move the labels stand for (what the policy does when it hits them exactly).
@@ -148,17 +205,53 @@ mod tests {
             &step(Actor::Orientation, [0.0, 0.0, 0.0, 0.0, 0.45, 0.0]),
             &LIMITS,
         );
-        // Orientation: the scale is held, the actor carries the size (0.45 / 0.98).
-        assert_eq!(orientation.scale, 0.98);
-        assert!((orientation.direction[1] - 0.45 / 0.98).abs() < 1e-12);
-        // A small position move: the scale stops at its floor, the actor is proportional.
+        // Orientation 0.45 deg: s = 0.45 / 0.9, a = 0.9.
+        assert!((orientation.scale - 0.5).abs() < 1e-12);
+        assert!((orientation.direction[1] - 0.9).abs() < 1e-12);
+        assert!((orientation.to_action(&LIMITS)[4] - 0.45).abs() < 1e-12);
+        // Small moves: the scale stops at its floor 0.2, the actor is proportional.
         let fine = StepLabels::of(
             &step(Actor::Position, [0.01, -0.02, 0.0, 0.0, 0.0, 0.0]),
             &LIMITS,
         );
-        assert_eq!(fine.scale, 0.05);
-        assert!((fine.direction[1] + 0.02 / 0.25).abs() < 1e-12);
-        assert!((orientation.to_action(&LIMITS)[4] - 0.45).abs() < 1e-12);
+        assert_eq!(fine.scale, 0.2);
+        assert!((fine.direction[1] + 0.02 / 1.0).abs() < 1e-12);
+        let fine_tilt = StepLabels::of(
+            &step(Actor::Orientation, [0.0, 0.0, 0.0, -0.03, 0.0, 0.0]),
+            &LIMITS,
+        );
+        assert_eq!(fine_tilt.scale, 0.2);
+        assert!((fine_tilt.direction[0] + 0.03 / 0.2).abs() < 1e-12);
+        assert!(!fine_tilt.is_hold());
+    }
+
+    #[test]
+    fn a_hold_is_a_tiny_scale_and_no_direction() {
+        let hold = StepLabels::of(&step(Actor::Position, [0.0; 6]), &LIMITS);
+        assert!(hold.is_hold());
+        assert_eq!(hold.scale, HOLD_SCALE);
+        assert_eq!(hold.to_action(&LIMITS), [0.0; 6]);
+    }
+
+    #[test]
+    fn goal_centred_normaliser_fixes_the_relative_pose_and_keeps_the_rest() {
+        let mut a = step(Actor::Position, [0.0; 6]);
+        let mut b = a.clone();
+        (a.state[0], b.state[0]) = (10.0, 14.0);
+        (a.state[7], b.state[7]) = (-50.0, 30.0);
+        let fitted = Normaliser::fit(&[DemoEpisode {
+            steps: vec![a.clone(), b],
+            succeeded: true,
+        }]);
+        let norm = fitted.goal_centred(GoalScales::default());
+        assert_eq!((norm.mean[0], norm.std[0]), (12.0, 2.0), "A1 as fitted");
+        assert_eq!((norm.mean[7], norm.std[7]), (0.0, 0.3));
+        assert_eq!((norm.mean[8], norm.std[8]), (0.0, 5.0));
+        assert_eq!((norm.mean[10], norm.std[10]), (0.0, 0.03));
+        assert_eq!(norm.std[11], fitted.std[11], "O_z as fitted");
+        // 30 µm of lateral error is 0.1 of an input unit.
+        a.state[7] = 0.03;
+        assert!((norm.apply(&a.state)[7] - 0.1).abs() < 1e-6);
     }
 
     #[test]

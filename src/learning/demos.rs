@@ -46,22 +46,45 @@ pub enum DemoError {
     Io(#[from] std::io::Error),
 }
 
-/// Records `episodes` expert episodes in the twin (all cores, deterministic under `seed`).
-/// Vetoed steps are kept (the expert saw the state and decided); steps where the expert held
-/// still for want of a fresh frame are left out, having no label.
+/// The demonstrator `celld train` records by default: the expert that decides on the 12-value
+/// state alone (`expert-state-only`), so that what it does can be learned from what it saw.
+pub const DEFAULT_DEMONSTRATOR: &str = "expert-state-only";
+
+/// The demonstrators a run may record: the scripted experts.
+pub const DEMONSTRATORS: [&str; 2] = ["expert-state-only", "expert"];
+
+/// Records `episodes` episodes of the `expert` in the twin; see [`record`].
 pub fn record_expert(
     cell: &CellConfig,
     options: EnvOptions,
     episodes: usize,
     seed: u64,
 ) -> Vec<DemoEpisode> {
+    record(cell, options, "expert", episodes, seed)
+}
+
+/// Records `episodes` episodes of `demonstrator` (one of [`DEMONSTRATORS`]) in the twin (all
+/// cores, deterministic under `seed`). Vetoed steps are kept (the expert saw the state and
+/// decided), and so are its deliberate holds (a zero move); steps where it held still for want
+/// of a fresh frame are left out, having no label.
+pub fn record(
+    cell: &CellConfig,
+    options: EnvOptions,
+    demonstrator: &str,
+    episodes: usize,
+    seed: u64,
+) -> Vec<DemoEpisode> {
+    assert!(
+        DEMONSTRATORS.contains(&demonstrator),
+        "unknown demonstrator {demonstrator}"
+    );
     (0..episodes)
         .into_par_iter()
         .map_init(
             || {
                 (
                     AssemblyEnv::new(cell, options),
-                    policy::builtin("expert", cell).expect("the expert exists"),
+                    policy::builtin(demonstrator, cell).expect("a demonstrator is built in"),
                 )
             },
             |(env, expert), index| {
@@ -171,6 +194,45 @@ mod tests {
         for (a, b) in episodes.iter().zip(&back) {
             assert_eq!(a.steps, b.steps, "exact round trip");
         }
+    }
+
+    #[test]
+    fn the_state_only_demonstrator_holds_five_times_then_goes_in_by_at_most_3_mm() {
+        let cell = CellConfig::reference();
+        let episodes = record(
+            &cell,
+            EnvOptions::from_cell(&cell),
+            DEFAULT_DEMONSTRATOR,
+            6,
+            9,
+        );
+        let mut succeeded = 0;
+        for episode in &episodes {
+            let holds: Vec<_> = episode
+                .steps
+                .iter()
+                .filter(|s| s.action == [0.0; 6])
+                .collect();
+            if episode.succeeded {
+                succeeded += 1;
+                assert_eq!(
+                    holds.len(),
+                    5,
+                    "one hold per frame at the standoff, 5 in all"
+                );
+            }
+            assert!(
+                holds
+                    .iter()
+                    .all(|s| s.actor == Actor::Position && s.scale == 0.0)
+            );
+            let last_hold = episode.steps.iter().rposition(|s| s.action == [0.0; 6]);
+            // After the holds, every insertion step is at most 3 mm deep.
+            for step in &episode.steps[last_hold.map_or(0, |i| i + 1)..] {
+                assert!(step.action[2].abs() <= 3.0 + 1e-9, "{:?}", step.action);
+            }
+        }
+        assert!(succeeded >= 5, "{succeeded} of 6 succeeded");
     }
 
     #[test]

@@ -4,7 +4,7 @@
 //! Every stage works on one `VarMap` holding tensors by the policy file's names, so a stage's
 //! output is a checkpoint (`save_vars`) and the last stage's output is the policy file.
 
-use super::bc::{BcConfig, actor_samples, init_actor, train_actor};
+use super::bc::{BcConfig, actor_samples, init_actor, position_samples, train_actor};
 use super::dataset::{Normaliser, StepLimits};
 use super::demos::DemoEpisode;
 use super::selector::{SelectorConfig, agreement, init_selector, sequences, train_selector};
@@ -27,6 +27,12 @@ pub fn step_limits(cell: &CellConfig) -> StepLimits {
 }
 
 /// The actor prefix of each actor in a policy file.
+/// P_z (mm) from which a position step counts as insertion in behaviour cloning
+/// ([`BcConfig::insertion_from_pz_mm`]): the tip 1.5 mm above the entrance.
+pub fn insertion_from_pz_mm(cell: &CellConfig) -> f64 {
+    -(cell.shaft.engaged_length_mm + 1.5)
+}
+
 pub fn actor_prefix(actor: Actor) -> &'static str {
     match actor {
         Actor::Position => "pos",
@@ -43,7 +49,7 @@ pub fn behaviour_clone(
     config: &BcConfig,
     on_epoch: &mut dyn FnMut(Actor, usize, f64),
 ) -> candle_core::Result<VarMap> {
-    let normaliser = Normaliser::fit(demos);
+    let normaliser = Normaliser::fit(demos).goal_centred(config.goal_scales);
     let varmap = VarMap::new();
     insert(&varmap, "obs_mean", &normaliser.mean.map(|v| v as f32))?;
     insert(&varmap, "obs_std", &normaliser.std.map(|v| v as f32))?;
@@ -51,7 +57,10 @@ pub fn behaviour_clone(
     for actor in [Actor::Position, Actor::Orientation] {
         let prefix = actor_prefix(actor);
         init_actor(&varmap, prefix, width, &mut rng)?;
-        let samples = actor_samples(demos, actor, &normaliser, limits);
+        let samples = match actor {
+            Actor::Position => position_samples(demos, &normaliser, limits, config),
+            Actor::Orientation => actor_samples(demos, actor, &normaliser, limits),
+        };
         let weights = match actor {
             Actor::Position => {
                 let lateral = config.lateral_weight as f32;
@@ -250,7 +259,7 @@ mod tests {
         assert_eq!(file.raw_metadata()["seed"], "5");
         // The normaliser is stored in f32.
         let stored = normaliser_of(&varmap).unwrap();
-        let fitted = Normaliser::fit(&demos);
+        let fitted = Normaliser::fit(&demos).goal_centred(bc.goal_scales);
         assert_eq!(stored.mean, fitted.mean.map(|v| f64::from(v as f32)));
         assert_eq!(stored.std, fitted.std.map(|v| f64::from(v as f32)));
         // File → bytes → file → vars → file gives the same bytes.

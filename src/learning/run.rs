@@ -148,6 +148,7 @@ pub fn run(
         epochs: settings.bc_epochs,
         learning_rate: settings.bc_learning_rate,
         seed: settings.seed,
+        insertion_from_pz_mm: pipeline::insertion_from_pz_mm(cell),
         ..BcConfig::default()
     };
     let varmap = pipeline::behaviour_clone(

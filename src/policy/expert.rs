@@ -37,6 +37,24 @@ pub struct ExpertTuning {
     pub prestandoff_mm: f64,
     /// Human variability: each step's length is scaled by a factor drawn from [this, 1].
     pub min_step_factor: f64,
+    /// What decides that the shaft may go in, and how long the insertion steps are.
+    pub insertion_gate: InsertionGate,
+    /// Steer against the sideways drift the cell's state filter has learned (a filter
+    /// quantity, not in the 12-value state).
+    pub compensate_drift: bool,
+}
+
+/// When the expert commits to insertion, once aligned at the standoff.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum InsertionGate {
+    /// When the state filter's lateral σ is below `lateral_certainty_mm`; each insertion step
+    /// is as long as the σ stays below `insertion_certainty_mm` over. Both are the filter's,
+    /// not in the 12-value state a policy sees.
+    FilterCertainty,
+    /// After holding still for `holds` fresh frames at the standoff (once per episode), with
+    /// insertion steps of at most `max_step_mm`: a rule of the state and a count, which an
+    /// LSTM policy can learn.
+    Holds { holds: u32, max_step_mm: f64 },
 }
 
 impl Default for ExpertTuning {
@@ -51,12 +69,34 @@ impl Default for ExpertTuning {
             lateral_certainty_mm: 0.009,
             insertion_certainty_mm: 0.013,
             min_step_factor: 0.85,
+            insertion_gate: InsertionGate::FilterCertainty,
+            compensate_drift: true,
+        }
+    }
+}
+
+impl ExpertTuning {
+    /// The demonstrator the hierarchical policy learns from (`expert-state-only`): it decides
+    /// on the 12-value state and a count of holds alone: 5 holds at the standoff, insertion
+    /// steps of at most 3 mm, no drift compensation. On the Table 5 protocol it is as good as
+    /// the default expert (docs/learning.md, session 5).
+    pub fn state_only() -> Self {
+        ExpertTuning {
+            insertion_gate: InsertionGate::Holds {
+                holds: 5,
+                max_step_mm: 3.0,
+            },
+            compensate_drift: false,
+            ..ExpertTuning::default()
         }
     }
 }
 
 pub struct Expert {
+    name: &'static str,
     tuning: ExpertTuning,
+    /// Holds made at the standoff this episode ([`InsertionGate::Holds`]).
+    holds: u32,
     limit_mm: f64,
     limit_deg: f64,
     shaft_length_mm: f64,
@@ -64,13 +104,24 @@ pub struct Expert {
 }
 
 impl Expert {
+    /// The `expert` controller.
     pub fn new(cell: &CellConfig) -> Self {
         Self::with_tuning(cell, ExpertTuning::default())
     }
 
+    /// The `expert-state-only` controller ([`ExpertTuning::state_only`]).
+    pub fn state_only(cell: &CellConfig) -> Self {
+        Expert {
+            name: "expert-state-only",
+            ..Self::with_tuning(cell, ExpertTuning::state_only())
+        }
+    }
+
     pub fn with_tuning(cell: &CellConfig, tuning: ExpertTuning) -> Self {
         Expert {
+            name: "expert",
             tuning,
+            holds: 0,
             limit_mm: cell.steps.position_mm,
             limit_deg: cell.steps.orientation_deg,
             shaft_length_mm: cell.shaft.engaged_length_mm,
@@ -121,7 +172,23 @@ impl Expert {
         let lateral = off_axis.norm();
         // Height of the tip above the entrance (negative once inside).
         let height_mm = -insertion_mm;
-        let sure = estimate.lateral_sd_mm() <= t.lateral_certainty_mm;
+        let sure = match t.insertion_gate {
+            InsertionGate::FilterCertainty => estimate.lateral_sd_mm() <= t.lateral_certainty_mm,
+            InsertionGate::Holds { holds, .. } => {
+                let at_standoff = !inside
+                    && lateral <= t.lateral_tolerance_mm
+                    && height_mm <= t.standoff_mm + 0.01;
+                if at_standoff && self.holds < holds {
+                    self.holds += 1;
+                    return Decision {
+                        action: Move::default(),
+                        actor: Some(Actor::Position),
+                        scale: Some(0.0),
+                    };
+                }
+                self.holds >= holds
+            }
+        };
         let inserting = inside || (lateral <= t.lateral_tolerance_mm && sure);
         let mut dz = if inserting {
             // Aligned: insert (the first step crosses the entrance), shrinking near the bottom.
@@ -146,15 +213,28 @@ impl Expert {
         }
         let mut dz = dz.clamp(-self.limit_mm, self.limit_mm);
         if inserting {
-            // Going in: no longer a step than the lateral estimate stays sure over, given what
-            // is known of the sideways drift (steps grow as the drift is learned).
-            while dz.abs() > 0.5 && estimate.lateral_sd_after_mm(dz) > t.insertion_certainty_mm {
-                dz *= 0.7;
+            match t.insertion_gate {
+                // Going in: no longer a step than the lateral estimate stays sure over, given
+                // what is known of the sideways drift (steps grow as the drift is learned).
+                InsertionGate::FilterCertainty => {
+                    while dz.abs() > 0.5
+                        && estimate.lateral_sd_after_mm(dz) > t.insertion_certainty_mm
+                    {
+                        dz *= 0.7;
+                    }
+                }
+                InsertionGate::Holds { max_step_mm, .. } => {
+                    dz = dz.clamp(-max_step_mm, max_step_mm);
+                }
             }
         }
         // Steer against the sideways drift the cell's state filter has learned: command c such that
         // c + drift · (c, dz) ≈ the wanted lateral move (first order).
-        let drift = estimate.drift();
+        let drift = if t.compensate_drift {
+            estimate.drift()
+        } else {
+            nalgebra::Matrix2x3::zeros()
+        };
         let wanted = Vector3::new(lateral_move.x, lateral_move.y, dz);
         let correction = drift * wanted;
         let delta = Vector3::new(
@@ -176,11 +256,12 @@ impl Expert {
 
 impl Controller for Expert {
     fn name(&self) -> &str {
-        "expert"
+        self.name
     }
 
     fn reset(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.holds = 0;
     }
 
     fn act(&mut self, observation: &Observation) -> Decision {

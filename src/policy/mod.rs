@@ -62,8 +62,15 @@ pub trait Controller: Send {
     fn act(&mut self, observation: &Observation) -> Decision;
 }
 
-/// The controllers that need no learning, by name.
-pub const BUILTIN_CONTROLLERS: [&str; 4] = ["expert", "visual-servo", "spiral", "da-dmp"];
+/// The controllers that need no learning, by name. `expert-state-only` is the demonstrator the
+/// learned policies are trained on (it decides on what the policy sees; see [`expert`]).
+pub const BUILTIN_CONTROLLERS: [&str; 5] = [
+    "expert",
+    "expert-state-only",
+    "visual-servo",
+    "spiral",
+    "da-dmp",
+];
 
 /// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3, the default policy),
 /// `bc` (the same BC actors and selector without TD3), both made by `celld train all`, and `td3`
@@ -103,6 +110,7 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
     }
     match name {
         "expert" => Ok(Box::new(expert::Expert::new(cell))),
+        "expert-state-only" => Ok(Box::new(expert::Expert::state_only(cell))),
         "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
         "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
         "da-dmp" => Ok(Box::new(dmp::default_dmp(cell))),
