@@ -79,8 +79,16 @@ pub struct TrainArgs {
     /// Hidden width of each actor (D).
     #[arg(long, default_value_t = 64)]
     actor_width: usize,
-    #[arg(long, default_value_t = 60)]
+    /// BC epochs per actor (200: at 60 the actors were undertrained, success 0.374 against
+    /// 0.665; docs/learning.md, session 6).
+    #[arg(long, default_value_t = 200)]
     bc_epochs: usize,
+    /// BC epochs of the orientation actor (default: --bc-epochs).
+    #[arg(long)]
+    bc_orientation_epochs: Option<usize>,
+    /// BC batch size (Table 1: 32).
+    #[arg(long, default_value_t = BcConfig::default().batch_size)]
+    bc_batch: usize,
     /// BC learning rate (SGD).
     #[arg(long, default_value_t = 0.02)]
     bc_lr: f64,
@@ -179,6 +187,11 @@ impl Run {
         let positive = [
             ("--actor-width", args.actor_width),
             ("--bc-epochs", args.bc_epochs),
+            (
+                "--bc-orientation-epochs",
+                args.bc_orientation_epochs.unwrap_or(1),
+            ),
+            ("--bc-batch", args.bc_batch),
             ("--bc-insertion-repeat", args.bc_insertion_repeat),
             ("--lstm-hidden", args.lstm_hidden),
             ("--lstm-epochs", args.lstm_epochs),
@@ -329,6 +342,8 @@ impl Run {
         let started = Instant::now();
         let config = BcConfig {
             epochs: self.args.bc_epochs,
+            orientation_epochs: self.args.bc_orientation_epochs,
+            batch_size: self.args.bc_batch,
             learning_rate: self.args.bc_lr,
             seed: self.args.seed,
             lateral_weight: self.args.bc_lateral_weight,
@@ -341,7 +356,8 @@ impl Run {
             },
             ..BcConfig::default()
         };
-        let bar = bar(2 * config.epochs as u64, "bc");
+        let total = config.epochs + config.orientation_epochs.unwrap_or(config.epochs);
+        let bar = bar(total as u64, "bc");
         let mut curve = String::from("actor,epoch,loss\n");
         let mut last = BTreeMap::new();
         let varmap = pipeline::behaviour_clone(

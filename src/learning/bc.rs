@@ -19,7 +19,12 @@ use rand_chacha::ChaCha8Rng;
 /// Behaviour-cloning settings; defaults from Table 1 of the paper.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BcConfig {
+    /// Epochs of the position actor, and of the orientation actor unless
+    /// `orientation_epochs` is set.
     pub epochs: usize,
+    /// Epochs of the orientation actor: its samples are a tenth of the position actor's (which
+    /// are also repeated), so its epochs are cheap.
+    pub orientation_epochs: Option<usize>,
     pub batch_size: usize,
     pub learning_rate: f64,
     pub seed: u64,
@@ -42,6 +47,7 @@ impl Default for BcConfig {
     fn default() -> Self {
         BcConfig {
             epochs: 200,
+            orientation_epochs: None,
             batch_size: 32,
             learning_rate: 1e-3,
             seed: 0,
@@ -244,6 +250,45 @@ mod tests {
     use crate::config::cell::CellConfig;
     use crate::learning::demos::record_expert;
     use crate::sim::EnvOptions;
+
+    #[test]
+    fn insertion_steps_are_repeated_and_holds_left_out() {
+        let step = |pz: f64, dz: f64| DemoStep {
+            episode: 0,
+            step: 0,
+            state: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, pz, 0.0, 0.0, 0.0],
+            action: [0.0, 0.0, dz, 0.0, 0.0, 0.0],
+            actor: Actor::Position,
+            scale: 0.5,
+        };
+        // Two approach steps, one hold at the standoff, two insertion steps.
+        let demos = [DemoEpisode {
+            steps: vec![
+                step(-100.0, 4.0),
+                step(-80.0, 4.0),
+                step(-61.0, 0.0),
+                step(-61.0, 3.0),
+                step(-58.0, 3.0),
+            ],
+            succeeded: true,
+        }];
+        let limits = StepLimits {
+            position_mm: 5.0,
+            orientation_deg: 1.0,
+        };
+        let normaliser = Normaliser::fit(&demos);
+        let config = BcConfig {
+            insertion_repeat: 5,
+            insertion_from_pz_mm: -61.5,
+            ..BcConfig::default()
+        };
+        let plain = actor_samples(&demos, Actor::Position, &normaliser, &limits);
+        assert_eq!(plain.len(), 4, "the hold has no direction to learn");
+        let samples = position_samples(&demos, &normaliser, &limits, &config);
+        assert_eq!(samples.len(), 2 + 2 * 5);
+        let deep = normaliser.apply(&step(-58.0, 3.0).state);
+        assert_eq!(samples.iter().filter(|(x, _)| *x == deep).count(), 5);
+    }
 
     #[test]
     fn bc_lowers_its_loss_on_expert_data_deterministically() {

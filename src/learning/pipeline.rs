@@ -68,13 +68,20 @@ pub fn behaviour_clone(
             }
             Actor::Orientation => [1.0; 3],
         };
+        let config = match actor {
+            Actor::Position => *config,
+            Actor::Orientation => BcConfig {
+                epochs: config.orientation_epochs.unwrap_or(config.epochs),
+                ..*config
+            },
+        };
         train_actor(
             &varmap,
             prefix,
             width,
             weights,
             &samples,
-            config,
+            &config,
             &mut |epoch, loss| on_epoch(actor, epoch, loss),
         )?;
     }
@@ -235,9 +242,20 @@ mod tests {
         let limits = step_limits(&cell);
         let bc = BcConfig {
             epochs: 2,
+            orientation_epochs: Some(3),
             ..BcConfig::default()
         };
-        let varmap = behaviour_clone(&demos, &limits, 16, &bc, &mut |_, _, _| {}).unwrap();
+        let mut epochs = Vec::new();
+        let varmap = behaviour_clone(&demos, &limits, 16, &bc, &mut |actor, epoch, _| {
+            epochs.push((actor, epoch))
+        })
+        .unwrap();
+        let (pos, ori) = (Actor::Position, Actor::Orientation);
+        assert_eq!(
+            epochs,
+            [(pos, 0), (pos, 1), (ori, 0), (ori, 1), (ori, 2)],
+            "each actor its own epochs"
+        );
         let selector = SelectorConfig {
             hidden_size: 8,
             epochs: 2,

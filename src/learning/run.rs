@@ -49,7 +49,7 @@ impl Default for TrainingSettings {
             part: TrainingPart::All,
             seed: 2026,
             actor_width: 64,
-            bc_epochs: 60,
+            bc_epochs: 200,
             bc_learning_rate: 0.02,
             lstm_hidden: 64,
             lstm_epochs: 60,

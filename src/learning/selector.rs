@@ -231,16 +231,18 @@ pub fn agreement(
 mod tests {
     use super::*;
     use crate::config::cell::CellConfig;
-    use crate::learning::demos::record_expert;
+    use crate::learning::dataset::GoalScales;
+    use crate::learning::demos::{DEFAULT_DEMONSTRATOR, record};
     use crate::sim::EnvOptions;
 
     #[test]
     fn the_selector_agrees_with_the_expert_on_held_out_demonstrations() {
+        // As `celld train` trains it: the default demonstrator, the goal-centred normaliser.
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
-        let train = record_expert(&cell, options, 128, 11);
-        let held_out = record_expert(&cell, options, 16, 12);
-        let normaliser = Normaliser::fit(&train);
+        let train = record(&cell, options, DEFAULT_DEMONSTRATOR, 128, 11);
+        let held_out = record(&cell, options, DEFAULT_DEMONSTRATOR, 16, 12);
+        let normaliser = Normaliser::fit(&train).goal_centred(GoalScales::default());
         let limits = StepLimits {
             position_mm: 5.0,
             orientation_deg: 1.0,
