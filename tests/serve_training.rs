@@ -13,8 +13,8 @@ fn tiny(td3_episodes: usize) -> Value {
         "seed": 5,
         "episodes": td3_episodes,
         "record": 12,
-        "settings": {"actor_width": 16, "bc_epochs": 3, "lstm_hidden": 8, "lstm_epochs": 3,
-                     "eval_every": 0, "eval_episodes": 2}
+        "settings": {"actor_width": 16, "bc_epochs": 3, "bc_orientation_epochs": 3,
+                     "lstm_hidden": 8, "lstm_epochs": 3, "eval_every": 0, "eval_episodes": 2}
     })
 }
 

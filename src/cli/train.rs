@@ -83,9 +83,10 @@ pub struct TrainArgs {
     /// 0.665; docs/learning.md, session 6).
     #[arg(long, default_value_t = 200)]
     bc_epochs: usize,
-    /// BC epochs of the orientation actor (default: --bc-epochs).
-    #[arg(long)]
-    bc_orientation_epochs: Option<usize>,
+    /// BC epochs of the orientation actor (its epochs are a hundredth of the position actor's
+    /// work).
+    #[arg(long, default_value_t = BcConfig::default().orientation_epochs)]
+    bc_orientation_epochs: usize,
     /// BC batch size (Table 1: 32).
     #[arg(long, default_value_t = BcConfig::default().batch_size)]
     bc_batch: usize,
@@ -122,6 +123,12 @@ pub struct TrainArgs {
     /// TD3 episodes (`train td3` and `train flat`).
     #[arg(long, default_value_t = 500)]
     td3_episodes: usize,
+    /// TD3 actor learning rate (Adam; Table 1: 3e-4).
+    #[arg(long, default_value_t = Td3Config::default().actor_learning_rate)]
+    td3_actor_lr: f64,
+    /// σ of TD3's Gaussian exploration noise on the actors' tanh outputs.
+    #[arg(long, default_value_t = Td3Config::default().exploration_noise)]
+    td3_noise: f64,
     /// Start TD3 from freshly initialised actors instead of the BC actors.
     #[arg(long)]
     no_bc_init: bool,
@@ -187,10 +194,7 @@ impl Run {
         let positive = [
             ("--actor-width", args.actor_width),
             ("--bc-epochs", args.bc_epochs),
-            (
-                "--bc-orientation-epochs",
-                args.bc_orientation_epochs.unwrap_or(1),
-            ),
+            ("--bc-orientation-epochs", args.bc_orientation_epochs),
             ("--bc-batch", args.bc_batch),
             ("--bc-insertion-repeat", args.bc_insertion_repeat),
             ("--lstm-hidden", args.lstm_hidden),
@@ -215,6 +219,8 @@ impl Run {
             ("--bc-lr", args.bc_lr),
             ("--lstm-lr", args.lstm_lr),
             ("--bc-lateral-weight", args.bc_lateral_weight),
+            ("--td3-actor-lr", args.td3_actor_lr),
+            ("--td3-noise", args.td3_noise),
             ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
             ("--norm-depth-std-mm", args.norm_depth_std_mm),
             ("--norm-tilt-std-deg", args.norm_tilt_std_deg),
@@ -354,9 +360,8 @@ impl Run {
                 depth_mm: self.args.norm_depth_std_mm,
                 tilt_deg: self.args.norm_tilt_std_deg,
             },
-            ..BcConfig::default()
         };
-        let total = config.epochs + config.orientation_epochs.unwrap_or(config.epochs);
+        let total = config.epochs + config.orientation_epochs;
         let bar = bar(total as u64, "bc");
         let mut curve = String::from("actor,epoch,loss\n");
         let mut last = BTreeMap::new();
@@ -448,11 +453,17 @@ impl Run {
             );
         }
         let varmap = pipeline::load_vars(&self.needs(LSTM, "lstm")?)?;
+        let defaults = RefineConfig::default();
         let config = RefineConfig {
             episodes: self.args.td3_episodes,
             eval_every: self.args.eval_every,
             eval_episodes: self.args.eval_episodes,
-            ..RefineConfig::default()
+            td3: Td3Config {
+                actor_learning_rate: self.args.td3_actor_lr,
+                exploration_noise: self.args.td3_noise,
+                ..defaults.td3
+            },
+            ..defaults
         };
         let mut refinement = Refinement::new(
             &self.cell,
@@ -594,6 +605,8 @@ impl Run {
             eval_episodes: self.args.eval_episodes,
             td3: Td3Config {
                 hidden: self.args.flat_hidden,
+                actor_learning_rate: self.args.td3_actor_lr,
+                exploration_noise: self.args.td3_noise,
                 ..Td3Config::default()
             },
             ..FlatConfig::default()

@@ -71,7 +71,7 @@ pub fn behaviour_clone(
         let config = match actor {
             Actor::Position => *config,
             Actor::Orientation => BcConfig {
-                epochs: config.orientation_epochs.unwrap_or(config.epochs),
+                epochs: config.orientation_epochs,
                 ..*config
             },
         };
@@ -242,7 +242,7 @@ mod tests {
         let limits = step_limits(&cell);
         let bc = BcConfig {
             epochs: 2,
-            orientation_epochs: Some(3),
+            orientation_epochs: 3,
             ..BcConfig::default()
         };
         let mut epochs = Vec::new();

@@ -33,7 +33,10 @@ pub struct TrainingSettings {
     pub part: TrainingPart,
     pub seed: u64,
     pub actor_width: usize,
+    /// Epochs of the position actor.
     pub bc_epochs: usize,
+    /// Epochs of the orientation actor (see [`BcConfig::orientation_epochs`]).
+    pub bc_orientation_epochs: usize,
     pub bc_learning_rate: f64,
     pub lstm_hidden: usize,
     pub lstm_epochs: usize,
@@ -50,6 +53,7 @@ impl Default for TrainingSettings {
             seed: 2026,
             actor_width: 64,
             bc_epochs: 200,
+            bc_orientation_epochs: 3000,
             bc_learning_rate: 0.02,
             lstm_hidden: 64,
             lstm_epochs: 60,
@@ -66,6 +70,7 @@ impl TrainingSettings {
         let positive = [
             ("actor_width", self.actor_width),
             ("bc_epochs", self.bc_epochs),
+            ("bc_orientation_epochs", self.bc_orientation_epochs),
             ("lstm_hidden", self.lstm_hidden),
             ("lstm_epochs", self.lstm_epochs),
             ("eval_episodes", self.eval_episodes),
@@ -93,7 +98,7 @@ impl TrainingSettings {
         } else {
             0
         };
-        2 * self.bc_epochs + self.lstm_epochs + td3
+        self.bc_epochs + self.bc_orientation_epochs + self.lstm_epochs + td3
     }
 }
 
@@ -146,6 +151,7 @@ pub fn run(
 
     let bc = BcConfig {
         epochs: settings.bc_epochs,
+        orientation_epochs: settings.bc_orientation_epochs,
         learning_rate: settings.bc_learning_rate,
         seed: settings.seed,
         insertion_from_pz_mm: pipeline::insertion_from_pz_mm(cell),
