@@ -87,7 +87,16 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     let shots = screenshots();
     browser.set_screenshot_dir(Some(&shots));
     let dir = tempfile::tempdir().unwrap();
-    let mut server = Server::start(dir.path(), &[("CELLD_FAST", "true")]);
+    // The bundled policy's first-start evaluation (200 episodes, not all successes) stays below
+    // a gate of 1, so that the gate's refusal can be shown below.
+    let mut server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_FAST", "true"),
+            ("CELLD_ACTIVATION_THRESHOLD", "1"),
+            ("CELLD_EVALUATION_EPISODES", "200"),
+        ],
+    );
     let signin_url = server
         .signin_url
         .clone()
@@ -196,8 +205,16 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         b.exists("#estop-state[data-latched=false]")
     });
 
-    // Policies: activating the bundled policy shows the gate's refusal (its short first-start
-    // evaluation is far below the threshold); declining to force keeps things as they were.
+    // Policies: activating the bundled policy shows the gate's refusal (its first-start
+    // evaluation is below the threshold); declining to force keeps things as they were.
+    let started = std::time::Instant::now();
+    while server.get("/api/policies/1", Some(&server.admin)).1["evaluation"]["status"] != "done" {
+        assert!(
+            started.elapsed() < WAIT,
+            "the first-start evaluation never ended"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
     browser.goto(&format!("{}/#/policies", server.base));
     browser.wait_until("the bundled policy is listed", WAIT, |b| {
         b.exists("tr[data-policy-id='1']")

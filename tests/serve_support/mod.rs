@@ -35,12 +35,13 @@ impl Server {
             // Test servers share two cores; `control_thread_has_a_cpu_of_its_own` checks the
             // placement itself.
             .env("CELLD_CONTROL_CPU", "off")
-            .envs(env.iter().copied())
             .env("CELLD_LOG", "warn")
             // The bundled policy's evaluation at first start, kept short.
             .env("CELLD_EVALUATION_EPISODES", "20")
             // Test servers share two cores; the deadline rule has its own unit test.
             .env("CELLD_DEADLINE_MS", "5000")
+            // The test's own settings win.
+            .envs(env.iter().copied())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
