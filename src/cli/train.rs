@@ -66,7 +66,7 @@ pub struct TrainArgs {
     /// Cell file (default: the bundled reference cell).
     #[arg(long)]
     cell: Option<PathBuf>,
-    /// Expert episodes to record in the twin (800: success 0.935 against 0.665 with 400, at
+    /// Expert episodes to record in the twin (800: success 0.935 against 0.764 with 400, at
     /// the same epochs; docs/learning.md, session 6).
     #[arg(long, default_value_t = 800)]
     demos: usize,
