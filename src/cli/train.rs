@@ -80,9 +80,9 @@ pub struct TrainArgs {
     /// Hidden width of each actor (D).
     #[arg(long, default_value_t = 64)]
     actor_width: usize,
-    /// BC epochs per actor (200: at 60 the actors were undertrained, success 0.374 against
-    /// 0.665; docs/learning.md, session 6).
-    #[arg(long, default_value_t = 200)]
+    /// BC epochs of the position actor (200: at 60 the actors were undertrained, success 0.374
+    /// against 0.665; docs/learning.md, session 6).
+    #[arg(long, default_value_t = BcConfig::default().epochs)]
     bc_epochs: usize,
     /// BC epochs of the orientation actor (its epochs are a hundredth of the position actor's
     /// work).
