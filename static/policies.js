@@ -61,7 +61,11 @@ export async function render(page) {
           }
         },
       }),
-      policy.status === 'active' ? null : h('button', { type: 'button', text: 'Activate', onclick: () => activate(policy) }));
+    );
+    // The DOM's append writes a null as the text "null": the active policy has no Activate.
+    if (policy.status !== 'active') {
+      cell.append(h('button', { type: 'button', text: 'Activate', onclick: () => activate(policy) }));
+    }
     return cell;
   }
 

@@ -27,8 +27,9 @@ use assembly_cell::learning::selector::SelectorConfig;
 use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::Actor;
 use assembly_cell::sim::EnvOptions;
+use candle_nn::VarMap;
 use clap::{Args, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -44,7 +45,8 @@ pub enum TrainCommand {
     Lstm(TrainArgs),
     /// TD3 refinement of the actors in the twin, from the BC actors.
     Td3(TrainArgs),
-    /// Every stage in turn: demonstrations, bc, lstm, td3.
+    /// Every stage: demonstrations, then bc and lstm at once (the selector needs only the
+    /// normaliser; the files are those of the stages run one by one), then td3.
     All(TrainArgs),
     /// The flat TD3 baseline (`td3`): one 6-DoF actor trained by TD3 from fresh weights, without
     /// behaviour cloning and without the hierarchy. Uses the demonstrations' states only, for
@@ -161,7 +163,7 @@ pub fn run(command: TrainCommand) -> Result<()> {
         TrainCommand::Bc(a) => (a, &[Stage::Bc]),
         TrainCommand::Lstm(a) => (a, &[Stage::Lstm]),
         TrainCommand::Td3(a) => (a, &[Stage::Td3]),
-        TrainCommand::All(a) => (a, &[Stage::Bc, Stage::Lstm, Stage::Td3]),
+        TrainCommand::All(a) => (a, &[Stage::BcAndLstm, Stage::Td3]),
         TrainCommand::Flat(a) => (a, &[Stage::Flat]),
     };
     let run = Run::open(args)?;
@@ -175,8 +177,17 @@ pub fn run(command: TrainCommand) -> Result<()> {
 enum Stage {
     Bc,
     Lstm,
+    BcAndLstm,
     Td3,
     Flat,
+}
+
+/// A stage's trained weights, before they are written, with its figures for run.json.
+struct Fitted {
+    varmap: VarMap,
+    /// How long the training took (s), not counting the wait for the other one.
+    wall_s: f64,
+    figures: Value,
 }
 
 struct Run {
@@ -291,6 +302,7 @@ impl Run {
         match stage {
             Stage::Bc => self.bc(),
             Stage::Lstm => self.lstm(),
+            Stage::BcAndLstm => self.bc_and_lstm(),
             Stage::Td3 => self.td3(),
             Stage::Flat => self.flat(),
         }
@@ -322,7 +334,8 @@ impl Run {
                     let mut file = std::io::BufWriter::new(std::fs::File::create(&path)?);
                     demos::write_jsonl(&episodes, &mut file)?;
                     file.flush()?;
-                    self.note("demos", started, json!({"episodes": episodes.len()}))?;
+                    let wall_s = started.elapsed().as_secs_f64();
+                    self.note("demos", wall_s, json!({"episodes": episodes.len()}))?;
                 }
             }
         }
@@ -341,13 +354,8 @@ impl Run {
         Ok((episodes, held_out))
     }
 
-    fn bc(&self) -> Result<()> {
-        if !self.should_run(BC)? {
-            return Ok(());
-        }
-        let (train, _) = self.demos()?;
-        let started = Instant::now();
-        let config = BcConfig {
+    fn bc_config(&self) -> BcConfig {
+        BcConfig {
             epochs: self.args.bc_epochs,
             orientation_epochs: self.args.bc_orientation_epochs,
             batch_size: self.args.bc_batch,
@@ -361,13 +369,66 @@ impl Run {
                 depth_mm: self.args.norm_depth_std_mm,
                 tilt_deg: self.args.norm_tilt_std_deg,
             },
-        };
+        }
+    }
+
+    fn bc(&self) -> Result<()> {
+        if !self.should_run(BC)? {
+            return Ok(());
+        }
+        let (train, _) = self.demos()?;
+        let bc = self.fit_bc(&train, &MultiProgress::new())?;
+        self.save_bc(&bc)
+    }
+
+    fn lstm(&self) -> Result<()> {
+        if !self.should_run(LSTM)? {
+            return Ok(());
+        }
+        let varmap = pipeline::load_vars(&self.needs(BC, "bc")?)?;
+        let (train, held_out) = self.demos()?;
+        let lstm = self.fit_selector(&train, &held_out, varmap, &MultiProgress::new())?;
+        self.save_lstm(&lstm)
+    }
+
+    /// `train all`'s first stages. The selector needs only the normaliser from behaviour
+    /// cloning, so on a fresh run both train at once (the two actors and the selector on three
+    /// threads) and give the files `train bc` then `train lstm` would, byte for byte. A run that
+    /// has either output already goes stage by stage.
+    fn bc_and_lstm(&self) -> Result<()> {
+        if self.path(BC).exists() || self.path(LSTM).exists() {
+            self.bc()?;
+            return self.lstm();
+        }
+        let (train, held_out) = self.demos()?;
+        let normaliser = pipeline::fit_normaliser(&train, &self.bc_config());
+        let selector_vars = pipeline::normaliser_vars(&normaliser)?;
+        let progress = MultiProgress::new();
+        let (bc, lstm) = std::thread::scope(|scope| {
+            let lstm =
+                scope.spawn(|| self.fit_selector(&train, &held_out, selector_vars, &progress));
+            let bc = self.fit_bc(&train, &progress);
+            (bc, lstm.join().expect("the selector's thread panicked"))
+        });
+        let (bc, lstm) = (bc?, lstm?);
+        self.save_bc(&bc)?;
+        for actor in [Actor::Position, Actor::Orientation] {
+            let prefix = format!("{}.", pipeline::actor_prefix(actor));
+            pipeline::merge_vars(&lstm.varmap, &bc.varmap, &prefix);
+        }
+        self.save_lstm(&lstm)
+    }
+
+    /// Behaviour cloning of both actors; writes bc_curve.csv.
+    fn fit_bc(&self, train: &[DemoEpisode], progress: &MultiProgress) -> Result<Fitted> {
+        let started = Instant::now();
+        let config = self.bc_config();
         let total = config.epochs + config.orientation_epochs;
-        let bar = bar(total as u64, "bc");
+        let bar = progress.add(bar(total as u64, "bc"));
         let mut curve = String::from("actor,epoch,loss\n");
         let mut last = BTreeMap::new();
         let varmap = pipeline::behaviour_clone(
-            &train,
+            train,
             &step_limits(&self.cell),
             self.args.actor_width,
             &config,
@@ -382,20 +443,27 @@ impl Run {
         .context("behaviour cloning (no checkpoint written)")?;
         bar.finish_and_clear();
         std::fs::write(self.path("bc_curve.csv"), curve)?;
-        pipeline::save_vars(&varmap, &self.path(BC))?;
-        self.note(
-            "bc",
-            started,
-            json!({"final_loss": last, "config": format!("{config:?}")}),
-        )
+        Ok(Fitted {
+            varmap,
+            wall_s: started.elapsed().as_secs_f64(),
+            figures: json!({"final_loss": last, "config": format!("{config:?}")}),
+        })
     }
 
-    fn lstm(&self) -> Result<()> {
-        if !self.should_run(LSTM)? {
-            return Ok(());
-        }
-        let varmap = pipeline::load_vars(&self.needs(BC, "bc")?)?;
-        let (train, held_out) = self.demos()?;
+    fn save_bc(&self, bc: &Fitted) -> Result<()> {
+        pipeline::save_vars(&bc.varmap, &self.path(BC))?;
+        self.note("bc", bc.wall_s, bc.figures.clone())
+    }
+
+    /// The LSTM selector, trained into `varmap` (which holds the normaliser); writes
+    /// lstm_curve.csv.
+    fn fit_selector(
+        &self,
+        train: &[DemoEpisode],
+        held_out: &[DemoEpisode],
+        varmap: VarMap,
+        progress: &MultiProgress,
+    ) -> Result<Fitted> {
         let started = Instant::now();
         let config = SelectorConfig {
             hidden_size: self.args.lstm_hidden,
@@ -404,14 +472,13 @@ impl Run {
             learning_rate: self.args.lstm_lr,
             seed: self.args.seed,
         };
-        let bar = bar(config.epochs as u64, "lstm");
+        let bar = progress.add(bar(config.epochs as u64, "lstm"));
         let mut curve = String::from("epoch,loss\n");
-        let limits = step_limits(&self.cell);
         let report = pipeline::train_lstm(
             &varmap,
-            &train,
-            &held_out,
-            &limits,
+            train,
+            held_out,
+            &step_limits(&self.cell),
             &config,
             &mut |epoch, loss| {
                 curve.push_str(&format!("{epoch},{loss}\n"));
@@ -422,22 +489,28 @@ impl Run {
         .context("LSTM selector training (no checkpoint written)")?;
         bar.finish_and_clear();
         std::fs::write(self.path("lstm_curve.csv"), curve)?;
-        pipeline::save_vars(&varmap, &self.path(LSTM))?;
-        let file = pipeline::policy_file(&varmap, &limits, &self.provenance("bc"))?;
-        file.save(self.path(BC_POLICY))?;
         eprintln!(
             "selector: held-out agreement with the expert's actor choice {:.4}",
             report.held_out_agreement
         );
-        self.note(
-            "lstm",
-            started,
-            json!({
+        Ok(Fitted {
+            varmap,
+            wall_s: started.elapsed().as_secs_f64(),
+            figures: json!({
                 "held_out_agreement": report.held_out_agreement,
                 "final_loss": report.losses.last(),
                 "config": format!("{config:?}"),
             }),
-        )
+        })
+    }
+
+    /// Writes the selector stage's checkpoint (actors, normaliser, selector) and the BC policy.
+    fn save_lstm(&self, lstm: &Fitted) -> Result<()> {
+        pipeline::save_vars(&lstm.varmap, &self.path(LSTM))?;
+        let limits = step_limits(&self.cell);
+        let file = pipeline::policy_file(&lstm.varmap, &limits, &self.provenance("bc"))?;
+        file.save(self.path(BC_POLICY))?;
+        self.note("lstm", lstm.wall_s, lstm.figures.clone())
     }
 
     fn td3(&self) -> Result<()> {
@@ -538,7 +611,7 @@ impl Run {
         }
         self.note(
             "td3",
-            started,
+            started.elapsed().as_secs_f64(),
             json!({"best": best, "validations": refinement.validations()}),
         )
     }
@@ -685,7 +758,7 @@ impl Run {
         }
         self.note(
             "td3-flat",
-            started,
+            started.elapsed().as_secs_f64(),
             json!({
                 "best": best,
                 "validations": training.validations(),
@@ -707,7 +780,7 @@ impl Run {
     }
 
     /// Adds a stage's figures and wall time to run.json.
-    fn note(&self, stage: &str, started: Instant, figures: Value) -> Result<()> {
+    fn note(&self, stage: &str, wall_s: f64, figures: Value) -> Result<()> {
         let path = self.path("run.json");
         let mut run: Value = match std::fs::read(&path) {
             Ok(bytes) => serde_json::from_slice(&bytes).unwrap_or_else(|_| json!({})),
@@ -715,9 +788,9 @@ impl Run {
         };
         run["seed"] = json!(self.args.seed);
         run["cell"] = json!(self.cell.name);
-        run[stage] = json!({"wall_s": started.elapsed().as_secs_f64(), "figures": figures});
+        run[stage] = json!({"wall_s": wall_s, "figures": figures});
         std::fs::write(&path, serde_json::to_vec_pretty(&run)?)?;
-        eprintln!("{stage}: {:.1} s", started.elapsed().as_secs_f64());
+        eprintln!("{stage}: {wall_s:.1} s");
         Ok(())
     }
 }

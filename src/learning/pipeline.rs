@@ -40,6 +40,29 @@ pub fn actor_prefix(actor: Actor) -> &'static str {
     }
 }
 
+/// The input normaliser of a policy trained on `demos`.
+pub fn fit_normaliser(demos: &[DemoEpisode], config: &BcConfig) -> Normaliser {
+    Normaliser::fit(demos).goal_centred(config.goal_scales)
+}
+
+/// A new `VarMap` holding `normaliser` (`obs_mean`, `obs_std`), which every stage starts from:
+/// the selector needs nothing else from behaviour cloning, so the two can train at once.
+pub fn normaliser_vars(normaliser: &Normaliser) -> candle_core::Result<VarMap> {
+    let varmap = VarMap::new();
+    insert(&varmap, "obs_mean", &normaliser.mean.map(|v| v as f32))?;
+    insert(&varmap, "obs_std", &normaliser.std.map(|v| v as f32))?;
+    Ok(varmap)
+}
+
+/// Copies the variables of `from` whose names start with `prefix` into `into`.
+pub fn merge_vars(into: &VarMap, from: &VarMap, prefix: &str) {
+    let from = from.data().lock().expect("var map lock");
+    let mut into = into.data().lock().expect("var map lock");
+    for (name, var) in from.iter().filter(|(name, _)| name.starts_with(prefix)) {
+        into.insert(name.clone(), var.clone());
+    }
+}
+
 /// Behaviour cloning of both actors: a new `VarMap` with `pos.*`, `ori.*`, `obs_mean`, `obs_std`.
 /// `on_epoch(actor, epoch, loss)` reports progress.
 pub fn behaviour_clone(
@@ -49,14 +72,12 @@ pub fn behaviour_clone(
     config: &BcConfig,
     on_epoch: &mut dyn FnMut(Actor, usize, f64),
 ) -> candle_core::Result<VarMap> {
-    let normaliser = Normaliser::fit(demos).goal_centred(config.goal_scales);
-    let varmap = VarMap::new();
-    insert(&varmap, "obs_mean", &normaliser.mean.map(|v| v as f32))?;
-    insert(&varmap, "obs_std", &normaliser.std.map(|v| v as f32))?;
+    let normaliser = fit_normaliser(demos, config);
+    let varmap = normaliser_vars(&normaliser)?;
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let mut jobs = Vec::with_capacity(2);
     for actor in [Actor::Position, Actor::Orientation] {
-        let prefix = actor_prefix(actor);
-        init_actor(&varmap, prefix, width, &mut rng)?;
+        init_actor(&varmap, actor_prefix(actor), width, &mut rng)?;
         let samples = match actor {
             Actor::Position => position_samples(demos, &normaliser, limits, config),
             Actor::Orientation => actor_samples(demos, actor, &normaliser, limits),
@@ -75,16 +96,41 @@ pub fn behaviour_clone(
                 ..*config
             },
         };
-        train_actor(
-            &varmap,
-            prefix,
-            width,
-            weights,
-            &samples,
-            &config,
-            &mut |epoch, loss| on_epoch(actor, epoch, loss),
-        )?;
+        jobs.push((actor, samples, weights, config));
     }
+    // The actors' training does not depend on each other (each has its own weights, samples
+    // and seeded shuffle), so they train at once, one thread each: the same weights as one
+    // after the other, in the time of the longer.
+    let (progress, reports) = std::sync::mpsc::channel();
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = jobs
+            .iter()
+            .map(|(actor, samples, weights, config)| {
+                let (progress, varmap) = (progress.clone(), &varmap);
+                scope.spawn(move || {
+                    train_actor(
+                        varmap,
+                        actor_prefix(*actor),
+                        width,
+                        *weights,
+                        samples,
+                        config,
+                        &mut |epoch, loss| {
+                            let _ = progress.send((*actor, epoch, loss));
+                        },
+                    )
+                })
+            })
+            .collect();
+        drop(progress);
+        for (actor, epoch, loss) in reports {
+            on_epoch(actor, epoch, loss);
+        }
+        workers
+            .into_iter()
+            .map(|worker| worker.join().expect("a behaviour cloning thread panicked"))
+            .collect::<candle_core::Result<Vec<_>>>()
+    })?;
     Ok(varmap)
 }
 
@@ -250,11 +296,19 @@ mod tests {
             epochs.push((actor, epoch))
         })
         .unwrap();
-        let (pos, ori) = (Actor::Position, Actor::Orientation);
+        // The actors train at once: each reports its own epochs, in order.
+        let of = |actor| -> Vec<usize> {
+            epochs
+                .iter()
+                .filter(|(a, _)| *a == actor)
+                .map(|(_, epoch)| *epoch)
+                .collect()
+        };
+        assert_eq!(of(Actor::Position), [0, 1], "the position actor's epochs");
         assert_eq!(
-            epochs,
-            [(pos, 0), (pos, 1), (ori, 0), (ori, 1), (ori, 2)],
-            "each actor its own epochs"
+            of(Actor::Orientation),
+            [0, 1, 2],
+            "the orientation actor's own"
         );
         let selector = SelectorConfig {
             hidden_size: 8,
@@ -291,6 +345,65 @@ mod tests {
         let loaded = policy_file(&load_vars(&path).unwrap(), &limits, &provenance).unwrap();
         assert_eq!(loaded.to_bytes(), file.to_bytes());
         HierarchicalPolicy::from_file(&file).unwrap();
+    }
+
+    #[test]
+    fn both_actors_at_once_train_as_one_after_the_other() {
+        let cell = CellConfig::reference();
+        let demos = record_expert(&cell, EnvOptions::from_cell(&cell), 6, 5);
+        let limits = step_limits(&cell);
+        let bc = BcConfig {
+            epochs: 3,
+            orientation_epochs: 5,
+            lateral_weight: 2.0,
+            seed: 9,
+            ..BcConfig::default()
+        };
+        let together = behaviour_clone(&demos, &limits, 16, &bc, &mut |_, _, _| {}).unwrap();
+        // The reference: the same initialisation, then each actor alone, in turn.
+        let normaliser = fit_normaliser(&demos, &bc);
+        let alone = normaliser_vars(&normaliser).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(bc.seed);
+        init_actor(&alone, "pos", 16, &mut rng).unwrap();
+        init_actor(&alone, "ori", 16, &mut rng).unwrap();
+        let position = position_samples(&demos, &normaliser, &limits, &bc);
+        train_actor(
+            &alone,
+            "pos",
+            16,
+            [2.0, 2.0, 1.0],
+            &position,
+            &bc,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        let orientation = actor_samples(&demos, Actor::Orientation, &normaliser, &limits);
+        let ori_config = BcConfig {
+            epochs: bc.orientation_epochs,
+            ..bc
+        };
+        train_actor(
+            &alone,
+            "ori",
+            16,
+            [1.0; 3],
+            &orientation,
+            &ori_config,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        let values = |vars: &VarMap| -> BTreeMap<String, Vec<f32>> {
+            let data = vars.data().lock().unwrap();
+            data.iter()
+                .map(|(name, var)| {
+                    let flat = var.as_tensor().flatten_all().unwrap();
+                    (name.clone(), flat.to_vec1::<f32>().unwrap())
+                })
+                .collect()
+        };
+        let (together, alone) = (values(&together), values(&alone));
+        assert_eq!(together.len(), 14, "6 tensors per actor and the normaliser");
+        assert_eq!(together, alone);
     }
 
     #[test]
