@@ -410,8 +410,11 @@ impl Run {
             let bc = self.fit_bc(&train, &progress);
             (bc, lstm.join().expect("the selector's thread panicked"))
         });
-        let (bc, lstm) = (bc?, lstm?);
+        // BC's output is kept even if the selector failed: `--resume` then trains only the
+        // selector.
+        let bc = bc?;
         self.save_bc(&bc)?;
+        let lstm = lstm?;
         for actor in [Actor::Position, Actor::Orientation] {
             let prefix = format!("{}.", pipeline::actor_prefix(actor));
             pipeline::merge_vars(&lstm.varmap, &bc.varmap, &prefix);
