@@ -97,7 +97,10 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     };
     let (cell_handle, control_thread) = task::spawn(
         cell.clone(),
-        Box::new(TwinBackend::new(&cell)),
+        Box::new(TwinBackend::new(
+            &cell,
+            placement.as_ref().map(|p| p.control),
+        )),
         loop_settings,
         sink,
     );

@@ -1,7 +1,7 @@
 //! `assembly-cell`: the digital twin, learning and service behind `celld`.
 //!
 //! Pure libraries (no async runtime, no storage): [`geometry`], [`kinematics`], [`collision`],
-//! [`camera`], [`sim`], [`policy`], [`learning`]. The service: [`cell`] (hardware seam, job
+//! [`camera`], [`robot`] (the robot trait and its supervisor), [`sim`], [`policy`], [`learning`]. The service: [`cell`] (hardware seam, job
 //! core, control thread), [`storage`] (SQLite), [`http`] (axum), [`metrics`], wired by [`app`].
 //! See DESIGN.md §3 and docs/.
 
@@ -16,5 +16,6 @@ pub mod kinematics;
 pub mod learning;
 pub mod metrics;
 pub mod policy;
+pub mod robot;
 pub mod sim;
 pub mod storage;

@@ -459,9 +459,9 @@ fn openapi_describes_every_route() {
     assert!(declared >= 14, "found only {declared} routes");
 }
 
-/// With `control.cpu` naming a CPU, the kernel keeps the control thread on it and every other
-/// thread of the server off it (`auto` picks the last CPU the same way on four or more CPUs;
-/// unit-tested in `cell::cpu`).
+/// With `control.cpu` naming a CPU, the kernel keeps the control thread and camera ingestion
+/// (which takes turns with it) on it and every other thread of the server off it (`auto` picks
+/// the last CPU the same way on four or more CPUs; unit-tested in `cell::cpu`).
 #[cfg(target_os = "linux")]
 #[test]
 fn control_thread_has_a_cpu_of_its_own() {
@@ -489,7 +489,7 @@ fn control_thread_has_a_cpu_of_its_own() {
     for task in std::fs::read_dir(format!("/proc/{}/task", server.pid())).unwrap() {
         let task = task.unwrap().path();
         let name = std::fs::read_to_string(task.join("comm")).unwrap_or_default();
-        if name.trim() == "celld-control" {
+        if ["celld-control", "celld-ingest"].contains(&name.trim()) {
             control.push(allowed(&task));
         } else {
             others.push(allowed(&task));
@@ -497,8 +497,8 @@ fn control_thread_has_a_cpu_of_its_own() {
     }
     assert_eq!(
         control,
-        vec![last.clone()],
-        "the control thread on CPU {last} alone"
+        vec![last.clone(), last.clone()],
+        "the control and ingestion threads on CPU {last} alone"
     );
     let control_cpu = &control[0];
     for other in &others {

@@ -7,6 +7,7 @@
 
 mod estimate;
 pub mod fusion;
+pub mod ingest;
 mod sim;
 
 pub use estimate::{Measurement, StateEstimator, state_vector};

@@ -1,13 +1,25 @@
 //! The hardware seam: what the control loop needs from a cell, robot and camera together.
 //!
 //! Every move a backend executes has passed the collision supervisor (reachability and leg
-//! stroke, the OBB test, exact clearance) first. The twin runs the supervisor inside
-//! [`AssemblyEnv::step`]; a real robot driver is wrapped by the same supervisor before it sees
-//! a pose.
+//! stroke, the OBB test, exact clearance) first: the robot is always a
+//! [`Supervised`](crate::robot::Supervised) robot, the twin's `TwinDrive` now and a real
+//! driver later. Camera ingestion runs on a thread of its own ([`Ingestion`]).
 
+use super::ingestion::{Ingestion, IngestionStopped};
+use crate::camera::ingest::Ingest;
 use crate::config::cell::CellConfig;
-use crate::geometry::Move;
+use crate::geometry::{CellFrames, Move};
+use crate::sim::env::START_CAPTURE_TRIES;
 use crate::sim::{AssemblyEnv, EnvError, EnvOptions, InitialConditions, Observation, StepResult};
+
+/// Why a backend could not start an episode or take a step.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BackendError {
+    #[error(transparent)]
+    Twin(#[from] EnvError),
+    #[error(transparent)]
+    Ingestion(#[from] IngestionStopped),
+}
 
 /// A cell the control loop can drive: start an episode, execute supervised moves, hold.
 pub trait CellBackend: Send {
@@ -15,22 +27,27 @@ pub trait CellBackend: Send {
     fn name(&self) -> &str;
     /// Brings Segment I to an episode's start (the twin samples it from `seed` and `initial`)
     /// and waits for the first usable camera frame.
-    fn start(&mut self, seed: u64, initial: InitialConditions) -> Result<Observation, EnvError>;
+    fn start(&mut self, seed: u64, initial: InitialConditions)
+    -> Result<Observation, BackendError>;
     /// Supervises and executes one move, captures and estimates the new state.
-    fn step(&mut self, action: &Move) -> Result<StepResult, EnvError>;
+    fn step(&mut self, action: &Move) -> Result<StepResult, BackendError>;
     /// Stops motion at once and keeps the robot where it is (protective stop).
     fn hold(&mut self);
 }
 
-/// The digital twin as a cell backend.
+/// The digital twin as a cell backend, its camera's shots ingested on their own thread.
 pub struct TwinBackend {
     env: AssemblyEnv,
+    ingestion: Ingestion,
 }
 
 impl TwinBackend {
-    pub fn new(cell: &CellConfig) -> Self {
+    /// The twin of `cell`. Ingestion keeps to `cpu` when given (the control thread's CPU).
+    pub fn new(cell: &CellConfig, cpu: Option<usize>) -> Self {
+        let ingest = Ingest::new(cell, &CellFrames::from_config(cell));
         TwinBackend {
             env: AssemblyEnv::new(cell, EnvOptions::from_cell(cell)),
+            ingestion: Ingestion::spawn(ingest, cpu),
         }
     }
 }
@@ -40,12 +57,26 @@ impl CellBackend for TwinBackend {
         "twin"
     }
 
-    fn start(&mut self, seed: u64, initial: InitialConditions) -> Result<Observation, EnvError> {
-        self.env.reset_with(seed, initial)
+    fn start(
+        &mut self,
+        seed: u64,
+        initial: InitialConditions,
+    ) -> Result<Observation, BackendError> {
+        self.env.begin_episode(seed, initial)?;
+        let mut estimate = self.ingestion.take(self.env.capture_still(true).clone())?;
+        for _ in 1..START_CAPTURE_TRIES {
+            if estimate.fresh {
+                break;
+            }
+            estimate = self.ingestion.take(self.env.capture_still(false).clone())?;
+        }
+        Ok(self.env.start_from(&estimate))
     }
 
-    fn step(&mut self, action: &Move) -> Result<StepResult, EnvError> {
-        self.env.step(action)
+    fn step(&mut self, action: &Move) -> Result<StepResult, BackendError> {
+        let shot = self.env.act(action)?.clone();
+        let estimate = self.ingestion.take(shot)?;
+        Ok(self.env.settle(&estimate)?)
     }
 
     /// The twin's robot moves only inside `step`, so between steps it already holds; ending

@@ -355,7 +355,7 @@ mod tests {
     #[test]
     fn a_job_is_the_same_episode_as_eval_runs() {
         let cell = CellConfig::reference();
-        let mut backend = TwinBackend::new(&cell);
+        let mut backend = TwinBackend::new(&cell, None);
         let mut run = JobRun::start(&spec("expert", 11), &cell, &mut backend, GENEROUS, 0.0)
             .unwrap_or_else(|e| panic!("{e:?}"));
         let (records, end) = run_to_end(&mut run, &mut backend);
@@ -387,7 +387,7 @@ mod tests {
     #[test]
     fn a_nan_move_never_reaches_the_robot() {
         let cell = CellConfig::reference();
-        let mut backend = TwinBackend::new(&cell);
+        let mut backend = TwinBackend::new(&cell, None);
         let mut run = JobRun::start(&spec("expert", 1), &cell, &mut backend, GENEROUS, 0.0)
             .unwrap_or_else(|e| panic!("{e:?}"));
         run.controller = Box::new(Faulty(0));
@@ -404,7 +404,7 @@ mod tests {
     #[test]
     fn a_slow_step_misses_its_deadline() {
         let cell = CellConfig::reference();
-        let mut backend = TwinBackend::new(&cell);
+        let mut backend = TwinBackend::new(&cell, None);
         let limits = SafetyLimits {
             deadline_s: 0.05,
             ..GENEROUS
@@ -427,7 +427,7 @@ mod tests {
     fn blind_steps_stop_the_job() {
         let mut cell = CellConfig::reference();
         cell.camera.dropout_probability = 1.0;
-        let mut backend = TwinBackend::new(&cell);
+        let mut backend = TwinBackend::new(&cell, None);
         let limits = SafetyLimits {
             max_stale_steps: 2,
             ..GENEROUS
@@ -446,7 +446,7 @@ mod tests {
     #[test]
     fn an_unknown_policy_file_fails_at_start_with_its_reason() {
         let cell = CellConfig::reference();
-        let mut backend = TwinBackend::new(&cell);
+        let mut backend = TwinBackend::new(&cell, None);
         let bad = JobSpec {
             controller: ControllerSource::Policy {
                 id: 3,

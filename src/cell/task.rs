@@ -155,7 +155,7 @@ pub fn spawn(
 /// Asks the OS to run the control thread ahead of the HTTP workers and the storage writer
 /// (nice −10), so a burst of requests cannot delay a step. Needs CAP_SYS_NICE (the systemd unit
 /// grants it); without it the thread runs at normal priority and says so.
-fn raise_priority() {
+pub(crate) fn raise_priority() {
     if let Err(error) = set_thread_nice(-10) {
         tracing::warn!(%error, "the control thread runs at normal priority (no CAP_SYS_NICE)");
     }

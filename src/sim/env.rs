@@ -1,25 +1,26 @@
 //! `AssemblyEnv`: one episode of the assembly in the digital twin, as `reset` / `step`.
 //!
-//! Each step is one camera cycle (4 Hz): the supervisor checks the move against the cell's fused
-//! estimate of the relative pose and the robot's setpoint; an allowed move is executed by the
-//! imperfect robot and predicted by the state filter; the camera captures (possibly while the
-//! robot is still moving, when the move takes longer than the cycle minus the latency); the frame
-//! is fitted and fused into the state; the reward is computed from that state. The outcome is
+//! Each step is one camera cycle (4 Hz): the move goes to the imperfect robot through the
+//! supervisor ([`Supervised`], which checks it against the cell's fused estimate of the relative
+//! pose and the robot's setpoint); an allowed move is predicted by the state filter; the camera
+//! captures (possibly while the robot is still moving, when the move takes longer than the cycle
+//! minus the latency); camera ingestion ([`Ingest`]) fits the frame and fuses it into the state;
+//! the reward is computed from that state. The outcome is
 //! judged on the true pose: success when the true insertion depth and hole alignment are within
 //! tolerance, failure on true contact (the robot's protective stop), on too many vetoes in a row,
 //! on leaving the workspace, or on running out of steps.
 
 use super::reward::{Ending, RewardTerms, RewardTracker};
-use super::robot::TwinRobot;
-use crate::camera::{
-    CameraFrame, FusionTuning, SimCamera, StateEstimator, StateFilter, state_vector,
-};
+use super::robot::{TwinDrive, TwinRobot};
+use crate::camera::ingest::{Estimate, Ingest, Shot};
+use crate::camera::{FusionTuning, SimCamera, StateFilter};
 use crate::collision::clearance::PartGeometry;
 use crate::collision::obb::Obb;
 use crate::collision::supervisor::{Supervisor, VetoReason, swept_clearance};
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose, pose};
 use crate::kinematics::KinematicsError;
+use crate::robot::{Robot, RobotError, Supervised};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -128,8 +129,21 @@ pub struct StepResult {
 pub enum EnvError {
     #[error("the episode is over; call reset")]
     EpisodeOver,
+    #[error("out of order: {0}")]
+    OutOfOrder(&'static str),
     #[error("initial pose unreachable: {0}")]
     Unreachable(KinematicsError),
+}
+
+/// Captures an episode's start may take to get a usable frame (dropped points).
+pub const START_CAPTURE_TRIES: u32 = 10;
+
+/// What a move did, between [`AssemblyEnv::act`] and [`AssemblyEnv::settle`].
+#[derive(Debug, Clone, Default)]
+struct PendingMove {
+    executed: Option<Move>,
+    veto: Option<VetoReason>,
+    failure: Option<FailureReason>,
 }
 
 /// Options that are not part of the cell file.
@@ -160,14 +174,20 @@ pub struct AssemblyEnv {
     supervisor: Supervisor,
     robot: TwinRobot,
     camera: SimCamera,
-    estimator: StateEstimator,
-    filter: StateFilter,
-    frame: CameraFrame,
+    /// Camera ingestion, run inline by [`AssemblyEnv::step`].
+    ingest: Ingest,
+    /// The last capture, reused from step to step.
+    shot: Shot,
+    /// The episode's one random stream: initial pose, calibration, then per step the robot's
+    /// leg errors and the camera's noise, in that order.
     rng: ChaCha8Rng,
     // Episode state.
     step: u32,
     consecutive_vetoes: u32,
+    /// The fused estimate of {F} in {M} the supervisor judges the next move against.
     estimated_m_f: Option<Pose>,
+    /// What [`AssemblyEnv::act`] found, until [`AssemblyEnv::settle`].
+    pending: Option<PendingMove>,
     observation: Observation,
     reward: Option<RewardTracker>,
     outcome: Option<Outcome>,
@@ -179,8 +199,7 @@ impl AssemblyEnv {
         let parts = PartGeometry::from_config(cell);
         AssemblyEnv {
             camera: SimCamera::new(cell, &frames, options.noise_scale),
-            estimator: StateEstimator::new(cell, &frames),
-            filter: StateFilter::new(FusionTuning::default()),
+            ingest: Ingest::new(cell, &frames),
             supervisor: Supervisor::new(cell),
             robot: TwinRobot::new(cell),
             bore_obb: parts.bore_obb(),
@@ -188,11 +207,12 @@ impl AssemblyEnv {
             frames,
             cell: cell.clone(),
             options,
-            frame: CameraFrame::default(),
+            shot: Shot::default(),
             rng: ChaCha8Rng::seed_from_u64(0),
             step: 0,
             consecutive_vetoes: 0,
             estimated_m_f: None,
+            pending: None,
             observation: Observation {
                 state: [0.0; 12],
                 raw_state: [0.0; 12],
@@ -226,6 +246,33 @@ impl AssemblyEnv {
         seed: u64,
         initial: InitialConditions,
     ) -> Result<Observation, EnvError> {
+        self.begin_episode(seed, initial)?;
+        // The cell waits for a usable frame before it starts; a few tries cover dropped points.
+        // With none, the state stays all zeros.
+        self.capture_still(true);
+        let mut estimate = self.ingest.take(&self.shot);
+        for _ in 1..START_CAPTURE_TRIES {
+            if estimate.fresh {
+                break;
+            }
+            self.capture_still(false);
+            estimate = self.ingest.take(&self.shot);
+        }
+        Ok(self.start_from(&estimate))
+    }
+
+    /// Executes one move (or has it vetoed) and returns what follows: [`AssemblyEnv::act`],
+    /// ingestion of its capture, then [`AssemblyEnv::settle`].
+    pub fn step(&mut self, action: &Move) -> Result<StepResult, EnvError> {
+        self.act(action)?;
+        let estimate = self.ingest.take(&self.shot);
+        self.settle(&estimate)
+    }
+
+    /// The first part of a reset, for a caller that runs camera ingestion itself: draws the
+    /// episode from `seed` and puts Segment I there. Then [`AssemblyEnv::capture_still`] until
+    /// ingestion has a usable frame (or gives up), then [`AssemblyEnv::start_from`].
+    pub fn begin_episode(&mut self, seed: u64, initial: InitialConditions) -> Result<(), EnvError> {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
         let f_m = self.sample_initial(initial);
         self.robot
@@ -234,73 +281,84 @@ impl AssemblyEnv {
         self.step = 0;
         self.consecutive_vetoes = 0;
         self.outcome = None;
-        self.filter.reset();
-        // The cell waits for a usable frame before it starts; a few tries cover dropped points.
+        self.pending = None;
+        self.reward = None;
+        Ok(())
+    }
+
+    /// A capture with the robot still; `new_episode` on the first of an episode.
+    pub fn capture_still(&mut self, new_episode: bool) -> &Shot {
         let platform = *self.robot.true_platform();
-        let mut fresh = false;
-        for _ in 0..10 {
-            fresh = self.capture(&platform, None);
-            if fresh {
-                break;
-            }
-        }
-        if !fresh {
-            self.observation.state = [0.0; 12];
-            self.observation.raw_state = [0.0; 12];
-        }
+        self.capture(&platform, None, None);
+        self.shot.new_episode = new_episode;
+        &self.shot
+    }
+
+    /// Ends a reset with ingestion's estimate of the last capture: the episode's first
+    /// observation.
+    pub fn start_from(&mut self, estimate: &Estimate) -> Observation {
+        self.observe(estimate);
         self.observation.step = 0;
-        self.observation.measurement_fresh = fresh;
         self.observation.last_veto = None;
-        self.observation.estimate = self.filter;
         self.reward = Some(RewardTracker::new(
             &self.cell.reward,
             &self.observation.state,
         ));
-        Ok(self.observation.clone())
+        self.observation.clone()
     }
 
-    /// Executes one move (or has it vetoed) and returns what follows.
-    pub fn step(&mut self, action: &Move) -> Result<StepResult, EnvError> {
+    /// The first part of a step, for a caller that runs camera ingestion itself: the move goes
+    /// to the robot through the supervisor, then the camera captures. Hand the shot to
+    /// ingestion and its estimate to [`AssemblyEnv::settle`].
+    pub fn act(&mut self, action: &Move) -> Result<&Shot, EnvError> {
         if self.outcome.is_some() {
             return Err(EnvError::EpisodeOver);
         }
+        if self.reward.is_none() {
+            return Err(EnvError::OutOfOrder(
+                "act before the episode's first estimate",
+            ));
+        }
+        if self.pending.is_some() {
+            return Err(EnvError::OutOfOrder("act before the last move was settled"));
+        }
         self.step += 1;
         let before = *self.robot.true_platform();
-        let verdict =
-            self.supervisor
-                .check(self.robot.setpoint(), self.estimated_m_f.as_ref(), action);
-        let mut failure = None;
+        let mut robot = Supervised::new(
+            &self.supervisor,
+            TwinDrive {
+                robot: &mut self.robot,
+                rng: &mut self.rng,
+            },
+        );
+        robot.observe(self.estimated_m_f);
+        let mut pending = PendingMove::default();
         let mut capture_fraction = 1.0;
-        let veto = match verdict {
-            Ok(allowed) => {
+        match robot.execute(action) {
+            Ok(()) => {
                 self.consecutive_vetoes = 0;
-                match self
-                    .robot
-                    .execute(&allowed.target_platform, &allowed.legs_mm, &mut self.rng)
-                {
-                    Ok(()) => {
-                        self.filter.predict(action);
-                        let after = *self.robot.true_platform();
-                        let path = swept_clearance(
-                            &self.parts,
-                            &self.bore_obb,
-                            &self.frames.segment_for(&before),
-                            &self.frames.segment_for(&after),
-                        );
-                        if !path.is_clear() {
-                            failure = Some(FailureReason::Contact);
-                        }
-                        capture_fraction = self.capture_fraction(action);
-                    }
-                    Err(_) => failure = Some(FailureReason::RobotFault),
+                pending.executed = Some(*action);
+                let after = *self.robot.true_platform();
+                let path = swept_clearance(
+                    &self.parts,
+                    &self.bore_obb,
+                    &self.frames.segment_for(&before),
+                    &self.frames.segment_for(&after),
+                );
+                if !path.is_clear() {
+                    pending.failure = Some(FailureReason::Contact);
                 }
-                None
+                capture_fraction = self.capture_fraction(action);
             }
-            Err(reason) => {
+            Err(RobotError::Vetoed(reason)) => {
                 self.consecutive_vetoes += 1;
-                Some(reason)
+                pending.veto = Some(reason);
             }
-        };
+            Err(RobotError::Fault(_)) => {
+                self.consecutive_vetoes = 0;
+                pending.failure = Some(FailureReason::RobotFault);
+            }
+        }
         let after = *self.robot.true_platform();
         let seen = pose::interpolate(&before, &after, capture_fraction);
         // The part of the commanded move still to come after the capture, in {M}.
@@ -308,11 +366,22 @@ impl AssemblyEnv {
             let commanded = action.as_pose();
             pose::interpolate(&Pose::identity(), &commanded, capture_fraction).inverse() * commanded
         });
-        let fresh = self.capture(&seen, remaining.as_ref());
+        self.capture(&seen, pending.executed, remaining);
+        self.shot.new_episode = false;
+        self.pending = Some(pending);
+        Ok(&self.shot)
+    }
 
-        let true_f_m = self.frames.segment_for(&after);
+    /// The second part of a step: takes ingestion's estimate of the shot [`AssemblyEnv::act`]
+    /// took, judges the outcome on the true pose and computes the reward.
+    pub fn settle(&mut self, estimate: &Estimate) -> Result<StepResult, EnvError> {
+        let pending = self.pending.take().ok_or(EnvError::OutOfOrder(
+            "settle without a move; call act first",
+        ))?;
+        self.observe(estimate);
+        let true_f_m = self.true_f_m();
         let errors = self.pose_errors(&true_f_m);
-        let outcome = if let Some(reason) = failure {
+        let outcome = if let Some(reason) = pending.failure {
             Some(Outcome::Failure(reason))
         } else if self.is_success(&errors) {
             Some(Outcome::Success)
@@ -331,9 +400,7 @@ impl AssemblyEnv {
             Outcome::Failure(_) => Ending::Failure,
         });
         self.observation.step = self.step;
-        self.observation.measurement_fresh = fresh;
-        self.observation.last_veto = veto.clone();
-        self.observation.estimate = self.filter;
+        self.observation.last_veto = pending.veto.clone();
         let tip_in_bore = self.estimated_tip_in_bore();
         let reward = self.reward.as_mut().expect("reset before step").step(
             &self.observation.state,
@@ -343,7 +410,7 @@ impl AssemblyEnv {
         Ok(StepResult {
             observation: self.observation.clone(),
             reward,
-            veto,
+            veto: pending.veto,
             legs_mm: *self.robot.encoders_mm(),
             done: outcome.is_some(),
             outcome,
@@ -391,35 +458,25 @@ impl AssemblyEnv {
         }
     }
 
-    /// Captures the scene with the platform at `platform`; on success fuses the measurement into
-    /// the state filter and updates the observation's state, else marks the measurement stale
-    /// (the supervisor then vetoes any move). A capture taken while the
-    /// robot was still moving is carried forward by the rest of the commanded move
-    /// (`remaining`, in {M}), as the cell's ingestion does with the robot's own motion; what is
-    /// left of the latency is the difference between the commanded and the true motion.
-    fn capture(&mut self, platform: &Pose, remaining: Option<&Pose>) -> bool {
+    /// Captures the scene with the platform at `platform` into the shot. A capture taken while
+    /// the robot was still moving is carried forward by ingestion by the rest of the commanded
+    /// move (`remaining`, in {M}), as the cell does with the robot's own motion; what is left
+    /// of the latency is the difference between the commanded and the true motion.
+    fn capture(&mut self, platform: &Pose, executed: Option<Move>, remaining: Option<Pose>) {
         let (w_m, w_f) = self.frames.world_poses(platform);
         self.camera
-            .capture_into(&w_m, &w_f, &mut self.rng, &mut self.frame);
-        match self.estimator.estimate(&self.frame) {
-            Ok(mut measurement) => {
-                if let Some(remaining) = remaining {
-                    measurement.w_m *= remaining;
-                    measurement.m_f = remaining.inverse() * measurement.m_f;
-                }
-                let pitch = self.cell.hole_pitch_deg();
-                self.observation.raw_state = measurement.state(pitch);
-                self.filter.update(&measurement.m_f);
-                let fused = self.filter.m_f().unwrap_or(measurement.m_f);
-                self.observation.state = state_vector(&measurement.w_m, &fused, pitch);
-                self.estimated_m_f = Some(fused);
-                true
-            }
-            Err(_) => {
-                self.estimated_m_f = None;
-                false
-            }
-        }
+            .capture_into(&w_m, &w_f, &mut self.rng, &mut self.shot.frame);
+        self.shot.executed = executed;
+        self.shot.remaining = remaining;
+    }
+
+    /// Takes in ingestion's estimate: the state the controller sees and the supervisor uses.
+    fn observe(&mut self, estimate: &Estimate) {
+        self.observation.state = estimate.state;
+        self.observation.raw_state = estimate.raw_state;
+        self.observation.estimate = estimate.filter;
+        self.observation.measurement_fresh = estimate.fresh;
+        self.estimated_m_f = estimate.m_f;
     }
 
     fn estimated_tip_in_bore(&self) -> bool {

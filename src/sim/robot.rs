@@ -8,8 +8,9 @@
 //! not accumulate from move to move, but the calibration error bends every move the same way.
 
 use crate::config::cell::CellConfig;
-use crate::geometry::Pose;
+use crate::geometry::{CellFrames, Move, Pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
+use crate::robot::{Robot, RobotError};
 use nalgebra::Vector3;
 use rand::Rng;
 use rand_distr::StandardNormal;
@@ -21,6 +22,8 @@ pub struct TwinRobot {
     calibration_error_mm: f64,
     resolution_mm: f64,
     leg_error_sd_mm: f64,
+    /// Segment I's frame {M} in the platform's {P}: turns a move in {M} into a platform pose.
+    p_m: Pose,
     /// True platform pose in {O}.
     true_platform: Pose,
     /// The commanded platform pose, in the nominal model.
@@ -51,6 +54,7 @@ impl TwinRobot {
                 0.0
             },
             encoders_mm: nominal.leg_lengths_mm(&home),
+            p_m: CellFrames::from_config(cell).p_m,
             nominal,
             true_platform: home,
             setpoint: home,
@@ -111,6 +115,38 @@ impl TwinRobot {
     }
 }
 
+/// The twin's robot as a [`Robot`], for as long as it borrows the episode's random stream. The
+/// twin's camera draws from the same stream, so an episode replays exactly under its seed.
+pub struct TwinDrive<'a, G> {
+    pub robot: &'a mut TwinRobot,
+    pub rng: &'a mut G,
+}
+
+impl<G: Rng> Robot for TwinDrive<'_, G> {
+    fn setpoint(&self) -> Pose {
+        self.robot.setpoint
+    }
+
+    fn encoders_mm(&self) -> [f64; 6] {
+        self.robot.encoders_mm
+    }
+
+    /// Commands the nominal leg lengths of the platform pose that moves {M} by `step`.
+    fn execute(&mut self, step: &Move) -> Result<(), RobotError> {
+        let p_m = self.robot.p_m;
+        let target = self.robot.setpoint * p_m * step.as_pose() * p_m.inverse();
+        let legs = (self.robot.nominal)
+            .inverse_checked(&target)
+            .map_err(RobotError::Fault)?;
+        (self.robot)
+            .execute(&target, &legs, self.rng)
+            .map_err(RobotError::Fault)
+    }
+
+    /// The twin moves only inside `execute`, so between moves it already holds.
+    fn hold(&mut self) {}
+}
+
 fn quantize(value: f64, resolution: f64) -> f64 {
     if resolution > 0.0 {
         (value / resolution).round() * resolution
@@ -148,6 +184,36 @@ mod tests {
         let error = robot.true_platform().translation.vector - target.translation.vector;
         assert!(error.norm() < 1e-9, "error {error}");
         assert_eq!(robot.setpoint(), &target);
+    }
+
+    #[test]
+    fn a_drive_command_lands_where_the_supervisor_predicts() {
+        let mut cell = CellConfig::reference();
+        cell.imperfections.calibration_error = false;
+        cell.imperfections.execution_error = false;
+        let mut robot = TwinRobot::new(&cell);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let home = robot.nominal.home_pose();
+        robot.reset(home, &mut rng).unwrap();
+        let step = Move {
+            translation_mm: Vector3::new(1.0, -0.5, -2.0),
+            rotation_deg: Vector3::new(0.3, 0.0, -0.4),
+        };
+        // Far from the bore: the supervisor only checks limits and reachability.
+        let far = Pose::translation(0.0, 0.0, 400.0).inverse();
+        let allowed = crate::collision::supervisor::Supervisor::new(&cell)
+            .check(&home, Some(&far), &step)
+            .unwrap();
+        let mut drive = TwinDrive {
+            robot: &mut robot,
+            rng: &mut rng,
+        };
+        drive.execute(&step).unwrap();
+        assert_eq!(drive.setpoint(), allowed.target_platform);
+        assert_eq!(drive.encoders_mm(), allowed.legs_mm);
+        let error =
+            robot.true_platform().translation.vector - allowed.target_platform.translation.vector;
+        assert!(error.norm() < 1e-9, "error {error}");
     }
 
     #[test]

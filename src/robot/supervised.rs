@@ -1,0 +1,123 @@
+//! The collision supervisor as a decorator: a [`Robot`] that checks every move before the robot
+//! it wraps sees it (openrr arci's pattern for safety limits).
+
+use super::{Robot, RobotError};
+use crate::collision::supervisor::Supervisor;
+use crate::geometry::{Move, Pose};
+
+/// `inner` behind the supervisor. The supervisor judges a move against the robot's setpoint
+/// and the camera's latest estimate of {F} in {M}, given by [`Supervised::observe`]; with no
+/// estimate (a stale camera) every move is vetoed.
+pub struct Supervised<'s, R> {
+    supervisor: &'s Supervisor,
+    measured_m_f: Option<Pose>,
+    inner: R,
+}
+
+impl<'s, R: Robot> Supervised<'s, R> {
+    /// Wraps `inner`; until [`Supervised::observe`] is called there is no estimate.
+    pub fn new(supervisor: &'s Supervisor, inner: R) -> Self {
+        Supervised {
+            supervisor,
+            measured_m_f: None,
+            inner,
+        }
+    }
+
+    /// The camera's latest estimate of {F} in {M}; `None` when it is stale.
+    pub fn observe(&mut self, measured_m_f: Option<Pose>) {
+        self.measured_m_f = measured_m_f;
+    }
+
+    pub fn inner(&self) -> &R {
+        &self.inner
+    }
+}
+
+impl<R: Robot> Robot for Supervised<'_, R> {
+    fn setpoint(&self) -> Pose {
+        self.inner.setpoint()
+    }
+
+    fn encoders_mm(&self) -> [f64; 6] {
+        self.inner.encoders_mm()
+    }
+
+    fn execute(&mut self, step: &Move) -> Result<(), RobotError> {
+        self.supervisor
+            .check(&self.inner.setpoint(), self.measured_m_f.as_ref(), step)
+            .map_err(RobotError::Vetoed)?;
+        self.inner.execute(step)
+    }
+
+    fn hold(&mut self) {
+        self.inner.hold()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::cell::CellConfig;
+    use nalgebra::Isometry3;
+
+    /// A robot that records what reaches it and goes nowhere.
+    #[derive(Default)]
+    struct Recorder {
+        executed: Vec<Move>,
+        holds: u32,
+    }
+
+    impl Robot for Recorder {
+        fn setpoint(&self) -> Pose {
+            Isometry3::translation(0.0, 0.0, CellConfig::reference().robot.home_height_mm)
+        }
+        fn encoders_mm(&self) -> [f64; 6] {
+            [0.0; 6]
+        }
+        fn execute(&mut self, step: &Move) -> Result<(), RobotError> {
+            self.executed.push(*step);
+            Ok(())
+        }
+        fn hold(&mut self) {
+            self.holds += 1;
+        }
+    }
+
+    /// {F} in {M} with Segment I 30 mm into the bore and 0.04 mm off its axis: 0.01 mm of the
+    /// 0.05 mm radial clearance is left towards +x.
+    fn inserted_off_axis() -> Pose {
+        Isometry3::translation(0.04, 0.0, 60.0 - 30.0).inverse()
+    }
+
+    #[test]
+    fn only_moves_the_supervisor_allows_reach_the_robot() {
+        let supervisor = Supervisor::new(&CellConfig::reference());
+        let mut recorder = Recorder::default();
+        let mut robot = Supervised::new(&supervisor, &mut recorder);
+
+        let towards_axis = Move::translation(-0.03, 0.0, -1.0);
+        let into_wall = Move::translation(0.02, 0.0, 0.0);
+        // No estimate yet: blind, so nothing moves.
+        assert_eq!(
+            robot.execute(&towards_axis),
+            Err(RobotError::Vetoed(
+                crate::collision::supervisor::VetoReason::StaleMeasurement
+            ))
+        );
+        robot.observe(Some(inserted_off_axis()));
+        assert_eq!(robot.execute(&towards_axis), Ok(()));
+        match robot.execute(&into_wall) {
+            Err(RobotError::Vetoed(reason)) => assert_eq!(reason.code(), "collision"),
+            other => panic!("a move into the wall must be vetoed, got {other:?}"),
+        }
+        let too_big = Move::translation(0.0, 0.0, -50.0);
+        assert!(matches!(
+            robot.execute(&too_big),
+            Err(RobotError::Vetoed(reason)) if reason.code() == "step_limit"
+        ));
+        robot.hold();
+        assert_eq!(recorder.executed, vec![towards_axis]);
+        assert_eq!(recorder.holds, 1, "hold goes straight through");
+    }
+}
