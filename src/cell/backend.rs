@@ -22,6 +22,10 @@ pub enum BackendError {
 }
 
 /// A cell the control loop can drive: start an episode, execute supervised moves, hold.
+///
+/// A step is two calls, so that camera ingestion's work on a capture overlaps the rest of the
+/// control period: `act` sends the move and has the camera capture; `settle`, at the next
+/// tick, takes ingestion's estimate and returns the step's result.
 pub trait CellBackend: Send {
     /// `twin`, or the driver's name.
     fn name(&self) -> &str;
@@ -29,8 +33,11 @@ pub trait CellBackend: Send {
     /// and waits for the first usable camera frame.
     fn start(&mut self, seed: u64, initial: InitialConditions)
     -> Result<Observation, BackendError>;
-    /// Supervises and executes one move, captures and estimates the new state.
-    fn step(&mut self, action: &Move) -> Result<StepResult, BackendError>;
+    /// Supervises and executes one move and has the camera capture; ingestion starts on it.
+    fn act(&mut self, action: &Move) -> Result<(), BackendError>;
+    /// The result of the move `act` sent: waits for ingestion's estimate of its capture (ready
+    /// long before when a control period has passed) and judges the step.
+    fn settle(&mut self) -> Result<StepResult, BackendError>;
     /// Stops motion at once and keeps the robot where it is (protective stop).
     fn hold(&mut self);
 }
@@ -73,9 +80,13 @@ impl CellBackend for TwinBackend {
         Ok(self.env.start_from(&estimate))
     }
 
-    fn step(&mut self, action: &Move) -> Result<StepResult, BackendError> {
+    fn act(&mut self, action: &Move) -> Result<(), BackendError> {
         let shot = self.env.act(action)?.clone();
-        let estimate = self.ingestion.take(shot)?;
+        Ok(self.ingestion.send(shot)?)
+    }
+
+    fn settle(&mut self) -> Result<StepResult, BackendError> {
+        let estimate = self.ingestion.receive()?;
         Ok(self.env.settle(&estimate)?)
     }
 

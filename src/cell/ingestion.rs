@@ -3,9 +3,10 @@
 //! answers with the estimate the controller and the supervisor work from.
 //!
 //! The twin's camera captures inside the twin (it sees the twin's true pose), so the control
-//! thread hands each shot over and waits for its estimate: the two threads take turns and a job
-//! replays exactly as `celld eval` runs it. A networked camera will deliver its shots here
-//! without the control thread.
+//! thread hands each shot over after its move and collects the estimate at its next tick: the
+//! fit runs while the control thread waits for the next period, and a job replays exactly as
+//! `celld eval` runs it. A networked camera will deliver its shots here without the control
+//! thread.
 
 use crate::camera::ingest::{Estimate, Ingest, Shot};
 use std::sync::mpsc;
@@ -30,6 +31,7 @@ impl Ingestion {
             .name("celld-ingest".into())
             .spawn(move || {
                 super::task::raise_priority();
+                never_preempt_on_wakeup();
                 if let Some(cpu) = cpu
                     && let Err(error) = super::cpu::pin_current_thread(&[cpu])
                 {
@@ -45,10 +47,36 @@ impl Ingestion {
         Ingestion { shots, estimates }
     }
 
+    /// Hands one shot over; its estimate comes from [`Ingestion::receive`].
+    pub fn send(&self, shot: Shot) -> Result<(), IngestionStopped> {
+        self.shots.send(shot).map_err(|_| IngestionStopped)
+    }
+
+    /// The estimate of the shot sent last, waiting for it if it is not ready.
+    pub fn receive(&self) -> Result<Estimate, IngestionStopped> {
+        self.estimates.recv().map_err(|_| IngestionStopped)
+    }
+
     /// Hands one shot over and waits for its estimate.
     pub fn take(&self, shot: Shot) -> Result<Estimate, IngestionStopped> {
-        self.shots.send(shot).map_err(|_| IngestionStopped)?;
-        self.estimates.recv().map_err(|_| IngestionStopped)
+        self.send(shot)?;
+        self.receive()
+    }
+}
+
+/// Puts the calling thread in `SCHED_BATCH` (Linux): a shot handed over does not preempt the
+/// control thread that sent it when the two share a CPU; ingestion runs once the tick is done.
+fn never_preempt_on_wakeup() {
+    #[cfg(target_os = "linux")]
+    {
+        let param = libc::sched_param { sched_priority: 0 };
+        // SAFETY: sched_setscheduler reads `param` only; pid 0 is the calling thread.
+        if unsafe { libc::sched_setscheduler(0, libc::SCHED_BATCH, &param) } != 0 {
+            tracing::warn!(
+                error = %std::io::Error::last_os_error(),
+                "camera ingestion stays in the normal scheduling class"
+            );
+        }
     }
 }
 

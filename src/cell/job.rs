@@ -1,15 +1,17 @@
 //! One job's run as a pure core: `step(backend, clock) -> StepReport`.
 //!
-//! Each step asks the controller for a move, refuses a non-finite one before the robot sees it,
-//! has the backend supervise and execute it, and judges the result: the episode's own outcome,
-//! a missed deadline, or too many steps without a fresh camera frame. The thread shell in
-//! `task` owns the clock and the robot; this file owns the rules.
+//! Each tick first settles the move sent at the last tick (camera ingestion has had the control
+//! period to estimate its capture) and judges it: the episode's own outcome, a missed deadline,
+//! or too many steps without a fresh camera frame. Then it asks the controller for the next
+//! move, refuses a non-finite one before the robot sees it, and has the backend supervise and
+//! execute it. The thread shell in `task` owns the clock and the robot; this file owns the
+//! rules.
 
 use super::backend::CellBackend;
 use crate::config::cell::CellConfig;
 use crate::learning::demos::DemoStep;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
-use crate::policy::{self, Actor, Controller};
+use crate::policy::{self, Actor, Controller, Decision};
 use crate::sim::{InitialConditions, Observation, Outcome, PoseErrors, RewardTerms};
 use serde::Serialize;
 
@@ -149,16 +151,24 @@ pub struct StepRecord {
     pub verdict: &'static str,
     pub veto_reason: Option<String>,
     pub reward: RewardTerms,
-    /// Decision + supervision + execution time of this step, µs.
+    /// Decision + supervision + execution time of this step, µs. Camera ingestion runs on its
+    /// own thread while the control thread waits for the next period, so its time is not here.
     pub compute_us: f64,
 }
 
 /// What one call of [`JobRun::step`] produced.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StepReport {
-    /// None when the step was refused before the robot saw it.
+    /// The step settled at this tick (none at a job's first tick).
     pub record: Option<StepRecord>,
     pub end: Option<JobEnd>,
+}
+
+/// A move sent to the robot and not yet settled.
+struct PendingStep {
+    decision: Decision,
+    /// Decision + supervision + execution time, s.
+    compute_s: f64,
 }
 
 /// A running job: its controller, the latest observation and its counters.
@@ -174,6 +184,7 @@ pub struct JobRun {
     last_errors: Option<PoseErrors>,
     /// The labelled steps so far, when the job records a demonstration.
     demonstration: Option<Vec<DemoStep>>,
+    pending: Option<PendingStep>,
 }
 
 impl JobRun {
@@ -206,6 +217,7 @@ impl JobRun {
             reward: 0.0,
             last_errors: None,
             demonstration: spec.demonstration.then(Vec::new),
+            pending: None,
         })
     }
 
@@ -214,9 +226,15 @@ impl JobRun {
         &self.observation
     }
 
-    /// One control step. `clock` is the shell's monotonic clock in seconds, read before and
-    /// after the work to time it.
+    /// One control tick: settles the last move, then (unless that ended the job) decides and
+    /// sends the next. `clock` is the shell's monotonic clock in seconds, read around the work
+    /// to time it.
     pub fn step(&mut self, backend: &mut dyn CellBackend, clock: &dyn Fn() -> f64) -> StepReport {
+        let (record, end) = self.settle(backend, clock);
+        if end.is_some() {
+            backend.hold();
+            return StepReport { record, end };
+        }
         let begin_s = clock();
         let decision = self.controller.act(&self.observation);
         if let (Some(steps), Some(actor), Some(scale)) =
@@ -231,24 +249,48 @@ impl JobRun {
                 scale,
             });
         }
-        if !decision.action.is_finite() {
+        let refusal = if !decision.action.is_finite() {
+            Some("nan_action".to_string())
+        } else {
+            backend
+                .act(&decision.action)
+                .err()
+                .map(|error| format!("backend: {error}"))
+        };
+        if let Some(reason) = refusal {
             backend.hold();
+            let end = self.end(JobStatus::Failed, Some(&reason));
             return StepReport {
-                record: None,
-                end: Some(self.end(JobStatus::Failed, Some("nan_action"))),
+                record,
+                end: Some(end),
             };
         }
-        let result = match backend.step(&decision.action) {
+        self.pending = Some(PendingStep {
+            decision,
+            compute_s: clock() - begin_s,
+        });
+        StepReport { record, end: None }
+    }
+
+    /// Settles the move sent last, if any: its record, and the job's end if the step ends it.
+    /// The shell calls this before ending a job from outside, so a move the robot made is
+    /// always stored.
+    pub fn settle(
+        &mut self,
+        backend: &mut dyn CellBackend,
+        clock: &dyn Fn() -> f64,
+    ) -> (Option<StepRecord>, Option<JobEnd>) {
+        let Some(pending) = self.pending.take() else {
+            return (None, None);
+        };
+        let result = match backend.settle() {
             Ok(result) => result,
             Err(error) => {
-                backend.hold();
-                return StepReport {
-                    record: None,
-                    end: Some(self.end(JobStatus::Failed, Some(&format!("backend: {error}")))),
-                };
+                let end = self.end(JobStatus::Failed, Some(&format!("backend: {error}")));
+                return (None, Some(end));
             }
         };
-        let compute_s = clock() - begin_s;
+        let compute_s = pending.compute_s;
         self.steps += 1;
         self.reward += result.reward.total;
         self.last_errors = Some(result.true_errors);
@@ -257,6 +299,7 @@ impl JobRun {
         } else {
             self.stale_steps + 1
         };
+        let decision = pending.decision;
         let record = StepRecord {
             job_id: self.id,
             step: self.steps,
@@ -291,13 +334,7 @@ impl JobRun {
             }
             None => None,
         };
-        if end.is_some() {
-            backend.hold();
-        }
-        StepReport {
-            record: Some(record),
-            end,
-        }
+        (Some(record), end)
     }
 
     /// Ends the job from outside (cancel, e-stop, shutdown) with what it has done so far.
@@ -370,6 +407,33 @@ mod tests {
         assert_eq!(records.last().unwrap().step, end.steps);
     }
 
+    #[test]
+    fn a_move_sent_before_the_job_is_ended_from_outside_is_still_recorded() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell, None);
+        let mut run = JobRun::start(&spec("expert", 2), &cell, &mut backend, GENEROUS, 0.0)
+            .unwrap_or_else(|e| panic!("{e:?}"));
+        assert_eq!(
+            run.step(&mut backend, &|| 0.0).record,
+            None,
+            "nothing to settle yet"
+        );
+        let first = run
+            .step(&mut backend, &|| 0.0)
+            .record
+            .expect("the first move settled");
+        // A cancel arrives with the second move sent: the shell settles it, then ends the job.
+        let (second, end) = run.settle(&mut backend, &|| 0.0);
+        assert_eq!(end, None);
+        assert_eq!((first.step, second.map(|r| r.step)), (1, Some(2)));
+        assert_eq!(run.end(JobStatus::Cancelled, Some("cancelled")).steps, 2);
+        assert_eq!(
+            run.settle(&mut backend, &|| 0.0),
+            (None, None),
+            "nothing left"
+        );
+    }
+
     /// A controller that answers NaN after a few moves.
     struct Faulty(u32);
     impl Controller for Faulty {
@@ -417,9 +481,13 @@ mod tests {
             now.set(now.get() + 0.1);
             now.get()
         };
+        // The first tick decides and sends a move in 0.1 s; the second settles it and ends the
+        // job.
+        assert_eq!(run.step(&mut backend, &clock).end, None);
         let report = run.step(&mut backend, &clock);
-        let end = report.end.expect("the first step ends the job");
+        let end = report.end.expect("settling the slow step ends the job");
         assert_eq!(end.failure_reason.as_deref(), Some("missed_deadline"));
+        assert_eq!(end.steps, 1);
         assert!((report.record.unwrap().compute_us - 1e5).abs() < 1e-6);
     }
 

@@ -336,9 +336,16 @@ impl ControlLoop {
         }
     }
 
-    /// Ends the running job with `status`.
+    /// Ends the running job with `status`. The move it sent last is settled first, so every
+    /// move the robot made is stored; `status` stands whatever that move's result.
     fn finish(&mut self, status: JobStatus, reason: Option<&str>) {
-        if let Some(run) = self.running.take() {
+        if let Some(mut run) = self.running.take() {
+            let epoch = self.epoch;
+            let clock = move || epoch.elapsed().as_secs_f64();
+            let (record, _) = run.settle(self.backend.as_mut(), &clock);
+            if let Some(record) = record {
+                (self.sink)(CellEvent::Step(Box::new(record)));
+            }
             let end = run.end(status, reason);
             (self.sink)(CellEvent::JobEnded {
                 job_id: run.id,
