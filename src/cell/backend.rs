@@ -90,7 +90,7 @@ impl CellBackend for TwinBackend {
         Ok(self.env.settle(&estimate)?)
     }
 
-    /// The twin's robot moves only inside `step`, so between steps it already holds; ending
+    /// The twin's robot moves only inside `act`, so between moves it already holds; ending
     /// the episode is the caller's part.
     fn hold(&mut self) {}
 }
