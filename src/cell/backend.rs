@@ -46,6 +46,8 @@ pub trait CellBackend: Send {
 pub struct TwinBackend {
     env: AssemblyEnv,
     ingestion: Ingestion,
+    /// A shot was handed to ingestion and its estimate not yet taken.
+    awaiting_estimate: bool,
 }
 
 impl TwinBackend {
@@ -55,6 +57,7 @@ impl TwinBackend {
         TwinBackend {
             env: AssemblyEnv::new(cell, EnvOptions::from_cell(cell)),
             ingestion: Ingestion::spawn(ingest, cpu),
+            awaiting_estimate: false,
         }
     }
 }
@@ -69,6 +72,10 @@ impl CellBackend for TwinBackend {
         seed: u64,
         initial: InitialConditions,
     ) -> Result<Observation, BackendError> {
+        if std::mem::take(&mut self.awaiting_estimate) {
+            // A move nobody settled: its estimate must not pass for the new episode's.
+            self.ingestion.receive()?;
+        }
         self.env.begin_episode(seed, initial)?;
         let mut estimate = self.ingestion.take(self.env.capture_still(true).clone())?;
         for _ in 1..START_CAPTURE_TRIES {
@@ -82,10 +89,15 @@ impl CellBackend for TwinBackend {
 
     fn act(&mut self, action: &Move) -> Result<(), BackendError> {
         let shot = self.env.act(action)?.clone();
-        Ok(self.ingestion.send(shot)?)
+        self.ingestion.send(shot)?;
+        self.awaiting_estimate = true;
+        Ok(())
     }
 
     fn settle(&mut self) -> Result<StepResult, BackendError> {
+        if !std::mem::take(&mut self.awaiting_estimate) {
+            return Err(EnvError::OutOfOrder("settle without a move; call act first").into());
+        }
         let estimate = self.ingestion.receive()?;
         Ok(self.env.settle(&estimate)?)
     }

@@ -434,6 +434,24 @@ mod tests {
         );
     }
 
+    #[test]
+    fn the_twin_backend_never_waits_for_an_estimate_it_was_not_sent() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell, None);
+        let initial = InitialConditions::from_cell(&cell);
+        let error = backend.settle().unwrap_err();
+        assert!(
+            error.to_string().contains("settle without a move"),
+            "{error}"
+        );
+        // A move left unsettled does not leak its estimate into the next episode.
+        backend.start(8, initial).unwrap();
+        backend.act(&crate::geometry::Move::default()).unwrap();
+        let fresh_start = backend.start(9, initial).unwrap();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        assert_eq!(fresh_start, env.reset_with(9, initial).unwrap());
+    }
+
     /// A controller that answers NaN after a few moves.
     struct Faulty(u32);
     impl Controller for Faulty {
