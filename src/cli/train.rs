@@ -132,6 +132,10 @@ pub struct TrainArgs {
     /// σ of TD3's Gaussian exploration noise on the actors' tanh outputs.
     #[arg(long, default_value_t = Td3Config::default().exploration_noise)]
     td3_noise: f64,
+    /// TD3 episodes at the start in which only the critics learn (the actors are frozen; with
+    /// at least --td3-episodes of them the actors are never updated).
+    #[arg(long, default_value_t = RefineConfig::default().critic_warmup_episodes)]
+    td3_critic_warmup: usize,
     /// Start TD3 from freshly initialised actors instead of the BC actors.
     #[arg(long)]
     no_bc_init: bool,
@@ -540,6 +544,7 @@ impl Run {
                 exploration_noise: self.args.td3_noise,
                 ..defaults.td3
             },
+            critic_warmup_episodes: self.args.td3_critic_warmup,
             ..defaults
         };
         let mut refinement = Refinement::new(
@@ -686,6 +691,7 @@ impl Run {
                 exploration_noise: self.args.td3_noise,
                 ..Td3Config::default()
             },
+            critic_warmup_episodes: self.args.td3_critic_warmup,
             ..FlatConfig::default()
         };
         let mut training = FlatTraining::new(
