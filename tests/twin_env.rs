@@ -6,7 +6,7 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::CellFrames;
 use assembly_cell::geometry::Move;
 use assembly_cell::policy::{self, eval};
-use assembly_cell::sim::env::START_CAPTURE_TRIES;
+use assembly_cell::sim::env::first_usable_estimate;
 use assembly_cell::sim::{
     AssemblyEnv, BatchEnv, EnvError, EnvOptions, InitialConditions, Outcome, StepResult,
 };
@@ -169,13 +169,9 @@ fn run_split(cell: &CellConfig, seed: u64) -> Vec<Vec<u64>> {
     expert.reset(seed);
     env.begin_episode(seed, InitialConditions::from_cell(cell))
         .unwrap();
-    let mut estimate = ingest.take(env.capture_still(true));
-    for _ in 1..START_CAPTURE_TRIES {
-        if estimate.fresh {
-            break;
-        }
-        estimate = ingest.take(env.capture_still(false));
-    }
+    let Ok(estimate) = first_usable_estimate(|first| {
+        Ok::<_, std::convert::Infallible>(ingest.take(env.capture_still(first)))
+    });
     let mut observation = env.start_from(&estimate);
     let mut trace = vec![observation.state.iter().map(|x| x.to_bits()).collect()];
     loop {

@@ -9,7 +9,7 @@ use super::ingestion::{Ingestion, IngestionStopped};
 use crate::camera::ingest::Ingest;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move};
-use crate::sim::env::START_CAPTURE_TRIES;
+use crate::sim::env::first_usable_estimate;
 use crate::sim::{AssemblyEnv, EnvError, EnvOptions, InitialConditions, Observation, StepResult};
 
 /// Why a backend could not start an episode or take a step.
@@ -77,13 +77,9 @@ impl CellBackend for TwinBackend {
             self.ingestion.receive()?;
         }
         self.env.begin_episode(seed, initial)?;
-        let mut estimate = self.ingestion.take(self.env.capture_still(true).clone())?;
-        for _ in 1..START_CAPTURE_TRIES {
-            if estimate.fresh {
-                break;
-            }
-            estimate = self.ingestion.take(self.env.capture_still(false).clone())?;
-        }
+        let estimate = first_usable_estimate(|first| {
+            self.ingestion.take(self.env.capture_still(first).clone())
+        })?;
         Ok(self.env.start_from(&estimate))
     }
 

@@ -136,7 +136,24 @@ pub enum EnvError {
 }
 
 /// Captures an episode's start may take to get a usable frame (dropped points).
-pub const START_CAPTURE_TRIES: u32 = 10;
+const START_CAPTURE_TRIES: u32 = 10;
+
+/// The cell waits for a usable frame before an episode starts; a few tries cover dropped
+/// points. `capture_and_ingest(first)` takes one still capture (`first`: the episode's first)
+/// and answers ingestion's estimate of it. With no usable frame the last estimate is returned
+/// (its state all zeros).
+pub fn first_usable_estimate<E>(
+    mut capture_and_ingest: impl FnMut(bool) -> Result<Estimate, E>,
+) -> Result<Estimate, E> {
+    let mut estimate = capture_and_ingest(true)?;
+    for _ in 1..START_CAPTURE_TRIES {
+        if estimate.fresh {
+            break;
+        }
+        estimate = capture_and_ingest(false)?;
+    }
+    Ok(estimate)
+}
 
 /// What a move did, between [`AssemblyEnv::act`] and [`AssemblyEnv::settle`].
 #[derive(Debug, Clone, Default)]
@@ -247,17 +264,10 @@ impl AssemblyEnv {
         initial: InitialConditions,
     ) -> Result<Observation, EnvError> {
         self.begin_episode(seed, initial)?;
-        // The cell waits for a usable frame before it starts; a few tries cover dropped points.
-        // With none, the state stays all zeros.
-        self.capture_still(true);
-        let mut estimate = self.ingest.take(&self.shot);
-        for _ in 1..START_CAPTURE_TRIES {
-            if estimate.fresh {
-                break;
-            }
-            self.capture_still(false);
-            estimate = self.ingest.take(&self.shot);
-        }
+        let Ok(estimate) = first_usable_estimate(|first| {
+            self.capture_still(first);
+            Ok::<_, std::convert::Infallible>(self.ingest.take(&self.shot))
+        });
         Ok(self.start_from(&estimate))
     }
 
