@@ -345,8 +345,7 @@ pub async fn register_bundled(context: &Context) -> ApiResult<()> {
             match policies::latest_evaluation(db, policy.id).await {
                 Ok(Some(e)) if e.id == evaluation.id && e.status == "running" => continue,
                 Ok(Some(e)) if e.success_rate.unwrap_or(0.0) >= threshold => {
-                    if matches!(policies::active(db).await, Ok(None)) {
-                        let _ = policies::activate(db, policy.id).await;
+                    if let Ok(true) = policies::activate_if_none_active(db, policy.id).await {
                         let _ = audit::record(
                             db,
                             "celld",

@@ -179,6 +179,19 @@ pub async fn activate(db: &Db, id: i64) -> Result<Option<i64>, DbError> {
     Ok(previous)
 }
 
+/// Makes `id` active only if no policy is active, in one statement, so an operator's activation
+/// that lands between a check and this write is never retired by it. Returns whether it did.
+pub async fn activate_if_none_active(db: &Db, id: i64) -> Result<bool, DbError> {
+    let done = sqlx::query(
+        "UPDATE policies SET status = 'active'
+         WHERE id = ? AND NOT EXISTS (SELECT 1 FROM policies WHERE status = 'active')",
+    )
+    .bind(id)
+    .execute(&db.writer)
+    .await?;
+    Ok(done.rows_affected() == 1)
+}
+
 pub async fn start_evaluation(
     db: &Db,
     policy_id: i64,
@@ -257,4 +270,55 @@ pub async fn latest_evaluation_on(
     .fetch_optional(&db.reader)
     .await?;
     Ok(row.as_ref().map(evaluation_from))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    async fn store(db: &Db, name: &str) -> i64 {
+        let new = NewPolicy {
+            name,
+            sha256: name,
+            file: name.as_bytes(),
+            metadata: json!({}),
+            shapes: json!({}),
+            uploaded_by: "test",
+        };
+        insert_or_find(db, &new).await.unwrap().0.id
+    }
+
+    async fn status(db: &Db, id: i64) -> String {
+        get(db, id).await.unwrap().unwrap().status
+    }
+
+    /// The bundled default's first-start activation must never retire a policy an operator
+    /// activated while the default was being evaluated (it raced once on a slow CI machine).
+    #[test]
+    fn activating_only_when_none_is_active_leaves_an_operators_choice_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap()
+            .block_on(async {
+                let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
+                let (bundled, chosen) = (store(&db, "bundled").await, store(&db, "chosen").await);
+                assert_eq!(activate(&db, chosen).await.unwrap(), None);
+                assert!(!activate_if_none_active(&db, bundled).await.unwrap());
+                assert_eq!(status(&db, chosen).await, "active");
+                assert_eq!(status(&db, bundled).await, "candidate");
+
+                assert_eq!(activate(&db, bundled).await.unwrap(), Some(chosen));
+                assert_eq!(status(&db, chosen).await, "retired");
+                let fresh = store(&db, "fresh").await;
+                assert!(!activate_if_none_active(&db, fresh).await.unwrap());
+
+                let empty = Db::open(&dir.path().join("empty.db")).await.unwrap();
+                let only = store(&empty, "only").await;
+                assert!(activate_if_none_active(&empty, only).await.unwrap());
+                assert_eq!(status(&empty, only).await, "active");
+            });
+    }
 }
