@@ -1,14 +1,15 @@
 //! The DA-DMP baseline in the twin: fitted to recorded expert demonstrations of the reference
 //! cell, evaluated with `policy::eval::evaluate`.
 //!
-//! 1000-episode figures: `cargo test --test dmp_baseline -- --ignored --nocapture`.
+//! 1000-episode figures come from the CLI: `celld eval --controller da-dmp --episodes 1000`
+//! (`--without all` for the ideal twin, `--init-pos-mm` / `--init-ori-deg` for other starts).
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::learning::demos::record_expert;
 use assembly_cell::policy::Controller;
 use assembly_cell::policy::dmp::{DaDmp, default_dmp};
 use assembly_cell::policy::eval::{EvalSummary, evaluate};
-use assembly_cell::sim::{EnvOptions, InitialConditions};
+use assembly_cell::sim::EnvOptions;
 
 const DEMOS: usize = 20;
 const EPISODES: usize = 50;
@@ -125,26 +126,4 @@ fn the_default_dmp_is_fitted_from_the_expert_quickly() {
     assert_eq!(dmp.name(), "da-dmp");
     // Deterministic: the same cell gives the same primitive.
     assert_eq!(default_dmp(&cell).weights(), dmp.weights());
-}
-
-#[test]
-#[ignore = "1000-episode figures; run with --ignored --nocapture"]
-fn da_dmp_figures() {
-    for cell in [ideal(CellConfig::reference()), CellConfig::reference()] {
-        let dmp = default_dmp(&cell);
-        run(&cell, EnvOptions::from_cell(&cell), &dmp, 1000, 1);
-    }
-    // Starts the demonstrations did not cover (paper Tables 2/3), primitive from the default ones.
-    let cell = CellConfig::reference();
-    let dmp = default_dmp(&cell);
-    for (offset_mm, orientation_deg) in [(10.0, 3.0), (30.0, 6.0), (50.0, 9.0)] {
-        let options = EnvOptions {
-            initial: InitialConditions {
-                offset_mm,
-                orientation_deg,
-            },
-            ..EnvOptions::from_cell(&cell)
-        };
-        run(&cell, options, &dmp, 1000, 1);
-    }
 }

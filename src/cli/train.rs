@@ -76,6 +76,10 @@ pub struct TrainArgs {
     /// sees) or `expert` (also uses the state filter's σ and drift).
     #[arg(long, default_value = demos::DEFAULT_DEMONSTRATOR)]
     demonstrator: String,
+    /// σ (mm) of sideways noise added to the demonstrator's position moves as they are
+    /// executed; the recorded label stays the move it meant (DART). 0: none.
+    #[arg(long, default_value_t = 0.0)]
+    demo_lateral_noise_mm: f64,
     /// Read the demonstrations from this JSON Lines file instead of recording them.
     #[arg(long)]
     demos_file: Option<PathBuf>,
@@ -328,18 +332,23 @@ impl Run {
                         "recording {} demonstrations of {}…",
                         self.args.demos, self.args.demonstrator
                     );
-                    let episodes = demos::record(
+                    let episodes = demos::record_with_noise(
                         &self.cell,
                         self.options,
                         &self.args.demonstrator,
                         self.args.demos,
                         self.args.seed,
+                        demos::ExecutionNoise {
+                            lateral_mm: self.args.demo_lateral_noise_mm,
+                        },
                     );
                     let mut file = std::io::BufWriter::new(std::fs::File::create(&path)?);
                     demos::write_jsonl(&episodes, &mut file)?;
                     file.flush()?;
                     let wall_s = started.elapsed().as_secs_f64();
-                    self.note("demos", wall_s, json!({"episodes": episodes.len()}))?;
+                    let succeeded = episodes.iter().filter(|e| e.succeeded).count();
+                    let figures = json!({"episodes": episodes.len(), "succeeded": succeeded});
+                    self.note("demos", wall_s, figures)?;
                 }
             }
         }

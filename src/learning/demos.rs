@@ -15,6 +15,9 @@ use crate::config::cell::CellConfig;
 use crate::policy::eval::episode_seed;
 use crate::policy::{self, Actor};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::io::{BufRead, Write};
@@ -74,6 +77,34 @@ pub fn record(
     episodes: usize,
     seed: u64,
 ) -> Vec<DemoEpisode> {
+    record_with_noise(
+        cell,
+        options,
+        demonstrator,
+        episodes,
+        seed,
+        ExecutionNoise::default(),
+    )
+}
+
+/// Noise added to the demonstrator's moves before they are executed, while the recorded label
+/// stays the move it meant (DART, Laskey et al. 2017): the demonstrations then visit the states
+/// just off its path that a learned policy drifts into, each labelled with the correction.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ExecutionNoise {
+    /// σ (mm) of the Gaussian added to x and y of every position move that is not a hold.
+    pub lateral_mm: f64,
+}
+
+/// [`record`], with `noise` on what is executed (not on what is recorded).
+pub fn record_with_noise(
+    cell: &CellConfig,
+    options: EnvOptions,
+    demonstrator: &str,
+    episodes: usize,
+    seed: u64,
+    noise: ExecutionNoise,
+) -> Vec<DemoEpisode> {
     assert!(
         DEMONSTRATORS.contains(&demonstrator),
         "unknown demonstrator {demonstrator}"
@@ -90,6 +121,7 @@ pub fn record(
             |(env, expert), index| {
                 let seed = episode_seed(seed, index);
                 expert.reset(seed ^ 0x5EED_C0DE);
+                let mut noise_rng = ChaCha8Rng::seed_from_u64(seed ^ 0xDA57_0000);
                 let mut steps = Vec::new();
                 let Ok(mut observation) = env.reset(seed) else {
                     return DemoEpisode {
@@ -109,7 +141,17 @@ pub fn record(
                             scale,
                         });
                     }
-                    let result = env.step(&decision.action).expect("stepped until done");
+                    let mut executed = decision.action;
+                    if noise.lateral_mm > 0.0
+                        && decision.actor == Some(Actor::Position)
+                        && executed.translation_mm != nalgebra::Vector3::zeros()
+                    {
+                        for axis in 0..2 {
+                            let z: f64 = noise_rng.sample(StandardNormal);
+                            executed.translation_mm[axis] += noise.lateral_mm * z;
+                        }
+                    }
+                    let result = env.step(&executed).expect("stepped until done");
                     observation = result.observation;
                     if let Some(outcome) = result.outcome {
                         return DemoEpisode {
@@ -233,6 +275,40 @@ mod tests {
             }
         }
         assert!(succeeded >= 5, "{succeeded} of 6 succeeded");
+    }
+
+    #[test]
+    fn execution_noise_moves_the_shaft_but_each_label_is_what_the_demonstrator_meant() {
+        let cell = CellConfig::reference();
+        let options = EnvOptions::from_cell(&cell);
+        let plain = record(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4);
+        let none = ExecutionNoise::default();
+        let same = record_with_noise(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4, none);
+        assert_eq!(plain, same, "no noise is the plain recording");
+        let noise = ExecutionNoise { lateral_mm: 0.05 };
+        let noisy = record_with_noise(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4, noise);
+        for (clean, noisy) in plain.iter().zip(&noisy) {
+            // The first state is seen before anything is executed: the same state, the same
+            // label. From there on the executed moves differ, and so do the states.
+            assert_eq!(clean.steps[0], noisy.steps[0]);
+            let after = |e: &DemoEpisode| e.steps.iter().skip(1).map(|s| s.state).collect();
+            let (clean_states, noisy_states): (Vec<_>, Vec<_>) = (after(clean), after(noisy));
+            assert_ne!(clean_states, noisy_states);
+        }
+        // Each label is still the demonstrator's own decision on the state it saw: replaying
+        // the recorded states through a fresh demonstrator gives the recorded moves.
+        let mut expert = policy::builtin(DEFAULT_DEMONSTRATOR, &cell).unwrap();
+        let mut env = AssemblyEnv::new(&cell, options);
+        let seed = episode_seed(4, 0);
+        expert.reset(seed ^ 0x5EED_C0DE);
+        let mut observation = env.reset(seed).unwrap();
+        for recorded in &noisy[0].steps {
+            observation.state = recorded.state;
+            observation.step = recorded.step;
+            observation.measurement_fresh = true;
+            let decision = expert.act(&observation);
+            assert_eq!(decision.action.to_array(), recorded.action);
+        }
     }
 
     #[test]
