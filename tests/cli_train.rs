@@ -172,6 +172,102 @@ fn bad_training_requests_are_refused_before_any_work() {
     assert!(!out.join("demos.jsonl").exists(), "no work was done");
 }
 
+fn demo_lines(run: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(run.join("demos.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|line| serde_json::from_str(line).unwrap())
+        .collect()
+}
+
+#[test]
+fn dagger_episodes_come_before_the_demonstrations_which_are_unchanged() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plain, dagger) = (dir.path().join("plain"), dir.path().join("dagger"));
+    let policy =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/policy_small.safetensors");
+    let policy = policy.to_str().unwrap();
+    let first = train("bc", &plain, &[]);
+    assert!(first.status.success(), "{}", stderr(&first));
+    let extra = [
+        "--dagger-policy",
+        policy,
+        "--dagger-policy",
+        policy,
+        "--dagger-episodes",
+        "3",
+    ];
+    let second = train("bc", &dagger, &extra);
+    assert!(second.status.success(), "{}", stderr(&second));
+
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dagger.join("run.json")).unwrap()).unwrap();
+    let rounds = run["demos"]["figures"]["dagger"].as_array().unwrap();
+    assert_eq!(rounds.len(), 2);
+    assert!(rounds.iter().all(|r| r["episodes"] == 3), "{rounds:?}");
+
+    // Episodes are numbered 0, 1, … in file order: 2 rounds × 3, then the 12 demonstrations,
+    // which are the plain run's, step for step.
+    let (plain, dagger) = (demo_lines(&plain), demo_lines(&dagger));
+    let episodes: Vec<u64> = dagger
+        .iter()
+        .map(|l| l["episode"].as_u64().unwrap())
+        .collect();
+    assert!(
+        episodes
+            .windows(2)
+            .all(|w| w[1] == w[0] || w[1] == w[0] + 1)
+    );
+    assert_eq!((episodes[0], *episodes.last().unwrap()), (0, 6 + 12 - 1));
+    let demonstrated = &dagger[dagger.len() - plain.len()..];
+    for (a, b) in plain.iter().zip(demonstrated) {
+        assert_eq!(a["state"], b["state"]);
+        assert_eq!(a["action"], b["action"]);
+        assert_eq!(
+            b["episode"].as_u64().unwrap(),
+            a["episode"].as_u64().unwrap() + 6
+        );
+    }
+    // Two rounds of one policy with their own seeds: different episodes.
+    let round = |k: u64| -> Vec<_> {
+        dagger
+            .iter()
+            .filter(|l| l["episode"].as_u64().unwrap() / 3 == k)
+            .map(|l| l["state"].clone())
+            .collect()
+    };
+    assert_ne!(round(0), round(1));
+}
+
+#[test]
+fn a_bad_dagger_policy_is_refused_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let missing = train("bc", &out, &["--dagger-policy", "no/such.safetensors"]);
+    assert!(!missing.status.success());
+    assert!(
+        stderr(&missing).contains("--dagger-policy no/such.safetensors"),
+        "{}",
+        stderr(&missing)
+    );
+    let demos = dir.path().join("demos.jsonl");
+    std::fs::write(&demos, "").unwrap();
+    let extra = [
+        "--dagger-policy",
+        "x.safetensors",
+        "--demos-file",
+        demos.to_str().unwrap(),
+    ];
+    let with_file = train("bc", &out, &extra);
+    assert!(!with_file.status.success());
+    assert!(
+        stderr(&with_file).contains("it cannot add to --demos-file"),
+        "{}",
+        stderr(&with_file)
+    );
+    assert!(!out.join("demos.jsonl").exists(), "no work was done");
+}
+
 const TINY_FLAT: [&str; 12] = [
     "--demos",
     "12",

@@ -25,7 +25,9 @@ use assembly_cell::learning::pipeline::{self, step_limits};
 use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgress, Refinement};
 use assembly_cell::learning::selector::SelectorConfig;
 use assembly_cell::learning::td3::Td3Config;
-use assembly_cell::policy::Actor;
+use assembly_cell::policy::eval::episode_seed;
+use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::policy::{Actor, Controller};
 use assembly_cell::sim::EnvOptions;
 use candle_nn::VarMap;
 use clap::{Args, Subcommand};
@@ -84,6 +86,14 @@ pub struct TrainArgs {
     /// Read the demonstrations from this JSON Lines file instead of recording them.
     #[arg(long)]
     demos_file: Option<PathBuf>,
+    /// DAgger: a policy file that drives --dagger-episodes more episodes in the twin while the
+    /// demonstrator labels every state it visits; they are added to the demonstrations.
+    /// Repeat it for further rounds (each earlier round's policy, then the latest).
+    #[arg(long)]
+    dagger_policy: Vec<PathBuf>,
+    /// Episodes each --dagger-policy drives.
+    #[arg(long, default_value_t = 800)]
+    dagger_episodes: usize,
     /// Hidden width of each actor (D).
     #[arg(long, default_value_t = 64)]
     actor_width: usize,
@@ -157,6 +167,8 @@ pub struct TrainArgs {
 }
 
 const DEMOS: &str = "demos.jsonl";
+/// Sets DAgger's episode seeds apart from the demonstrations' (both derive from --seed).
+const DAGGER_SEED_SALT: u64 = 0xDA66_E500;
 const BC: &str = "bc.safetensors";
 const LSTM: &str = "lstm.safetensors";
 const BC_POLICY: &str = "bc-policy.safetensors";
@@ -203,6 +215,8 @@ struct Run {
     args: TrainArgs,
     cell: CellConfig,
     options: EnvOptions,
+    /// The --dagger-policy files, loaded and checked, in order.
+    dagger_drivers: Vec<HierarchicalPolicy>,
 }
 
 impl Run {
@@ -262,6 +276,22 @@ impl Run {
         {
             bail!("--demos-file {}: no such file", path.display());
         }
+        if !args.dagger_policy.is_empty() {
+            if args.demos_file.is_some() {
+                bail!("--dagger-policy records in the twin; it cannot add to --demos-file");
+            }
+            if args.dagger_episodes == 0 {
+                bail!("--dagger-episodes must be at least 1");
+            }
+        }
+        let dagger_drivers = args
+            .dagger_policy
+            .iter()
+            .map(|path| {
+                HierarchicalPolicy::from_path(path)
+                    .with_context(|| format!("--dagger-policy {}", path.display()))
+            })
+            .collect::<Result<Vec<_>>>()?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
         let options = EnvOptions::from_cell(&cell);
@@ -269,6 +299,7 @@ impl Run {
             args,
             cell,
             options,
+            dagger_drivers,
         })
     }
 
@@ -333,7 +364,7 @@ impl Run {
                         "recording {} demonstrations of {}…",
                         self.args.demos, self.args.demonstrator
                     );
-                    let episodes = demos::record_with_noise(
+                    let recorded = demos::record_with_noise(
                         &self.cell,
                         self.options,
                         &self.args.demonstrator,
@@ -343,12 +374,31 @@ impl Run {
                             lateral_mm: self.args.demo_lateral_noise_mm,
                         },
                     );
+                    let succeeded = |e: &[DemoEpisode]| e.iter().filter(|e| e.succeeded).count();
+                    let mut figures =
+                        json!({"episodes": recorded.len(), "succeeded": succeeded(&recorded)});
+                    let mut episodes = Vec::new();
+                    let mut rounds = Vec::new();
+                    for (round, driver) in self.dagger_drivers.iter().enumerate() {
+                        let dagger = self.relabel_rollouts(round, driver);
+                        rounds.push(json!({
+                            "policy": self.args.dagger_policy[round],
+                            "episodes": dagger.len(),
+                            "policy_succeeded": succeeded(&dagger),
+                        }));
+                        episodes.extend(dagger);
+                    }
+                    if !rounds.is_empty() {
+                        figures["dagger"] = Value::Array(rounds);
+                    }
+                    // The policies' episodes first, so that the held-out tenth stays the
+                    // demonstrator's own.
+                    episodes.extend(recorded);
+                    let episodes = renumbered(episodes);
                     let mut file = std::io::BufWriter::new(std::fs::File::create(&path)?);
                     demos::write_jsonl(&episodes, &mut file)?;
                     file.flush()?;
                     let wall_s = started.elapsed().as_secs_f64();
-                    let succeeded = episodes.iter().filter(|e| e.succeeded).count();
-                    let figures = json!({"episodes": episodes.len(), "succeeded": succeeded});
                     self.note("demos", wall_s, figures)?;
                 }
             }
@@ -366,6 +416,26 @@ impl Run {
         }
         let held_out = episodes.split_off(episodes.len() - episodes.len() / 10);
         Ok((episodes, held_out))
+    }
+
+    /// DAgger round `round`'s episodes: `driver` drives, the demonstrator labels (seeds apart
+    /// from the demonstrations' and the other rounds').
+    fn relabel_rollouts(&self, round: usize, driver: &HierarchicalPolicy) -> Vec<DemoEpisode> {
+        eprintln!(
+            "recording {} episodes of {} labelled by {}…",
+            self.args.dagger_episodes,
+            driver.name(),
+            self.args.demonstrator
+        );
+        let make = || Box::new(driver.clone()) as Box<dyn Controller>;
+        demos::relabel_rollouts(
+            &self.cell,
+            self.options,
+            &self.args.demonstrator,
+            &make,
+            self.args.dagger_episodes,
+            episode_seed(self.args.seed ^ DAGGER_SEED_SALT, round),
+        )
     }
 
     fn bc_config(&self) -> BcConfig {
@@ -812,6 +882,20 @@ impl Run {
         eprintln!("{stage}: {wall_s:.1} s");
         Ok(())
     }
+}
+
+/// Numbers the episodes 0, 1, … in order (one file's numbering, whatever their sources).
+fn renumbered(episodes: Vec<DemoEpisode>) -> Vec<DemoEpisode> {
+    episodes
+        .into_iter()
+        .enumerate()
+        .map(|(index, mut episode)| {
+            for step in &mut episode.steps {
+                step.episode = index as u32;
+            }
+            episode
+        })
+        .collect()
 }
 
 fn actor_name(actor: Actor) -> &'static str {

@@ -13,7 +13,7 @@
 
 use crate::config::cell::CellConfig;
 use crate::policy::eval::episode_seed;
-use crate::policy::{self, Actor};
+use crate::policy::{self, Actor, Controller};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -105,6 +105,54 @@ pub fn record_with_noise(
     seed: u64,
     noise: ExecutionNoise,
 ) -> Vec<DemoEpisode> {
+    record_driven(cell, options, demonstrator, episodes, seed, noise, None)
+}
+
+/// Makes a fresh copy of the controller that drives DAgger's episodes (one per thread).
+pub type DriverFactory<'a> = &'a (dyn Fn() -> Box<dyn Controller> + Sync);
+
+/// DAgger (Ross, Gordon & Bagnell 2011): `driver` (a learned policy) moves the shaft, and
+/// `demonstrator` labels every state the policy visits with what it would have done there. A
+/// policy trained on its demonstrator's episodes alone drifts into states the demonstrator
+/// never visits (overshooting the standoff, creeping in sideways) and has no label for them;
+/// these episodes give it one. Each episode's `succeeded` is the driver's outcome. The
+/// demonstrator keeps its own count of holds, as if its decisions had been executed.
+pub fn relabel_rollouts(
+    cell: &CellConfig,
+    options: EnvOptions,
+    demonstrator: &str,
+    driver: DriverFactory,
+    episodes: usize,
+    seed: u64,
+) -> Vec<DemoEpisode> {
+    let none = ExecutionNoise::default();
+    record_driven(
+        cell,
+        options,
+        demonstrator,
+        episodes,
+        seed,
+        none,
+        Some(driver),
+    )
+}
+
+/// Seed of the demonstrator's own randomness (its step-length variability) in episode `seed`.
+pub fn demonstrator_seed(episode_seed: u64) -> u64 {
+    episode_seed ^ 0x5EED_C0DE
+}
+
+/// Runs the episodes, recording the demonstrator's decision on every state; what is executed
+/// is the driver's decision if there is one, else the demonstrator's with `noise`.
+fn record_driven(
+    cell: &CellConfig,
+    options: EnvOptions,
+    demonstrator: &str,
+    episodes: usize,
+    seed: u64,
+    noise: ExecutionNoise,
+    driver: Option<DriverFactory>,
+) -> Vec<DemoEpisode> {
     assert!(
         DEMONSTRATORS.contains(&demonstrator),
         "unknown demonstrator {demonstrator}"
@@ -116,11 +164,15 @@ pub fn record_with_noise(
                 (
                     AssemblyEnv::new(cell, options),
                     policy::builtin(demonstrator, cell).expect("a demonstrator is built in"),
+                    driver.map(|make| make()),
                 )
             },
-            |(env, expert), index| {
+            |(env, expert, driver), index| {
                 let seed = episode_seed(seed, index);
-                expert.reset(seed ^ 0x5EED_C0DE);
+                expert.reset(demonstrator_seed(seed));
+                if let Some(driver) = driver {
+                    driver.reset(seed);
+                }
                 let mut noise_rng = ChaCha8Rng::seed_from_u64(seed ^ 0xDA57_0000);
                 let mut steps = Vec::new();
                 let Ok(mut observation) = env.reset(seed) else {
@@ -141,7 +193,10 @@ pub fn record_with_noise(
                             scale,
                         });
                     }
-                    let mut executed = decision.action;
+                    let mut executed = match driver {
+                        Some(driver) => driver.act(&observation).action,
+                        None => decision.action,
+                    };
                     if noise.lateral_mm > 0.0
                         && decision.actor == Some(Actor::Position)
                         && executed.translation_mm != nalgebra::Vector3::zeros()
@@ -297,17 +352,98 @@ mod tests {
         }
         // Each label is still the demonstrator's own decision on the state it saw: replaying
         // the recorded states through a fresh demonstrator gives the recorded moves.
-        let mut expert = policy::builtin(DEFAULT_DEMONSTRATOR, &cell).unwrap();
-        let mut env = AssemblyEnv::new(&cell, options);
-        let seed = episode_seed(4, 0);
-        expert.reset(seed ^ 0x5EED_C0DE);
-        let mut observation = env.reset(seed).unwrap();
-        for recorded in &noisy[0].steps {
-            observation.state = recorded.state;
-            observation.step = recorded.step;
-            observation.measurement_fresh = true;
-            let decision = expert.act(&observation);
-            assert_eq!(decision.action.to_array(), recorded.action);
+        let labels: Vec<_> = noisy[0].steps.iter().map(|s| s.action).collect();
+        assert_eq!(
+            labels,
+            replayed_labels(&cell, episode_seed(4, 0), &noisy[0])
+        );
+    }
+
+    /// Replays recorded states through a fresh demonstrator: the labels it gives back.
+    fn replayed_labels(
+        cell: &CellConfig,
+        episode_seed: u64,
+        episode: &DemoEpisode,
+    ) -> Vec<[f64; 6]> {
+        let mut expert = policy::builtin(DEFAULT_DEMONSTRATOR, cell).unwrap();
+        let mut env = AssemblyEnv::new(cell, EnvOptions::from_cell(cell));
+        expert.reset(demonstrator_seed(episode_seed));
+        let mut observation = env.reset(episode_seed).unwrap();
+        episode
+            .steps
+            .iter()
+            .map(|recorded| {
+                observation.state = recorded.state;
+                observation.step = recorded.step;
+                observation.measurement_fresh = true;
+                expert.act(&observation).action.to_array()
+            })
+            .collect()
+    }
+
+    /// A controller reset the way [`record`] resets its demonstrator.
+    struct AsDemonstrator(Box<dyn Controller>);
+
+    impl Controller for AsDemonstrator {
+        fn name(&self) -> &str {
+            self.0.name()
+        }
+        fn reset(&mut self, seed: u64) {
+            self.0.reset(demonstrator_seed(seed))
+        }
+        fn act(&mut self, observation: &crate::sim::Observation) -> crate::policy::Decision {
+            self.0.act(observation)
+        }
+    }
+
+    #[test]
+    fn the_demonstrator_driving_its_own_relabelling_is_the_plain_recording() {
+        let cell = CellConfig::reference();
+        let options = EnvOptions::from_cell(&cell);
+        let make = || {
+            let demonstrator = policy::builtin(DEFAULT_DEMONSTRATOR, &cell).unwrap();
+            Box::new(AsDemonstrator(demonstrator)) as Box<dyn Controller>
+        };
+        let relabelled = relabel_rollouts(&cell, options, DEFAULT_DEMONSTRATOR, &make, 3, 8);
+        assert_eq!(
+            relabelled,
+            record(&cell, options, DEFAULT_DEMONSTRATOR, 3, 8)
+        );
+    }
+
+    #[test]
+    fn another_controller_drives_and_every_state_it_visits_gets_the_demonstrators_label() {
+        let cell = CellConfig::reference();
+        let options = EnvOptions::from_cell(&cell);
+        let make = || policy::builtin("visual-servo", &cell).unwrap();
+        let relabelled = relabel_rollouts(&cell, options, DEFAULT_DEMONSTRATOR, &make, 2, 8);
+        let plain = record(&cell, options, DEFAULT_DEMONSTRATOR, 2, 8);
+        for (index, episode) in relabelled.iter().enumerate() {
+            let seed = episode_seed(8, index);
+            // The states are the driver's own episode: those it sees running alone.
+            let mut driver = policy::builtin("visual-servo", &cell).unwrap();
+            driver.reset(seed);
+            let mut env = AssemblyEnv::new(&cell, options);
+            let mut observation = env.reset(seed).unwrap();
+            let mut alone = Vec::new();
+            loop {
+                if observation.measurement_fresh {
+                    alone.push(observation.state);
+                }
+                let result = env.step(&driver.act(&observation).action).unwrap();
+                observation = result.observation;
+                if let Some(outcome) = result.outcome {
+                    assert_eq!(episode.succeeded, outcome == Outcome::Success);
+                    break;
+                }
+            }
+            let visited: Vec<_> = episode.steps.iter().map(|s| s.state).collect();
+            assert_eq!(visited, alone);
+            let demonstrated: Vec<_> = plain[index].steps.iter().map(|s| s.state).collect();
+            assert_ne!(visited, demonstrated);
+            // Every label is the demonstrator's decision on the state the driver was in.
+            let labels: Vec<_> = episode.steps.iter().map(|s| s.action).collect();
+            assert_eq!(labels, replayed_labels(&cell, seed, episode));
         }
     }
 
