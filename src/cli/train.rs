@@ -5,7 +5,7 @@
 //!
 //! | file | written by |
 //! |---|---|
-//! | `demos.jsonl` | demonstrations (recorded in the twin, or copied from `--demos-file`) |
+//! | `demos.jsonl` | demonstrations (recorded in the twin, after any `--dagger-policy` episodes; or copied from `--demos-file`) |
 //! | `bc.safetensors`, `bc_curve.csv` | `train bc`: both actors and the normaliser |
 //! | `lstm.safetensors`, `lstm_curve.csv`, `bc-policy.safetensors` | `train lstm`: + the selector |
 //! | `td3_checkpoint.safetensors`, `td3_progress.json` | `train td3`, every `--checkpoint-every` episodes |

@@ -72,8 +72,9 @@ pub const BUILTIN_CONTROLLERS: [&str; 5] = [
     "da-dmp",
 ];
 
-/// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3, the default policy),
-/// `bc` (the same BC actors and selector without TD3), both made by `celld train all`, and `td3`
+/// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3 after two DAgger
+/// rounds, the default policy), `bc` (plain behaviour cloning: BC actors and selector on the
+/// demonstrations alone, no DAgger, no TD3), both made by `celld train all`, and `td3`
 /// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
 /// flat`). See the README.
 pub const LEARNED_CONTROLLERS: [&str; 3] = ["hierarchical", "bc", "td3"];
