@@ -125,6 +125,9 @@ fn main() -> ExitCode {
     // candle re-reads the CPU count on every matmul unless this is set (../shared/notes).
     hierarchical::init_cpu_threads();
     let cli = Cli::parse();
+    if !matches!(cli.command, Command::Serve(_)) {
+        stop_quietly_when_stdout_closes();
+    }
     let result = match cli.command {
         Command::Eval(args) => run_eval(args),
         Command::Policy(PolicyCommand::Run { policy, states }) => run_policy(&policy, &states),
@@ -139,6 +142,18 @@ fn main() -> ExitCode {
             eprintln!("error: {error:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// `celld eval … | head` ends quietly when the reader goes away, as Unix tools do, instead of
+/// panicking in `println!` (Rust ignores SIGPIPE). Not for `serve`: a service outlives a
+/// closed pipe.
+fn stop_quietly_when_stdout_closes() {
+    // SAFETY: called from `main` before any other thread exists; it restores the default
+    // disposition of one signal.
+    #[cfg(unix)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 

@@ -98,3 +98,21 @@ fn bad_input_is_refused_with_a_message() {
     refused(&["eval", "--init-ori-deg", "45"], "--init-ori-deg");
     refused(&["eval", "--without", "gravity"], "gravity");
 }
+
+#[test]
+fn a_reader_that_goes_away_ends_the_output_without_a_panic() {
+    // `celld eval … | head`: the pipe's reading end is closed before celld writes anything.
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_celld"))
+        .args(["eval", "--controller", "expert", "--episodes", "5"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("celld runs");
+    drop(child.stdout.take());
+    let output = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    // Ended by SIGPIPE, as Unix tools are (a panic exits with code 101).
+    use std::os::unix::process::ExitStatusExt;
+    assert_eq!(output.status.signal(), Some(13), "{:?}", output.status);
+}
