@@ -67,6 +67,37 @@ fn zero_or_negative_clearance_is_refused() {
 }
 
 #[test]
+fn a_wall_margin_must_fit_in_the_clearance_and_may_be_left_out() {
+    let with = |margin: &str| {
+        reference_text().replace(
+            "wall_margin_mm = 0.02 ",
+            &format!("wall_margin_mm = {margin} "),
+        )
+    };
+    assert_eq!(CellConfig::reference().supervisor.wall_margin_mm, 0.02);
+    for bad in ["-0.01", "0.05", "0.2", "nan"] {
+        let message = refused(&with(bad));
+        assert!(
+            message.contains("supervisor.wall_margin_mm") && message.contains("0.05"),
+            "{bad}: {message}"
+        );
+    }
+    assert_eq!(
+        CellConfig::parse(&with("0.049"), "test.toml")
+            .unwrap()
+            .supervisor
+            .wall_margin_mm,
+        0.049
+    );
+    let start = reference_text().find("[supervisor]").unwrap();
+    let end = reference_text().find("[reward]").unwrap();
+    let mut without = reference_text();
+    without.replace_range(start..end, "");
+    let cell = CellConfig::parse(&without, "test.toml").unwrap();
+    assert_eq!(cell.supervisor.wall_margin_mm, 0.0);
+}
+
+#[test]
 fn stroke_that_cannot_reach_home_is_refused() {
     let text = reference_text().replace("leg_max_mm = 1050.0", "leg_max_mm = 800.0");
     let message = refused(&text);

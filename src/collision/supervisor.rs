@@ -7,7 +7,7 @@
 //! The paper's rule lives with the caller: a vetoed move is dropped, the state is read again and a
 //! new move is asked for; too many vetoes in a row fail the episode.
 
-use super::clearance::{Clearance, ContactKind, PartGeometry, clearance_along};
+use super::clearance::{Clearance, ContactKind, PartGeometry, clearance, clearance_along};
 use super::obb::Obb;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose, pose};
@@ -34,6 +34,14 @@ pub enum VetoReason {
         kind: ContactKind,
         clearance_mm: f64,
     },
+    #[error(
+        "predicted wall clearance {clearance_mm:.4} mm is below the margin {margin_mm:.4} mm (and below the {start_mm:.4} mm at the start of the move)"
+    )]
+    WallMargin {
+        clearance_mm: f64,
+        margin_mm: f64,
+        start_mm: f64,
+    },
 }
 
 impl VetoReason {
@@ -45,7 +53,17 @@ impl VetoReason {
             VetoReason::StaleMeasurement => "stale_measurement",
             VetoReason::Kinematics(e) => e.code(),
             VetoReason::Collision { .. } => "collision",
+            VetoReason::WallMargin { .. } => "wall_margin",
         }
+    }
+
+    /// The move was refused for the parts' sake (a predicted contact, or too near the wall),
+    /// not for the robot's or the data's.
+    pub fn is_about_contact(&self) -> bool {
+        matches!(
+            self,
+            VetoReason::Collision { .. } | VetoReason::WallMargin { .. }
+        )
     }
 }
 
@@ -70,7 +88,11 @@ pub struct Supervisor {
     bore_obb: Obb,
     step_limit_mm: f64,
     step_limit_deg: f64,
+    wall_margin_mm: f64,
 }
+
+/// A move that keeps the wall gap where it was is not refused for closing it by rounding.
+const GAP_ROUNDING_MM: f64 = 1e-6;
 
 impl Supervisor {
     pub fn new(cell: &CellConfig) -> Self {
@@ -82,6 +104,7 @@ impl Supervisor {
             parts,
             step_limit_mm: cell.steps.position_mm,
             step_limit_deg: cell.steps.orientation_deg,
+            wall_margin_mm: cell.supervisor.wall_margin_mm,
         }
     }
 
@@ -142,16 +165,27 @@ impl Supervisor {
         })
     }
 
-    /// The predicted clearance along the move, vetoing a predicted contact.
+    /// The predicted clearance along the move, vetoing a predicted contact, or a wall gap under
+    /// the margin that the move would close further.
     fn predicted_clearance(&self, from: &Pose, to: &Pose) -> Result<f64, VetoReason> {
-        let clearance = swept_clearance(&self.parts, &self.bore_obb, from, to);
-        match clearance.contact_kind() {
-            Some(kind) => Err(VetoReason::Collision {
+        let along = swept_clearance(&self.parts, &self.bore_obb, from, to);
+        if let Some(kind) = along.contact_kind() {
+            return Err(VetoReason::Collision {
                 kind,
-                clearance_mm: clearance.min_mm(),
-            }),
-            None => Ok(clearance.min_mm()),
+                clearance_mm: along.min_mm(),
+            });
         }
+        if along.wall_mm < self.wall_margin_mm {
+            let start_mm = clearance(&self.parts, from).wall_mm;
+            if along.wall_mm < start_mm - GAP_ROUNDING_MM {
+                return Err(VetoReason::WallMargin {
+                    clearance_mm: along.wall_mm,
+                    margin_mm: self.wall_margin_mm,
+                    start_mm,
+                });
+            }
+        }
+        Ok(along.min_mm())
     }
 }
 
@@ -211,6 +245,51 @@ mod tests {
         assert_eq!(veto.code(), "collision");
         assert!(
             matches!(veto, VetoReason::Collision { kind: ContactKind::Wall, clearance_mm } if clearance_mm < 0.0)
+        );
+    }
+
+    #[test]
+    fn near_the_wall_a_move_may_not_close_the_gap_below_the_margin() {
+        let (supervisor, home) = setup();
+        assert_eq!(supervisor.wall_margin_mm, 0.02);
+        // 0.025 mm off the axis: 0.025 mm of gap. 0.01 mm further out leaves 0.015 mm.
+        let outwards = Move::translation(0.01, 0.0, -1.0);
+        let veto = supervisor
+            .check(&home, Some(&inserted(30.0, 0.025)), &outwards)
+            .unwrap_err();
+        assert_eq!(veto.code(), "wall_margin");
+        match veto {
+            VetoReason::WallMargin {
+                clearance_mm,
+                margin_mm,
+                start_mm,
+            } => {
+                assert!((clearance_mm - 0.015).abs() < 1e-6, "{clearance_mm}");
+                assert!((start_mm - 0.025).abs() < 1e-9, "{start_mm}");
+                assert_eq!(margin_mm, 0.02);
+            }
+            other => panic!("{other:?}"),
+        }
+        // Already inside the margin (0.01 mm of gap): straight in keeps the gap and is allowed,
+        // closing it further is not.
+        let near = inserted(30.0, 0.04);
+        assert!(
+            supervisor
+                .check(&home, Some(&near), &Move::translation(0.0, 0.0, -1.0))
+                .is_ok()
+        );
+        let veto = supervisor
+            .check(&home, Some(&near), &Move::translation(0.005, 0.0, 0.0))
+            .unwrap_err();
+        assert_eq!(veto.code(), "wall_margin");
+        // Without a margin only contact is refused.
+        let mut cell = CellConfig::reference();
+        cell.supervisor.wall_margin_mm = 0.0;
+        let without = Supervisor::new(&cell);
+        assert!(
+            without
+                .check(&home, Some(&inserted(30.0, 0.025)), &outwards)
+                .is_ok()
         );
     }
 

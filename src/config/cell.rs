@@ -42,6 +42,9 @@ pub struct CellConfig {
     pub episode: EpisodeConfig,
     pub steps: StepLimitConfig,
     pub reward: RewardConfig,
+    /// The collision supervisor's settings; a cell file without the section gets no margin.
+    #[serde(default)]
+    pub supervisor: SupervisorConfig,
 }
 
 /// Segment I: the shaft the robot carries.
@@ -184,6 +187,17 @@ pub struct EpisodeConfig {
 pub struct StepLimitConfig {
     pub position_mm: f64,
     pub orientation_deg: f64,
+}
+
+/// The collision supervisor (DESIGN.md §8).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SupervisorConfig {
+    /// A move may not bring the shaft nearer the bore wall than this (mm), by the measured pose;
+    /// a move that starts nearer may not close the gap further. It covers what the measurement
+    /// may be off by sideways: the gap it predicts is not the true one. 0: only a predicted
+    /// contact is refused.
+    pub wall_margin_mm: f64,
 }
 
 /// The paper's reward (§3.3), Table 1 weights.
@@ -360,6 +374,17 @@ impl CellConfig {
                 &format!(
                     "clearance ≤ 0: the bore must be wider than the shaft ({} mm)",
                     self.shaft.diameter_mm
+                ),
+            ));
+        }
+        let margin = self.supervisor.wall_margin_mm;
+        if !(margin.is_finite() && margin >= 0.0 && margin < self.radial_clearance_mm()) {
+            return Err(invalid(
+                "supervisor.wall_margin_mm",
+                margin,
+                &format!(
+                    "must be 0 or more and less than the radial clearance ({:.4} mm)",
+                    self.radial_clearance_mm()
                 ),
             ));
         }

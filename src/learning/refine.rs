@@ -14,7 +14,7 @@ use super::td3::{ReplayBuffer, Td3, Td3Config, Transition, clone_varmap};
 use crate::config::cell::CellConfig;
 use crate::policy::Actor;
 use crate::policy::eval::{self, EvalSummary, episode_seed};
-use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig};
+use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig, holds_depth_after};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome, RewardTerms};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
@@ -266,15 +266,21 @@ impl Refinement {
                     Actor::Orientation => (3, self.policy_config.step_limit_deg),
                 };
                 let span = f64::from(out.scale) * limit;
-                let mut a = [0f32; 3];
-                for i in 0..3 {
+                let mut a: [f32; 3] = std::array::from_fn(|i| {
                     let clean = if span > 0.0 {
                         out.action[offset + i] / span
                     } else {
                         0.0
                     };
                     let noise: f64 = self.rng.sample(StandardNormal);
-                    a[i] = (clean + sigma * noise).clamp(-1.0, 1.0) as f32;
+                    (clean + sigma * noise).clamp(-1.0, 1.0) as f32
+                });
+                // As the policy acts as a controller: no deeper after a refusal for contact.
+                if out.actor == Actor::Position && holds_depth_after(observation.last_veto.as_ref())
+                {
+                    a[2] = a[2].max(0.0);
+                }
+                for i in 0..3 {
                     action[offset + i] = f64::from(a[i]) * span;
                 }
                 taken[agent_index(out.actor)] += 1;

@@ -22,9 +22,14 @@
 //! the reference they are checked against and the model training builds on. Both match an
 //! independent numpy implementation (tests/fixtures, scripts/make_policy_fixture.py) to 1e-5.
 //! The normalisation runs in f64 (states hold values like 2000 mm), the network in f32.
+//!
+//! As a [`Controller`] the policy adds one rule to the forward pass, for the supervisor's sake:
+//! after a move refused for a predicted contact, the next move does not go deeper
+//! ([`holds_depth_after`]). `celld policy run` prints the forward pass alone.
 
 use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
 use super::{Actor, Controller, Decision};
+use crate::collision::supervisor::VetoReason;
 use crate::geometry::Move;
 use crate::sim::Observation;
 use candle_core::{DType, Device, Module, Tensor};
@@ -47,6 +52,18 @@ pub fn init_cpu_threads() {
             unsafe { std::env::set_var("RAYON_NUM_THREADS", n.to_string()) };
         }
     });
+}
+
+/// Whether the move after `last_veto` may not go deeper into the bore (Δz < 0 in {M}).
+///
+/// The paper's rule for a refused move (§2.2, collision detection): the state is read again and the policy asks
+/// for a new move. At the entrance, a few hundredths of a millimetre off sideways, the new move
+/// is the refused one again up to the camera's noise (sideways and down at once), and 20
+/// refusals in a row fail the episode. Holding the depth after a refusal for contact lets the
+/// sideways part through; the next move goes in once the shaft is centred (docs/learning.md,
+/// session 11).
+pub fn holds_depth_after(last_veto: Option<&VetoReason>) -> bool {
+    last_veto.is_some_and(VetoReason::is_about_contact)
 }
 
 /// Sizes and step limits of a policy.
@@ -756,17 +773,24 @@ impl Controller for HierarchicalPolicy {
 
     /// The policy's move; a step that fails or is not finite holds still (a zero move). Without
     /// a fresh frame the cell holds still and the LSTM does not advance (the expert's
-    /// demonstrations have no such steps).
+    /// demonstrations have no such steps). After a refusal for contact the move keeps its
+    /// depth ([`holds_depth_after`]).
     fn act(&mut self, observation: &Observation) -> Decision {
         if !observation.measurement_fresh {
             return Decision::hold();
         }
         match self.step(&observation.state) {
-            Ok(out) if out.is_finite() => Decision {
-                action: out.to_move(),
-                actor: Some(out.actor),
-                scale: Some(out.scale as f64),
-            },
+            Ok(out) if out.is_finite() => {
+                let mut action = out.to_move();
+                if holds_depth_after(observation.last_veto.as_ref()) {
+                    action.translation_mm.z = action.translation_mm.z.max(0.0);
+                }
+                Decision {
+                    action,
+                    actor: Some(out.actor),
+                    scale: Some(out.scale as f64),
+                }
+            }
             _ => Decision::hold(),
         }
     }
@@ -844,6 +868,53 @@ mod tests {
             }
             assert!(a.action.iter().all(|v| v.abs() <= 5.0));
         }
+    }
+
+    /// Along an episode of the bundled policy in the twin, the move asked for after a refusal
+    /// for contact equals the plain move except that it does not go deeper; after a refusal
+    /// for another reason it is the plain move.
+    #[test]
+    fn after_a_refusal_for_contact_the_move_keeps_its_depth_and_nothing_else_changes() {
+        use crate::collision::clearance::ContactKind;
+        use crate::config::cell::CellConfig;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        let cell = CellConfig::reference();
+        let file =
+            PolicyFile::from_bytes(super::super::bundled_policy("hierarchical").unwrap()).unwrap();
+        let mut policy = HierarchicalPolicy::from_file(&file).unwrap();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut observation = env.reset(11).unwrap();
+        let refused = |observation: &Observation, veto: VetoReason| Observation {
+            last_veto: Some(veto),
+            ..observation.clone()
+        };
+        let contact = VetoReason::Collision {
+            kind: ContactKind::Wall,
+            clearance_mm: -0.01,
+        };
+        let mut held = 0;
+        loop {
+            let plain = observation.clone();
+            let (mut after_contact, mut after_stale) = (policy.clone(), policy.clone());
+            let asked = policy.act(&Observation {
+                last_veto: None,
+                ..plain.clone()
+            });
+            let stale = after_stale.act(&refused(&plain, VetoReason::StaleMeasurement));
+            assert_eq!(stale.action, asked.action);
+            let got = after_contact.act(&refused(&plain, contact.clone())).action;
+            let want = asked.action;
+            assert_eq!(got.rotation_deg, want.rotation_deg);
+            assert_eq!(got.translation_mm.xy(), want.translation_mm.xy());
+            assert_eq!(got.translation_mm.z, want.translation_mm.z.max(0.0));
+            held += usize::from(want.translation_mm.z < 0.0);
+            let result = env.step(&want).unwrap();
+            if result.outcome.is_some() {
+                break;
+            }
+            observation = result.observation;
+        }
+        assert!(held > 0, "no move went deeper: the rule was not exercised");
     }
 
     #[test]
