@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     step_rows(if quick { 50_000 } else { 200_000 });
-    service(if quick { 4 } else { 10 });
+    service(if quick { 4 } else { 40 });
 }
 
 fn record(job_id: i64, step: u32) -> StepRecord {

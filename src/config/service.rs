@@ -70,7 +70,7 @@ pub struct ControlConfig {
 /// `control.cpu`: which CPU the control thread gets to itself.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ControlCpu {
-    /// The last CPU this process may use, when it may use four or more
+    /// The last CPU this process may use, when it may use two or more
     /// (`cell::cpu::AUTO_FROM_CPUS`).
     #[default]
     Auto,
