@@ -27,8 +27,9 @@ pub enum CpuPlanError {
 
 /// `auto` isolates a CPU whenever there is one to spare. On two CPUs that halves what HTTP,
 /// SQLite, evaluations and training get, but the control step's timing comes first: on this
-/// project's 2-core machine the latency goals held only with the control thread on a CPU of its
-/// own (docs/service.md, Figures). `off` gives every thread every CPU.
+/// project's 2-core machine, on a busy day, the latency goals held only with the control thread
+/// on a CPU of its own; on a quiet day they held either way (docs/service.md, Figures, runs
+/// 10–22). `off` gives every thread every CPU.
 pub const AUTO_FROM_CPUS: usize = 2;
 
 /// The placement for `choice` given the CPUs the process may use; `None` when every thread
