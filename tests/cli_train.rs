@@ -34,6 +34,25 @@ fn train(stage: &str, out: &Path, extra: &[&str]) -> std::process::Output {
     celld(&args)
 }
 
+/// `train`, with some of the toy settings' values replaced.
+fn train_overriding(
+    stage: &str,
+    out: &Path,
+    overrides: &[(&str, &str)],
+    extra: &[&str],
+) -> std::process::Output {
+    let mut args = vec!["train", stage, "--out", out.to_str().unwrap()];
+    for pair in TINY.chunks(2) {
+        let value = overrides
+            .iter()
+            .find(|(flag, _)| *flag == pair[0])
+            .map_or(pair[1], |(_, value)| *value);
+        args.extend_from_slice(&[pair[0], value]);
+    }
+    args.extend_from_slice(extra);
+    celld(&args)
+}
+
 fn stderr(output: &std::process::Output) -> String {
     String::from_utf8_lossy(&output.stderr).into_owned()
 }
@@ -169,7 +188,103 @@ fn bad_training_requests_are_refused_before_any_work() {
     ]);
     assert!(!file.status.success());
     assert!(stderr(&file).contains("no/such.jsonl: no such file"));
+    for (flag, value, message) in [
+        (
+            "--bc-anneal-fraction",
+            "1.5",
+            "--bc-anneal-fraction must be between 0 and 1",
+        ),
+        (
+            "--bc-anneal-factor",
+            "0",
+            "--bc-anneal-factor must be > 0 and at most 1",
+        ),
+    ] {
+        let bad = celld(&["train", "bc", "--out", out.to_str().unwrap(), flag, value]);
+        assert!(!bad.status.success());
+        assert!(stderr(&bad).contains(message), "{}", stderr(&bad));
+    }
     assert!(!out.join("demos.jsonl").exists(), "no work was done");
+}
+
+/// The tensors of a checkpoint or policy file whose names start with `prefix`, by name.
+fn tensors(path: &Path, prefix: &str) -> Vec<(String, Vec<f32>)> {
+    let mut named: Vec<(String, Vec<f32>)> =
+        candle_core::safetensors::load(path, &candle_core::Device::Cpu)
+            .unwrap()
+            .into_iter()
+            .filter(|(name, _)| name.starts_with(prefix))
+            .map(|(name, t)| (name, t.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+            .collect();
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    assert!(
+        !named.is_empty(),
+        "no `{prefix}` tensors in {}",
+        path.display()
+    );
+    named
+}
+
+#[test]
+fn fine_tuning_starts_from_the_given_policy_and_keeps_its_normaliser() {
+    let dir = tempfile::tempdir().unwrap();
+    let (first, tuned) = (dir.path().join("first"), dir.path().join("tuned"));
+    for stage in ["bc", "lstm"] {
+        let run = train(stage, &first, &[]);
+        assert!(run.status.success(), "{stage}: {}", stderr(&run));
+    }
+    let start = first.join("bc-policy.safetensors");
+    // At a vanishing learning rate nothing moves, so what the stages write is where they
+    // started: the given policy's weights and normaliser, not fresh ones. Other demonstrations
+    // (seed 8), whose own normaliser would differ.
+    let vanishing = [
+        "--init-policy",
+        start.to_str().unwrap(),
+        "--bc-lr",
+        "1e-30",
+        "--lstm-lr",
+        "1e-30",
+    ];
+    let seed_8 = [("--seed", "8")];
+    for stage in ["bc", "lstm"] {
+        let run = train_overriding(stage, &tuned, &seed_8, &vanishing);
+        assert!(run.status.success(), "{stage}: {}", stderr(&run));
+    }
+    for prefix in ["obs_", "pos.", "ori.", "high."] {
+        assert_eq!(
+            tensors(&tuned.join("bc-policy.safetensors"), prefix),
+            tensors(&start, prefix),
+            "{prefix}"
+        );
+    }
+    // At the default rate the actors move from there.
+    let moved = dir.path().join("moved");
+    let run = train_overriding("bc", &moved, &seed_8, &vanishing[..2]);
+    assert!(run.status.success(), "{}", stderr(&run));
+    assert_ne!(
+        tensors(&moved.join("bc.safetensors"), "pos."),
+        tensors(&start, "pos.")
+    );
+    assert_eq!(
+        tensors(&moved.join("bc.safetensors"), "obs_"),
+        tensors(&start, "obs_")
+    );
+
+    // A policy of other sizes is refused before any work.
+    let wide = dir.path().join("wide");
+    let refused = train_overriding(
+        "bc",
+        &wide,
+        &[("--actor-width", "32")],
+        &["--init-policy", start.to_str().unwrap()],
+    );
+    assert!(!refused.status.success());
+    assert!(
+        stderr(&refused).contains("its size is 16, this run's --actor-width is 32"),
+        "{}",
+        stderr(&refused)
+    );
+    assert!(!wide.join("demos.jsonl").exists(), "no work was done");
 }
 
 fn demo_lines(run: &Path) -> Vec<serde_json::Value> {

@@ -26,6 +26,7 @@ use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgres
 use assembly_cell::learning::selector::SelectorConfig;
 use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::eval::episode_seed;
+use assembly_cell::policy::file::PolicyFile;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
 use assembly_cell::policy::{Actor, Controller};
 use assembly_cell::sim::EnvOptions;
@@ -35,7 +36,7 @@ use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Subcommand)]
@@ -91,6 +92,12 @@ pub struct TrainArgs {
     /// Repeat it for further rounds (each earlier round's policy, then the latest).
     #[arg(long)]
     dagger_policy: Vec<PathBuf>,
+    /// Fine-tune this policy instead of training from fresh weights: behaviour cloning starts
+    /// from its actors and keeps its input normaliser, the selector starts from its LSTM. Its
+    /// sizes must match --actor-width and --lstm-hidden. Use a lower --bc-lr (0.002) than from
+    /// scratch: docs/learning.md, session 12.
+    #[arg(long)]
+    init_policy: Option<PathBuf>,
     /// Episodes each --dagger-policy drives.
     #[arg(long, default_value_t = 800)]
     dagger_episodes: usize,
@@ -111,6 +118,12 @@ pub struct TrainArgs {
     /// BC learning rate (SGD).
     #[arg(long, default_value_t = 0.02)]
     bc_lr: f64,
+    /// The last fraction of each actor's BC epochs (rounded up) runs at --bc-lr ×
+    /// --bc-anneal-factor: at a constant rate the weights end anywhere in SGD's noise (0: off).
+    #[arg(long, default_value_t = BcConfig::default().anneal_fraction)]
+    bc_anneal_fraction: f64,
+    #[arg(long, default_value_t = BcConfig::default().anneal_factor)]
+    bc_anneal_factor: f64,
     /// Weight of the lateral (x, y) components in the position actor's BC loss.
     #[arg(long, default_value_t = 1.0)]
     bc_lateral_weight: f64,
@@ -179,6 +192,39 @@ const FLAT_CHECKPOINT: &str = "td3-flat_checkpoint.safetensors";
 const FLAT_PROGRESS: &str = "td3-flat_progress.json";
 const FLAT_POLICY: &str = "td3-flat-policy.safetensors";
 
+/// Reads and checks --init-policy: a hierarchical policy file of this run's sizes and the
+/// cell's step limits.
+fn init_policy(path: &Path, args: &TrainArgs, cell: &CellConfig) -> Result<PolicyFile> {
+    let file =
+        PolicyFile::from_path(path).with_context(|| format!("--init-policy {}", path.display()))?;
+    let context = |what: String| format!("--init-policy {}: {what}", path.display());
+    for (name, ours, theirs) in [
+        ("--actor-width", args.actor_width, file.actor_width()),
+        ("--lstm-hidden", args.lstm_hidden, file.hidden_size()),
+    ] {
+        if ours != theirs {
+            bail!(context(format!(
+                "its size is {theirs}, this run's {name} is {ours}"
+            )));
+        }
+    }
+    for (name, ours, theirs) in [
+        ("position", cell.steps.position_mm, file.step_limit_mm()),
+        (
+            "orientation",
+            cell.steps.orientation_deg,
+            file.step_limit_deg(),
+        ),
+    ] {
+        if ours != theirs {
+            bail!(context(format!(
+                "its {name} step limit is {theirs}, the cell's is {ours}"
+            )));
+        }
+    }
+    Ok(file)
+}
+
 pub fn run(command: TrainCommand) -> Result<()> {
     let (args, stages): (TrainArgs, &[Stage]) = match command {
         TrainCommand::Bc(a) => (a, &[Stage::Bc]),
@@ -217,6 +263,8 @@ struct Run {
     options: EnvOptions,
     /// The --dagger-policy files, loaded and checked, in order.
     dagger_drivers: Vec<HierarchicalPolicy>,
+    /// The --init-policy file, checked.
+    init: Option<PolicyFile>,
 }
 
 impl Run {
@@ -264,6 +312,18 @@ impl Run {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
         }
+        if !(0.0..=1.0).contains(&args.bc_anneal_fraction) {
+            bail!(
+                "--bc-anneal-fraction must be between 0 and 1, got {}",
+                args.bc_anneal_fraction
+            );
+        }
+        if !(args.bc_anneal_factor > 0.0 && args.bc_anneal_factor <= 1.0) {
+            bail!(
+                "--bc-anneal-factor must be > 0 and at most 1, got {}",
+                args.bc_anneal_factor
+            );
+        }
         if !demos::DEMONSTRATORS.contains(&args.demonstrator.as_str()) {
             bail!(
                 "--demonstrator {}: not a demonstrator; known: {}",
@@ -292,6 +352,11 @@ impl Run {
                     .with_context(|| format!("--dagger-policy {}", path.display()))
             })
             .collect::<Result<Vec<_>>>()?;
+        let init = args
+            .init_policy
+            .as_ref()
+            .map(|path| init_policy(path, &args, &cell))
+            .transpose()?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
         let options = EnvOptions::from_cell(&cell);
@@ -300,6 +365,7 @@ impl Run {
             cell,
             options,
             dagger_drivers,
+            init,
         })
     }
 
@@ -444,6 +510,8 @@ impl Run {
             orientation_epochs: self.args.bc_orientation_epochs,
             batch_size: self.args.bc_batch,
             learning_rate: self.args.bc_lr,
+            anneal_fraction: self.args.bc_anneal_fraction,
+            anneal_factor: self.args.bc_anneal_factor,
             seed: self.args.seed,
             lateral_weight: self.args.bc_lateral_weight,
             insertion_repeat: self.args.bc_insertion_repeat,
@@ -485,7 +553,8 @@ impl Run {
             return self.lstm();
         }
         let (train, held_out) = self.demos()?;
-        let normaliser = pipeline::fit_normaliser(&train, &self.bc_config());
+        let normaliser =
+            pipeline::training_normaliser(&train, &self.bc_config(), self.init.as_ref())?;
         let selector_vars = pipeline::normaliser_vars(&normaliser)?;
         let progress = MultiProgress::new();
         let (bc, lstm) = std::thread::scope(|scope| {
@@ -519,6 +588,7 @@ impl Run {
             &step_limits(&self.cell),
             self.args.actor_width,
             &config,
+            self.init.as_ref(),
             &mut |actor, epoch, loss| {
                 let name = actor_name(actor);
                 curve.push_str(&format!("{name},{epoch},{loss}\n"));
@@ -533,7 +603,11 @@ impl Run {
         Ok(Fitted {
             varmap,
             wall_s: started.elapsed().as_secs_f64(),
-            figures: json!({"final_loss": last, "config": format!("{config:?}")}),
+            figures: json!({
+                "final_loss": last,
+                "config": format!("{config:?}"),
+                "init_policy": self.args.init_policy,
+            }),
         })
     }
 
@@ -567,6 +641,7 @@ impl Run {
             held_out,
             &step_limits(&self.cell),
             &config,
+            self.init.as_ref(),
             &mut |epoch, loss| {
                 curve.push_str(&format!("{epoch},{loss}\n"));
                 bar.set_message(format!("loss {loss:.4}"));

@@ -45,6 +45,25 @@ pub fn fit_normaliser(demos: &[DemoEpisode], config: &BcConfig) -> Normaliser {
     Normaliser::fit(demos).goal_centred(config.goal_scales)
 }
 
+/// The normaliser training uses: `start`'s when fine-tuning a policy (its weights were trained
+/// on those inputs), else the one fitted to `demos`.
+pub fn training_normaliser(
+    demos: &[DemoEpisode],
+    config: &BcConfig,
+    start: Option<&PolicyFile>,
+) -> candle_core::Result<Normaliser> {
+    match start {
+        Some(file) => normaliser_of(&vars_of(file)?),
+        None => Ok(fit_normaliser(demos, config)),
+    }
+}
+
+/// Copies `start`'s tensors whose names start with `prefix` into `varmap`, as new variables.
+fn start_from(varmap: &VarMap, start: &PolicyFile, prefix: &str) -> candle_core::Result<()> {
+    merge_vars(varmap, &vars_of(start)?, prefix);
+    Ok(())
+}
+
 /// A new `VarMap` holding `normaliser` (`obs_mean`, `obs_std`), which every stage starts from:
 /// the selector needs nothing else from behaviour cloning, so the two can train at once.
 pub fn normaliser_vars(normaliser: &Normaliser) -> candle_core::Result<VarMap> {
@@ -64,20 +83,26 @@ pub fn merge_vars(into: &VarMap, from: &VarMap, prefix: &str) {
 }
 
 /// Behaviour cloning of both actors: a new `VarMap` with `pos.*`, `ori.*`, `obs_mean`, `obs_std`.
-/// `on_epoch(actor, epoch, loss)` reports progress.
+/// The actors start from fresh seeded weights, or from `start`'s actors and normaliser
+/// (fine-tuning a policy, whose actors must be `width` wide). `on_epoch(actor, epoch, loss)`
+/// reports progress.
 pub fn behaviour_clone(
     demos: &[DemoEpisode],
     limits: &StepLimits,
     width: usize,
     config: &BcConfig,
+    start: Option<&PolicyFile>,
     on_epoch: &mut dyn FnMut(Actor, usize, f64),
 ) -> candle_core::Result<VarMap> {
-    let normaliser = fit_normaliser(demos, config);
+    let normaliser = training_normaliser(demos, config, start)?;
     let varmap = normaliser_vars(&normaliser)?;
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let mut jobs = Vec::with_capacity(2);
     for actor in [Actor::Position, Actor::Orientation] {
-        init_actor(&varmap, actor_prefix(actor), width, &mut rng)?;
+        match start {
+            Some(file) => start_from(&varmap, file, &format!("{}.", actor_prefix(actor)))?,
+            None => init_actor(&varmap, actor_prefix(actor), width, &mut rng)?,
+        }
         let samples = match actor {
             Actor::Position => position_samples(demos, &normaliser, limits, config),
             Actor::Orientation => actor_samples(demos, actor, &normaliser, limits),
@@ -162,21 +187,26 @@ pub struct SelectorReport {
 }
 
 /// Trains the LSTM selector into `varmap` (which holds the normaliser from `behaviour_clone`),
-/// on `train`, and measures it on `held_out`.
+/// on `train`, and measures it on `held_out`. It starts from fresh seeded weights, or from
+/// `start`'s selector (fine-tuning; its hidden size must be `config.hidden_size`).
 pub fn train_lstm(
     varmap: &VarMap,
     train: &[DemoEpisode],
     held_out: &[DemoEpisode],
     limits: &StepLimits,
     config: &SelectorConfig,
+    start: Option<&PolicyFile>,
     on_epoch: &mut dyn FnMut(usize, f64),
 ) -> candle_core::Result<SelectorReport> {
     let normaliser = normaliser_of(varmap)?;
-    init_selector(
-        varmap,
-        config.hidden_size,
-        &mut ChaCha8Rng::seed_from_u64(config.seed),
-    )?;
+    match start {
+        Some(file) => start_from(varmap, file, "high.")?,
+        None => init_selector(
+            varmap,
+            config.hidden_size,
+            &mut ChaCha8Rng::seed_from_u64(config.seed),
+        )?,
+    }
     let losses = train_selector(
         varmap,
         &sequences(train, &normaliser, limits),
@@ -292,7 +322,7 @@ mod tests {
             ..BcConfig::default()
         };
         let mut epochs = Vec::new();
-        let varmap = behaviour_clone(&demos, &limits, 16, &bc, &mut |actor, epoch, _| {
+        let varmap = behaviour_clone(&demos, &limits, 16, &bc, None, &mut |actor, epoch, _| {
             epochs.push((actor, epoch))
         })
         .unwrap();
@@ -321,6 +351,7 @@ mod tests {
             &demos[4..],
             &limits,
             &selector,
+            None,
             &mut |_, _| {},
         )
         .unwrap();
@@ -359,7 +390,7 @@ mod tests {
             seed: 9,
             ..BcConfig::default()
         };
-        let together = behaviour_clone(&demos, &limits, 16, &bc, &mut |_, _, _| {}).unwrap();
+        let together = behaviour_clone(&demos, &limits, 16, &bc, None, &mut |_, _, _| {}).unwrap();
         // The reference: the same initialisation, then each actor alone, in turn.
         let normaliser = fit_normaliser(&demos, &bc);
         let alone = normaliser_vars(&normaliser).unwrap();

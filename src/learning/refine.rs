@@ -510,13 +510,22 @@ mod tests {
             epochs: 1,
             ..BcConfig::default()
         };
-        let vars = behaviour_clone(&demos, &limits, 8, &bc, &mut |_, _, _| {}).unwrap();
+        let vars = behaviour_clone(&demos, &limits, 8, &bc, None, &mut |_, _, _| {}).unwrap();
         let selector = SelectorConfig {
             hidden_size: 4,
             epochs: 1,
             ..SelectorConfig::default()
         };
-        train_lstm(&vars, &demos, &demos, &limits, &selector, &mut |_, _| {}).unwrap();
+        train_lstm(
+            &vars,
+            &demos,
+            &demos,
+            &limits,
+            &selector,
+            None,
+            &mut |_, _| {},
+        )
+        .unwrap();
         let config = RefineConfig {
             episodes: 2,
             td3: Td3Config {

@@ -162,6 +162,7 @@ pub fn run(
         &limits,
         settings.actor_width,
         &bc,
+        None,
         &mut |actor, epoch, loss| {
             done += 1;
             let stage = match actor {
@@ -194,6 +195,7 @@ pub fn run(
         &held_out,
         &limits,
         &selector,
+        None,
         &mut |epoch, loss| {
             done += 1;
             report(
