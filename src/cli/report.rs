@@ -202,7 +202,10 @@ pub fn run(args: ReportArgs) -> Result<()> {
         )?);
     }
     bar.finish_and_clear();
-    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let command = std::env::args()
+        .map(|arg| shell_quoted(&arg))
+        .collect::<Vec<_>>()
+        .join(" ");
     let markdown = render(
         &args,
         &command,
@@ -301,6 +304,17 @@ fn steps(summary: &EvalSummary) -> String {
     summary
         .avg_steps
         .map_or("-".to_string(), |s| format!("{s:.1}"))
+}
+
+/// `arg` as a shell reads it back: in single quotes when it holds anything but plain word
+/// characters (a `--curve` label with spaces), so the command in the report can be run again.
+fn shell_quoted(arg: &str) -> String {
+    let plain = |c: char| c.is_ascii_alphanumeric() || "-_./=:,+@%".contains(c);
+    if !arg.is_empty() && arg.chars().all(plain) {
+        arg.to_string()
+    } else {
+        format!("'{}'", arg.replace('\'', "'\\''"))
+    }
 }
 
 fn render(
@@ -407,4 +421,28 @@ fn render(
         }
     }
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::shell_quoted;
+
+    #[test]
+    fn a_quoted_argument_reads_back_the_same_through_a_shell() {
+        for arg in [
+            "--curve",
+            "BC+TD3 (hierarchical)=/tmp/r/td3_curve.json",
+            "it's",
+            "",
+            "a$b`c`\"d\"",
+        ] {
+            let out = std::process::Command::new("sh")
+                .arg("-c")
+                .arg(format!("printf '%s' {}", shell_quoted(arg)))
+                .output()
+                .unwrap();
+            assert_eq!(String::from_utf8(out.stdout).unwrap(), arg);
+        }
+        assert_eq!(shell_quoted("--episodes"), "--episodes");
+    }
 }
