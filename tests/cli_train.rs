@@ -199,6 +199,16 @@ fn bad_training_requests_are_refused_before_any_work() {
             "0",
             "--bc-anneal-factor must be > 0 and at most 1",
         ),
+        (
+            "--td3-trust-region",
+            "inf",
+            "--td3-trust-region must be a finite number >= 0",
+        ),
+        (
+            "--td3-noise",
+            "0",
+            "--td3-noise must be a finite number > 0",
+        ),
     ] {
         let bad = celld(&["train", "bc", "--out", out.to_str().unwrap(), flag, value]);
         assert!(!bad.status.success());

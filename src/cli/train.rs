@@ -157,9 +157,17 @@ pub struct TrainArgs {
     /// TD3 actor learning rate (Adam; Table 1: 3e-4).
     #[arg(long, default_value_t = Td3Config::default().actor_learning_rate)]
     td3_actor_lr: f64,
-    /// σ of TD3's Gaussian exploration noise on the actors' tanh outputs.
-    #[arg(long, default_value_t = Td3Config::default().exploration_noise)]
-    td3_noise: f64,
+    /// σ of TD3's Gaussian exploration noise on the actors' tanh outputs [default: 0.002 for
+    /// the BC actors (at 0.01 the BC policy fails one training episode in three), 0.1 for
+    /// `train flat` and --no-bc-init].
+    #[arg(long)]
+    td3_noise: Option<f64>,
+    /// Trust region of the TD3 stage around the BC actors: after each update no actor output
+    /// (tanh units; 0.001 is 3 µm of a full 3 mm step) may be further than this from the BC
+    /// actor's on replayed states. 0: plain TD3 (it wrecks the BC policy within 20 episodes).
+    /// Not used with --no-bc-init.
+    #[arg(long, default_value_t = RefineConfig::default().td3.trust_region.unwrap_or(0.0))]
+    td3_trust_region: f64,
     /// TD3 episodes at the start in which only the critics learn (the actors are frozen; with
     /// at least --td3-episodes of them the actors are never updated).
     #[arg(long, default_value_t = RefineConfig::default().critic_warmup_episodes)]
@@ -303,7 +311,7 @@ impl Run {
             ("--lstm-lr", args.lstm_lr),
             ("--bc-lateral-weight", args.bc_lateral_weight),
             ("--td3-actor-lr", args.td3_actor_lr),
-            ("--td3-noise", args.td3_noise),
+            ("--td3-noise", args.td3_noise.unwrap_or(1.0)),
             ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
             ("--norm-depth-std-mm", args.norm_depth_std_mm),
             ("--norm-tilt-std-deg", args.norm_tilt_std_deg),
@@ -311,6 +319,12 @@ impl Run {
             if !(lr.is_finite() && lr > 0.0) {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
+        }
+        if !(args.td3_trust_region.is_finite() && args.td3_trust_region >= 0.0) {
+            bail!(
+                "--td3-trust-region must be a finite number >= 0 (0: none), got {}",
+                args.td3_trust_region
+            );
         }
         if !(0.0..=1.0).contains(&args.bc_anneal_fraction) {
             bail!(
@@ -696,7 +710,12 @@ impl Run {
             eval_episodes: self.args.eval_episodes,
             td3: Td3Config {
                 actor_learning_rate: self.args.td3_actor_lr,
-                exploration_noise: self.args.td3_noise,
+                exploration_noise: self.args.td3_noise.unwrap_or(if self.args.no_bc_init {
+                    Td3Config::default().exploration_noise
+                } else {
+                    defaults.td3.exploration_noise
+                }),
+                trust_region: Some(self.args.td3_trust_region).filter(|&r| r > 0.0),
                 ..defaults.td3
             },
             critic_warmup_episodes: self.args.td3_critic_warmup,
@@ -843,7 +862,10 @@ impl Run {
             td3: Td3Config {
                 hidden: self.args.flat_hidden,
                 actor_learning_rate: self.args.td3_actor_lr,
-                exploration_noise: self.args.td3_noise,
+                exploration_noise: self
+                    .args
+                    .td3_noise
+                    .unwrap_or(Td3Config::default().exploration_noise),
                 ..Td3Config::default()
             },
             critic_warmup_episodes: self.args.td3_critic_warmup,

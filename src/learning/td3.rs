@@ -5,6 +5,11 @@
 //! Generic over state and action sizes; actions live in [−1, 1] (tanh). Deterministic under its
 //! seed: weights are created here (PyTorch's default initialisation) and every random draw comes
 //! from one seeded generator.
+//!
+//! An optional trust region ([`Td3Config::trust_region`]) keeps the actor's outputs near those of
+//! the actor it started from: the BC actors of this cell are right to a few micrometres, and the
+//! critic's gradient, learned from a policy that almost always succeeds, points every update the
+//! same wrong way.
 
 use super::bc::{init_linear, vars_under};
 use candle_core::{DType, Device, Tensor};
@@ -30,7 +35,15 @@ pub struct Td3Config {
     pub replay_capacity: usize,
     pub hidden: usize,
     pub seed: u64,
+    /// A trust region around the starting actor: after each actor update, no output (tanh units)
+    /// on [`TRUST_REGION_PROBES`] replayed states may be further than this from the starting
+    /// actor's; if one is, the weights are pulled back along the line to the starting weights
+    /// until none is. `None`: plain TD3.
+    pub trust_region: Option<f64>,
 }
+
+/// Replayed states on which each actor update is checked against the trust region.
+pub const TRUST_REGION_PROBES: usize = 256;
 
 impl Default for Td3Config {
     fn default() -> Self {
@@ -47,6 +60,7 @@ impl Default for Td3Config {
             replay_capacity: 1_000_000,
             hidden: 256,
             seed: 0,
+            trust_region: None,
         }
     }
 }
@@ -181,6 +195,8 @@ pub struct Td3 {
     critic_targets: [Mlp; 2],
     actor_target_vars: VarMap,
     critic_target_vars: VarMap,
+    /// The starting actor, kept for the trust region (see [`Td3Config::trust_region`]).
+    anchor: Option<Anchor>,
     actor_optimizer: AdamW,
     critic_optimizer: AdamW,
     rng: ChaCha8Rng,
@@ -230,6 +246,19 @@ impl Td3 {
         let critic_target_vars = clone_varmap(&critic_vars)?;
         let device = Device::Cpu;
         let vb = |vars: &VarMap| VarBuilder::from_varmap(vars, DType::F32, &device);
+        let anchor = match config.trust_region {
+            Some(_) => Some(Anchor {
+                actor: Mlp::load(
+                    vb(&clone_varmap(&actor_vars)?).pp("actor"),
+                    state_dim,
+                    actor_width,
+                    action_dim,
+                    true,
+                )?,
+                weights: actor_weights(&actor_vars)?,
+            }),
+            None => None,
+        };
         let actor = Mlp::load(
             vb(&actor_vars).pp("actor"),
             state_dim,
@@ -280,6 +309,7 @@ impl Td3 {
             critic_targets,
             actor_target_vars,
             critic_target_vars,
+            anchor,
             rng,
             updates: 0,
             actor_frozen: false,
@@ -411,6 +441,7 @@ impl Td3 {
                 let loss = self.critics[0].forward(&sa)?.mean_all()?.neg()?;
                 // Only the actor's variables are in this optimizer: the critic stays as it is.
                 self.actor_optimizer.backward_step(&loss)?;
+                self.keep_within_trust_region(buffer)?;
                 actor_loss = Some(f64::from(loss.to_scalar::<f32>()?));
                 soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
             }
@@ -418,6 +449,66 @@ impl Td3 {
         }
         Ok(Some((critic_loss, actor_loss)))
     }
+
+    /// With a trust region: if the actor is now too far from the anchor on probe states drawn
+    /// from the buffer, sets its weights to anchor + β·(weights − anchor) with the largest β
+    /// (bisection, 8 halvings) that is within the region.
+    fn keep_within_trust_region(&mut self, buffer: &ReplayBuffer) -> candle_core::Result<()> {
+        let (Some(anchor), Some(radius)) = (&self.anchor, self.config.trust_region) else {
+            return Ok(());
+        };
+        let n = TRUST_REGION_PROBES.min(buffer.len());
+        let mut states = Vec::with_capacity(n * self.state_dim);
+        for _ in 0..n {
+            let t = &buffer.items[self.rng.random_range(0..buffer.len())];
+            states.extend_from_slice(&t.state);
+        }
+        let probes = Tensor::from_vec(states, (n, self.state_dim), &Device::Cpu)?;
+        let reference = anchor.actor.forward(&probes)?;
+        let distance = || -> candle_core::Result<f64> {
+            let gap = (self.actor.forward(&probes)? - &reference)?;
+            Ok(f64::from(gap.abs()?.max_all()?.to_scalar::<f32>()?))
+        };
+        if distance()? <= radius {
+            return Ok(());
+        }
+        let stepped = actor_weights(&self.actor_vars)?;
+        let data = self.actor_vars.data().lock().expect("var map lock");
+        let set = |beta: f64| -> candle_core::Result<()> {
+            for ((name, start), (_, now)) in anchor.weights.iter().zip(&stepped) {
+                data[name].set(&(start + ((now - start)? * beta)?)?)?;
+            }
+            Ok(())
+        };
+        let (mut inside, mut outside) = (0.0, 1.0);
+        for _ in 0..8 {
+            let beta = 0.5 * (inside + outside);
+            set(beta)?;
+            if distance()? <= radius {
+                inside = beta;
+            } else {
+                outside = beta;
+            }
+        }
+        set(inside)
+    }
+}
+
+/// The starting actor and its weights (names in [`actor_weights`]'s order).
+struct Anchor {
+    actor: Mlp,
+    weights: Vec<(String, Tensor)>,
+}
+
+/// A copy of every actor weight, by name, in a fixed order.
+fn actor_weights(vars: &VarMap) -> candle_core::Result<Vec<(String, Tensor)>> {
+    let data = vars.data().lock().expect("var map lock");
+    let mut weights = data
+        .iter()
+        .map(|(name, var)| Ok((name.clone(), var.as_tensor().copy()?)))
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    weights.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(weights)
 }
 
 #[cfg(test)]
@@ -459,6 +550,70 @@ mod tests {
             .fold(0.0f32, f32::max);
         eprintln!("largest error from the optimum a* = s/2: {worst:.4}");
         assert!(worst < 0.1, "largest error from the optimum {worst}");
+    }
+
+    /// The same task with a trust region of 0.05 around the untrained actor: the actor moves
+    /// towards a* = s/2 as far as the region allows and no further, while plain TD3 (the
+    /// same seed) leaves the region.
+    #[test]
+    fn a_trust_region_keeps_the_actor_near_its_start_and_lets_it_improve() {
+        let radius = 0.05;
+        let train = |trust_region: Option<f64>| {
+            let config = Td3Config {
+                hidden: 32,
+                actor_learning_rate: 1e-3,
+                exploration_noise: 0.3,
+                tau: 0.02,
+                seed: 5,
+                trust_region,
+                ..Td3Config::default()
+            };
+            let mut td3 = Td3::new(1, 1, config, None).unwrap();
+            let grid: Vec<f32> = (-10..=10).map(|k| k as f32 / 10.0).collect();
+            let start: Vec<f32> = grid.iter().map(|&s| td3.act(&[s]).unwrap()[0]).collect();
+            let mut buffer = ReplayBuffer::new(10_000);
+            let mut rng = ChaCha8Rng::seed_from_u64(9);
+            for _ in 0..3000 {
+                let s = rng.random_range(-1.0f32..1.0);
+                let a = td3.explore(&[s]).unwrap()[0];
+                buffer.push(Transition {
+                    state: vec![s],
+                    action: vec![a],
+                    reward: -(a - s / 2.0).powi(2),
+                    next_state: vec![s],
+                    done: true,
+                });
+                td3.update(&buffer).unwrap();
+            }
+            let end: Vec<f32> = grid.iter().map(|&s| td3.act(&[s]).unwrap()[0]).collect();
+            let moved = start
+                .iter()
+                .zip(&end)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            let error = |actions: &[f32]| -> f32 {
+                grid.iter()
+                    .zip(actions)
+                    .map(|(s, a)| (a - s / 2.0).abs())
+                    .sum::<f32>()
+                    / grid.len() as f32
+            };
+            (moved, error(&start), error(&end))
+        };
+        let (moved, before, after) = train(Some(radius));
+        eprintln!("within the region: moved {moved:.4}, mean error {before:.4} -> {after:.4}");
+        // The probes are replayed states; between them the actor may stray a little further.
+        assert!(moved <= 1.2 * radius as f32, "moved {moved} from the start");
+        assert!(
+            moved >= 0.8 * radius as f32,
+            "moved only {moved}: the region was not used"
+        );
+        assert!(
+            after < before - 0.5 * radius as f32,
+            "error {before} -> {after}"
+        );
+        let (free, _, _) = train(None);
+        assert!(free > 2.0 * radius as f32, "plain TD3 moved only {free}");
     }
 
     #[test]
