@@ -311,11 +311,13 @@ impl Run {
             ("--lstm-lr", args.lstm_lr),
             ("--bc-lateral-weight", args.bc_lateral_weight),
             ("--td3-actor-lr", args.td3_actor_lr),
-            ("--td3-noise", args.td3_noise.unwrap_or(1.0)),
             ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
             ("--norm-depth-std-mm", args.norm_depth_std_mm),
             ("--norm-tilt-std-deg", args.norm_tilt_std_deg),
-        ] {
+        ]
+        .into_iter()
+        .chain(args.td3_noise.map(|noise| ("--td3-noise", noise)))
+        {
             if !(lr.is_finite() && lr > 0.0) {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
