@@ -516,18 +516,20 @@ mod tests {
     use super::*;
 
     /// A task with a known optimum: state s ∈ [−1, 1], one-step episodes, reward −(a − s/2)².
-    /// The best action is a* = s/2.
-    #[test]
-    fn td3_learns_a_task_with_a_known_optimum() {
+    /// The best action is a* = s/2. Returns the learner after 3000 steps, and its actions on
+    /// `grid` before them.
+    fn train_on_the_known_optimum_task(trust_region: Option<f64>, grid: &[f32]) -> (Td3, Vec<f32>) {
         let config = Td3Config {
             hidden: 32,
             actor_learning_rate: 1e-3,
             exploration_noise: 0.3,
             tau: 0.02,
             seed: 5,
+            trust_region,
             ..Td3Config::default()
         };
         let mut td3 = Td3::new(1, 1, config, None).unwrap();
+        let start = grid.iter().map(|&s| td3.act(&[s]).unwrap()[0]).collect();
         let mut buffer = ReplayBuffer::new(10_000);
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         for _ in 0..3000 {
@@ -542,11 +544,19 @@ mod tests {
             });
             td3.update(&buffer).unwrap();
         }
-        let worst = (-10..=10)
-            .map(|k| {
-                let s = k as f32 / 10.0;
-                (td3.act(&[s]).unwrap()[0] - s / 2.0).abs()
-            })
+        (td3, start)
+    }
+
+    fn grid() -> Vec<f32> {
+        (-10..=10).map(|k| k as f32 / 10.0).collect()
+    }
+
+    #[test]
+    fn td3_learns_a_task_with_a_known_optimum() {
+        let (td3, _) = train_on_the_known_optimum_task(None, &[]);
+        let worst = grid()
+            .into_iter()
+            .map(|s| (td3.act(&[s]).unwrap()[0] - s / 2.0).abs())
             .fold(0.0f32, f32::max);
         eprintln!("largest error from the optimum a* = s/2: {worst:.4}");
         assert!(worst < 0.1, "largest error from the optimum {worst}");
@@ -558,33 +568,9 @@ mod tests {
     #[test]
     fn a_trust_region_keeps_the_actor_near_its_start_and_lets_it_improve() {
         let radius = 0.05;
+        let grid = grid();
         let train = |trust_region: Option<f64>| {
-            let config = Td3Config {
-                hidden: 32,
-                actor_learning_rate: 1e-3,
-                exploration_noise: 0.3,
-                tau: 0.02,
-                seed: 5,
-                trust_region,
-                ..Td3Config::default()
-            };
-            let mut td3 = Td3::new(1, 1, config, None).unwrap();
-            let grid: Vec<f32> = (-10..=10).map(|k| k as f32 / 10.0).collect();
-            let start: Vec<f32> = grid.iter().map(|&s| td3.act(&[s]).unwrap()[0]).collect();
-            let mut buffer = ReplayBuffer::new(10_000);
-            let mut rng = ChaCha8Rng::seed_from_u64(9);
-            for _ in 0..3000 {
-                let s = rng.random_range(-1.0f32..1.0);
-                let a = td3.explore(&[s]).unwrap()[0];
-                buffer.push(Transition {
-                    state: vec![s],
-                    action: vec![a],
-                    reward: -(a - s / 2.0).powi(2),
-                    next_state: vec![s],
-                    done: true,
-                });
-                td3.update(&buffer).unwrap();
-            }
+            let (td3, start) = train_on_the_known_optimum_task(trust_region, &grid);
             let end: Vec<f32> = grid.iter().map(|&s| td3.act(&[s]).unwrap()[0]).collect();
             let moved = start
                 .iter()
