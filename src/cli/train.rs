@@ -76,7 +76,8 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 800)]
     demos: usize,
     /// The scripted expert that records them: `expert-state-only` (decides on what the policy
-    /// sees) or `expert` (also uses the state filter's σ and drift).
+    /// sees), `expert-careful` (the same, with short insertion steps over the first 35 mm) or
+    /// `expert` (also uses the state filter's σ and drift).
     #[arg(long, default_value = demos::DEFAULT_DEMONSTRATOR)]
     demonstrator: String,
     /// σ (mm) of sideways noise added to the demonstrator's position moves as they are

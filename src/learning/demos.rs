@@ -54,7 +54,7 @@ pub enum DemoError {
 pub const DEFAULT_DEMONSTRATOR: &str = "expert-state-only";
 
 /// The demonstrators a run may record: the scripted experts.
-pub const DEMONSTRATORS: [&str; 2] = ["expert-state-only", "expert"];
+pub const DEMONSTRATORS: [&str; 3] = ["expert-state-only", "expert-careful", "expert"];
 
 /// Records `episodes` episodes of the `expert` in the twin; see [`record`].
 pub fn record_expert(

@@ -52,9 +52,15 @@ pub enum InsertionGate {
     /// not in the 12-value state a policy sees.
     FilterCertainty,
     /// After holding still for `holds` fresh frames at the standoff (once per episode), with
-    /// insertion steps of at most `max_step_mm`: a rule of the state and a count, which an
-    /// LSTM policy can learn.
-    Holds { holds: u32, max_step_mm: f64 },
+    /// insertion steps of at most `max_step_mm`, and of at most `careful_step_mm` while the
+    /// shaft is less than `careful_depth_mm` in: a rule of the state and a count, which an LSTM
+    /// policy can learn.
+    Holds {
+        holds: u32,
+        max_step_mm: f64,
+        careful_depth_mm: f64,
+        careful_step_mm: f64,
+    },
 }
 
 impl Default for ExpertTuning {
@@ -85,9 +91,28 @@ impl ExpertTuning {
             insertion_gate: InsertionGate::Holds {
                 holds: 5,
                 max_step_mm: 3.0,
+                careful_depth_mm: 0.0,
+                careful_step_mm: 3.0,
             },
             compensate_drift: false,
             ..ExpertTuning::default()
+        }
+    }
+
+    /// `expert-careful`: the state-only expert with 3 holds at the standoff and insertion steps
+    /// of at most 2 mm over the first 35 mm, 5 mm after. The filter learns the sideways drift
+    /// per mm of insertion from the insertion itself, so a long step early in the bore carries
+    /// a lateral error the clearance cannot take; the `expert` shortens those steps by the
+    /// filter's σ, this one by the depth it sees (docs/learning.md, session 14).
+    pub fn careful() -> Self {
+        ExpertTuning {
+            insertion_gate: InsertionGate::Holds {
+                holds: 3,
+                max_step_mm: 5.0,
+                careful_depth_mm: 35.0,
+                careful_step_mm: 2.0,
+            },
+            ..ExpertTuning::state_only()
         }
     }
 }
@@ -114,6 +139,14 @@ impl Expert {
         Expert {
             name: "expert-state-only",
             ..Self::with_tuning(cell, ExpertTuning::state_only())
+        }
+    }
+
+    /// The `expert-careful` controller ([`ExpertTuning::careful`]).
+    pub fn careful(cell: &CellConfig) -> Self {
+        Expert {
+            name: "expert-careful",
+            ..Self::with_tuning(cell, ExpertTuning::careful())
         }
     }
 
@@ -223,8 +256,18 @@ impl Expert {
                         dz *= 0.7;
                     }
                 }
-                InsertionGate::Holds { max_step_mm, .. } => {
-                    dz = dz.clamp(-max_step_mm, max_step_mm);
+                InsertionGate::Holds {
+                    max_step_mm,
+                    careful_depth_mm,
+                    careful_step_mm,
+                    ..
+                } => {
+                    let longest = if insertion_mm < careful_depth_mm {
+                        careful_step_mm
+                    } else {
+                        max_step_mm
+                    };
+                    dz = dz.clamp(-longest, longest);
                 }
             }
         }
@@ -270,5 +313,65 @@ impl Controller for Expert {
         } else {
             Decision::hold()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::{AssemblyEnv, EnvOptions};
+
+    /// Runs one episode of `expert`; returns (insertion depth before the move in mm, the
+    /// decision) for every decision taken on a fresh frame, and whether it succeeded.
+    fn episode(cell: &CellConfig, expert: &mut Expert, seed: u64) -> (Vec<(f64, Decision)>, bool) {
+        let mut env = AssemblyEnv::new(cell, EnvOptions::from_cell(cell));
+        expert.reset(seed);
+        let mut observation = env.reset(seed).unwrap();
+        let mut decisions = Vec::new();
+        loop {
+            let decision = expert.act(&observation);
+            if observation.measurement_fresh {
+                let depth_mm = observation.state[8] + cell.shaft.engaged_length_mm;
+                decisions.push((depth_mm, decision));
+            }
+            let result = env.step(&decision.action).unwrap();
+            observation = result.observation;
+            if let Some(outcome) = result.outcome {
+                return (decisions, outcome == crate::sim::Outcome::Success);
+            }
+        }
+    }
+
+    #[test]
+    fn the_careful_expert_holds_three_times_and_shortens_its_steps_in_the_first_35_mm() {
+        let cell = CellConfig::reference();
+        let mut expert = Expert::careful(&cell);
+        let (mut careful_steps, mut long_steps) = (0, 0);
+        for seed in 0..5 {
+            let (decisions, succeeded) = episode(&cell, &mut expert, seed);
+            assert!(succeeded, "episode {seed}");
+            let holds = decisions
+                .iter()
+                .filter(|(_, d)| d.scale == Some(0.0))
+                .count();
+            assert_eq!(holds, 3, "episode {seed}");
+            for (depth_mm, decision) in &decisions {
+                let dz = decision.action.translation_mm.z;
+                if *depth_mm < -0.2 || dz >= 0.0 || decision.actor != Some(Actor::Position) {
+                    continue;
+                }
+                if *depth_mm < 35.0 {
+                    assert!(-dz <= 2.0 + 1e-9, "{dz} mm at {depth_mm} mm in");
+                    careful_steps += usize::from(-dz > 1.9);
+                } else {
+                    assert!(-dz <= 5.0 + 1e-9, "{dz} mm at {depth_mm} mm in");
+                    long_steps += usize::from(-dz > 2.5);
+                }
+            }
+        }
+        assert!(
+            careful_steps > 20 && long_steps > 5,
+            "{careful_steps} {long_steps}"
+        );
     }
 }

@@ -64,9 +64,10 @@ pub trait Controller: Send {
 
 /// The controllers that need no learning, by name. `expert-state-only` is the demonstrator the
 /// learned policies are trained on (it decides on what the policy sees; see [`expert`]).
-pub const BUILTIN_CONTROLLERS: [&str; 5] = [
+pub const BUILTIN_CONTROLLERS: [&str; 6] = [
     "expert",
     "expert-state-only",
+    "expert-careful",
     "visual-servo",
     "spiral",
     "da-dmp",
@@ -112,6 +113,7 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
     match name {
         "expert" => Ok(Box::new(expert::Expert::new(cell))),
         "expert-state-only" => Ok(Box::new(expert::Expert::state_only(cell))),
+        "expert-careful" => Ok(Box::new(expert::Expert::careful(cell))),
         "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
         "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
         "da-dmp" => Ok(Box::new(dmp::default_dmp(cell))),
