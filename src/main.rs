@@ -61,8 +61,8 @@ enum PolicyCommand {
 #[derive(Args)]
 struct EvalArgs {
     /// Controller: expert, expert-state-only, expert-careful, visual-servo, spiral, da-dmp,
-    /// hierarchical, bc, td3, or the path of a policy file (.safetensors, hierarchical or flat, told apart by its
-    /// `format` metadata).
+    /// hierarchical, bc, td3, or the path of a policy file (.safetensors, hierarchical or flat,
+    /// told apart by its `format` metadata).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).
