@@ -6,8 +6,9 @@
 //! The moves are the policy file's forward pass with Gaussian exploration noise on the acting
 //! actor's tanh output. Updates run after each episode, one per step the agent took (TD3's one
 //! update per environment step). By default each agent stays within a trust region around its
-//! BC actor ([`TRUST_REGION`]): plain TD3 undoes behaviour cloning here within 20 episodes. The policy is evaluated every `eval_every` episodes on
-//! validation episodes (seeds disjoint from the report's) and the best one is kept.
+//! BC actor ([`TRUST_REGION`]): plain TD3 undoes behaviour cloning here within 20 episodes. The
+//! policy is evaluated every `eval_every` episodes on validation episodes (seeds disjoint from
+//! the report's) and the best one is kept.
 
 use super::bc::init_actor;
 use super::pipeline::{actor_prefix, normaliser_of};
