@@ -35,7 +35,9 @@ pub struct ExpertTuning {
     /// Height of the tip above the entrance down to which Segment I may come while it is still
     /// more than 1 mm off sideways (mm).
     pub prestandoff_mm: f64,
-    /// Human variability: each step's length is scaled by a factor drawn from [this, 1].
+    /// Human variability: each step's length is scaled by a factor drawn from [this, 1]. It
+    /// also shows a learner the states around the demonstrator's path: a policy learnt from
+    /// `expert-careful` without it stalled near the bottom (docs/learning.md, session 15).
     pub min_step_factor: f64,
     /// What decides that the shaft may go in, and how long the insertion steps are.
     pub insertion_gate: InsertionGate,
