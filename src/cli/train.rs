@@ -128,6 +128,11 @@ pub struct TrainArgs {
     /// Weight of the lateral (x, y) components in the position actor's BC loss.
     #[arg(long, default_value_t = 1.0)]
     bc_lateral_weight: f64,
+    /// A further weight of the x, y components in both actors' BC losses for states with the
+    /// tip in the bore, where the sideways corrections are hundredths of a millimetre (30 in
+    /// docs/learning.md, session 15; 1: none).
+    #[arg(long, default_value_t = BcConfig::default().bore_lateral_weight)]
+    bc_bore_lateral_weight: f64,
     /// How many times each insertion step (from 1.5 mm above the entrance) appears in the
     /// position actor's BC samples.
     #[arg(long, default_value_t = BcConfig::default().insertion_repeat)]
@@ -311,6 +316,7 @@ impl Run {
             ("--bc-lr", args.bc_lr),
             ("--lstm-lr", args.lstm_lr),
             ("--bc-lateral-weight", args.bc_lateral_weight),
+            ("--bc-bore-lateral-weight", args.bc_bore_lateral_weight),
             ("--td3-actor-lr", args.td3_actor_lr),
             ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
             ("--norm-depth-std-mm", args.norm_depth_std_mm),
@@ -531,6 +537,8 @@ impl Run {
             anneal_factor: self.args.bc_anneal_factor,
             seed: self.args.seed,
             lateral_weight: self.args.bc_lateral_weight,
+            bore_lateral_weight: self.args.bc_bore_lateral_weight,
+            bore_from_pz_mm: pipeline::bore_from_pz_mm(&self.cell),
             insertion_repeat: self.args.bc_insertion_repeat,
             insertion_from_pz_mm: pipeline::insertion_from_pz_mm(&self.cell),
             goal_scales: GoalScales {

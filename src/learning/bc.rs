@@ -38,6 +38,14 @@ pub struct BcConfig {
     /// moves during insertion are a few µm beside a millimetre-long z step: unweighted, the
     /// loss lets their errors through.
     pub lateral_weight: f64,
+    /// A further weight of the x and y components (the sideways move; the tilt about x and y)
+    /// in both actors' losses for samples with the tip in the bore (P_z ≥ `bore_from_pz_mm`).
+    /// There the sideways corrections are hundredths of a millimetre, and unweighted the
+    /// actor gets about half of each one wrong; at 30 its error there is a third as large
+    /// (docs/learning.md, session 15).
+    pub bore_lateral_weight: f64,
+    /// P_z (mm) at the entrance of the bore: the tip is in the bore at or above it.
+    pub bore_from_pz_mm: f64,
     /// Each position step at or past the standoff (P_z ≥ `insertion_from_pz_mm`) appears this
     /// many times in the position actor's samples: insertion needs micrometre precision that
     /// an unweighted loss spends on the approach (docs/learning.md, session 4: success 0.050
@@ -72,6 +80,8 @@ impl Default for BcConfig {
             anneal_factor: 0.1,
             seed: 0,
             lateral_weight: 1.0,
+            bore_lateral_weight: 1.0,
+            bore_from_pz_mm: -60.0,
             insertion_repeat: 20,
             insertion_from_pz_mm: -61.5,
             goal_scales: GoalScales::default(),
@@ -174,25 +184,48 @@ fn samples_where(
         .collect()
 }
 
-/// The paper's BC loss, (1/2N) Σ ‖a − aᵉ‖², of an actor over samples.
-pub fn bc_loss(actor: &ActorNet, samples: &[([f32; 12], [f32; 3])]) -> candle_core::Result<f64> {
-    weighted_loss(actor, samples, [1.0; 3])
+/// How much each output component's error counts in an actor's BC loss.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LossWeights {
+    /// Per component (x, y, z), for every sample.
+    pub components: [f32; 3],
+    /// A further factor on x and y for the samples in the bore.
+    pub bore_lateral: f32,
+    /// The normalised P_z input (column 8) at the entrance: samples at or above it are in the
+    /// bore.
+    pub bore_from_input: f32,
 }
 
-/// The BC loss with a weight per output component.
+impl LossWeights {
+    /// The same weights for every sample.
+    pub fn uniform(components: [f32; 3]) -> Self {
+        LossWeights {
+            components,
+            bore_lateral: 1.0,
+            bore_from_input: f32::INFINITY,
+        }
+    }
+}
+
+/// The paper's BC loss, (1/2N) Σ ‖a − aᵉ‖², of an actor over samples.
+pub fn bc_loss(actor: &ActorNet, samples: &[([f32; 12], [f32; 3])]) -> candle_core::Result<f64> {
+    weighted_loss(actor, samples, LossWeights::uniform([1.0; 3]))
+}
+
+/// The BC loss with weights per output component.
 pub fn weighted_loss(
     actor: &ActorNet,
     samples: &[([f32; 12], [f32; 3])],
-    weights: [f32; 3],
+    weights: LossWeights,
 ) -> candle_core::Result<f64> {
     let (x, y) = batch(samples, &(0..samples.len()).collect::<Vec<_>>())?;
-    loss(actor, &x, &y, &weight_tensor(weights)?)?
+    loss(actor, &x, &y, &weights, &component_tensor(weights)?)?
         .to_scalar::<f32>()
         .map(f64::from)
 }
 
-fn weight_tensor(weights: [f32; 3]) -> candle_core::Result<Tensor> {
-    Tensor::from_slice(&weights, (1, 3), &Device::Cpu)
+fn component_tensor(weights: LossWeights) -> candle_core::Result<Tensor> {
+    Tensor::from_slice(&weights.components, (1, 3), &Device::Cpu)
 }
 
 fn batch(
@@ -211,13 +244,26 @@ fn batch(
     ))
 }
 
-fn loss(actor: &ActorNet, x: &Tensor, y: &Tensor, w: &Tensor) -> candle_core::Result<Tensor> {
+/// The weighted loss of a minibatch; `components` is `weights.components` as a (1, 3) tensor.
+fn loss(
+    actor: &ActorNet,
+    x: &Tensor,
+    y: &Tensor,
+    weights: &LossWeights,
+    components: &Tensor,
+) -> candle_core::Result<Tensor> {
     let n = x.dim(0)? as f64;
-    (actor.forward(x)? - y)?
-        .sqr()?
-        .broadcast_mul(w)?
-        .sum_all()?
-        / (2.0 * n)
+    let mut squared = (actor.forward(x)? - y)?.sqr()?.broadcast_mul(components)?;
+    if weights.bore_lateral != 1.0 {
+        let in_bore = x
+            .narrow(1, 8, 1)?
+            .ge(f64::from(weights.bore_from_input))?
+            .to_dtype(DType::F32)?;
+        let lateral = ((in_bore * (f64::from(weights.bore_lateral) - 1.0))? + 1.0)?;
+        let per_row = Tensor::cat(&[&lateral, &lateral, &Tensor::ones_like(&lateral)?], 1)?;
+        squared = (squared * per_row)?;
+    }
+    squared.sum_all()? / (2.0 * n)
 }
 
 /// Trains the actor `{prefix}` (already in `varmap`) on `samples` with SGD, each output
@@ -229,7 +275,7 @@ pub fn train_actor(
     varmap: &VarMap,
     prefix: &str,
     width: usize,
-    weights: [f32; 3],
+    weights: LossWeights,
     samples: &[([f32; 12], [f32; 3])],
     config: &BcConfig,
     on_epoch: &mut dyn FnMut(usize, f64),
@@ -244,7 +290,7 @@ pub fn train_actor(
         config.learning_rate,
     )?;
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    let w = weight_tensor(weights)?;
+    let components = component_tensor(weights)?;
     let mut order: Vec<usize> = (0..samples.len()).collect();
     let mut losses = Vec::with_capacity(config.epochs);
     for epoch in 0..config.epochs {
@@ -253,7 +299,7 @@ pub fn train_actor(
         let mut total = 0.0;
         for rows in order.chunks(config.batch_size.max(1)) {
             let (x, y) = batch(samples, rows)?;
-            let loss = loss(&actor, &x, &y, &w)?;
+            let loss = loss(&actor, &x, &y, &weights, &components)?;
             total += f64::from(loss.to_scalar::<f32>()?) * rows.len() as f64;
             optimizer.backward_step(&loss)?;
         }
@@ -343,6 +389,41 @@ mod tests {
     }
 
     #[test]
+    fn the_bore_weight_scales_the_sideways_errors_of_samples_in_the_bore_only() {
+        let varmap = VarMap::new();
+        init_actor(&varmap, "pos", 8, &mut ChaCha8Rng::seed_from_u64(4)).unwrap();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        let actor = ActorNet::load(vb.pp("pos"), 8).unwrap();
+        // Normalised P_z (column 8) against the entrance at -12: three samples in the bore
+        // (one exactly at the entrance), two above it.
+        let sample = |pz: f32, i: f32| {
+            let mut x = [0.1 * i; 12];
+            x[8] = pz;
+            (x, [0.3 - 0.1 * i, -0.2 * i, 0.5])
+        };
+        let inside = [sample(-12.0, 1.0), sample(-3.0, 2.0), sample(0.0, 3.0)];
+        let outside = [sample(-12.5, 4.0), sample(-40.0, 5.0)];
+        let with = |components: [f32; 3], bore_lateral: f32| LossWeights {
+            components,
+            bore_lateral,
+            bore_from_input: -12.0,
+        };
+        let loss =
+            |samples: &[([f32; 12], [f32; 3])], w| weighted_loss(&actor, samples, w).unwrap();
+        let sideways = loss(&inside, with([1.0, 1.0, 0.0], 1.0));
+        let axial = loss(&inside, with([0.0, 0.0, 1.0], 1.0));
+        let weighted = loss(&inside, with([1.0, 1.0, 1.0], 30.0));
+        assert!(
+            (weighted - (30.0 * sideways + axial)).abs() < 1e-5 * weighted,
+            "{weighted} against 30 · {sideways} + {axial}"
+        );
+        assert_eq!(
+            loss(&outside, with([1.0, 1.0, 1.0], 30.0)),
+            loss(&outside, LossWeights::uniform([1.0; 3]))
+        );
+    }
+
+    #[test]
     fn bc_lowers_its_loss_on_expert_data_deterministically() {
         let cell = CellConfig::reference();
         let demos = record_expert(&cell, EnvOptions::from_cell(&cell), 8, 3);
@@ -373,7 +454,7 @@ mod tests {
                 &varmap,
                 "pos",
                 32,
-                [1.0; 3],
+                LossWeights::uniform([1.0; 3]),
                 &samples,
                 &config,
                 &mut |_, _| {},

@@ -4,7 +4,7 @@
 //! Every stage works on one `VarMap` holding tensors by the policy file's names, so a stage's
 //! output is a checkpoint (`save_vars`) and the last stage's output is the policy file.
 
-use super::bc::{BcConfig, actor_samples, init_actor, position_samples, train_actor};
+use super::bc::{BcConfig, LossWeights, actor_samples, init_actor, position_samples, train_actor};
 use super::dataset::{Normaliser, StepLimits};
 use super::demos::DemoEpisode;
 use super::selector::{SelectorConfig, agreement, init_selector, sequences, train_selector};
@@ -30,7 +30,12 @@ pub fn step_limits(cell: &CellConfig) -> StepLimits {
 /// P_z (mm) from which a position step counts as insertion in behaviour cloning
 /// ([`BcConfig::insertion_from_pz_mm`]): the tip 1.5 mm above the entrance.
 pub fn insertion_from_pz_mm(cell: &CellConfig) -> f64 {
-    -(cell.shaft.engaged_length_mm + 1.5)
+    bore_from_pz_mm(cell) - 1.5
+}
+
+/// P_z (mm) with the tip at the entrance of the bore ([`BcConfig::bore_from_pz_mm`]).
+pub fn bore_from_pz_mm(cell: &CellConfig) -> f64 {
+    -cell.shaft.engaged_length_mm
 }
 
 pub fn actor_prefix(actor: Actor) -> &'static str {
@@ -107,12 +112,18 @@ pub fn behaviour_clone(
             Actor::Position => position_samples(demos, &normaliser, limits, config),
             Actor::Orientation => actor_samples(demos, actor, &normaliser, limits),
         };
-        let weights = match actor {
+        let components = match actor {
             Actor::Position => {
                 let lateral = config.lateral_weight as f32;
                 [lateral, lateral, 1.0]
             }
             Actor::Orientation => [1.0; 3],
+        };
+        let weights = LossWeights {
+            components,
+            bore_lateral: config.bore_lateral_weight as f32,
+            bore_from_input: ((config.bore_from_pz_mm - normaliser.mean[8]) / normaliser.std[8])
+                as f32,
         };
         let config = match actor {
             Actor::Position => *config,
@@ -402,7 +413,7 @@ mod tests {
             &alone,
             "pos",
             16,
-            [2.0, 2.0, 1.0],
+            LossWeights::uniform([2.0, 2.0, 1.0]),
             &position,
             &bc,
             &mut |_, _| {},
@@ -417,7 +428,7 @@ mod tests {
             &alone,
             "ori",
             16,
-            [1.0; 3],
+            LossWeights::uniform([1.0; 3]),
             &orientation,
             &ori_config,
             &mut |_, _| {},

@@ -155,6 +155,7 @@ pub fn run(
         learning_rate: settings.bc_learning_rate,
         seed: settings.seed,
         insertion_from_pz_mm: pipeline::insertion_from_pz_mm(cell),
+        bore_from_pz_mm: pipeline::bore_from_pz_mm(cell),
         ..BcConfig::default()
     };
     let varmap = pipeline::behaviour_clone(
