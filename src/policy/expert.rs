@@ -84,7 +84,7 @@ impl Default for ExpertTuning {
 }
 
 impl ExpertTuning {
-    /// The demonstrator the hierarchical policy learns from (`expert-state-only`): it decides
+    /// The demonstrator `celld train` records by default (`expert-state-only`): it decides
     /// on the 12-value state and a count of holds alone: 5 holds at the standoff, insertion
     /// steps of at most 3 mm, no drift compensation. On the Table 5 protocol it is as good as
     /// the default expert (docs/learning.md, session 5).

@@ -62,8 +62,9 @@ pub trait Controller: Send {
     fn act(&mut self, observation: &Observation) -> Decision;
 }
 
-/// The controllers that need no learning, by name. `expert-state-only` is the demonstrator the
-/// learned policies are trained on (it decides on what the policy sees; see [`expert`]).
+/// The controllers that need no learning, by name. `expert-state-only` is the demonstrator
+/// `celld train` records by default and `expert-careful` the one the bundled policy learnt from
+/// (both decide on what the policy sees; see [`expert`]).
 pub const BUILTIN_CONTROLLERS: [&str; 6] = [
     "expert",
     "expert-state-only",
