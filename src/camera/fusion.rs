@@ -6,8 +6,11 @@
 //!
 //! Position P: per lateral axis a four-state Kalman filter over the offset (mm) and the sideways
 //! drift per mm commanded along x, y and z of {M}; the axial component has a one-state filter.
-//! Orientation O: predicted, then blended with a fixed gain. A large disagreement (the first
-//! frame, a gross error) resets the estimate to the measurement and keeps the learned drift.
+//! Orientation O: predicted, then blended with a fixed gain. A frame that disagrees with the
+//! estimate by more than the jump thresholds is held back, not blended: one gross frame (an
+//! outlier the point fit let through) must not throw away what the filter has learned. Only a
+//! second frame that agrees with the held one, or the first frame of an episode, resets the
+//! estimate to the measurement (keeping the learned drift).
 
 use crate::geometry::Move;
 use crate::geometry::pose::{self, Pose};
@@ -57,6 +60,20 @@ pub struct StateFilter {
     m_f: Option<Pose>,
     lateral: [LateralFilter; 2],
     axial_variance: f64,
+    /// The last frame that disagreed with the estimate, carried along by the moves since.
+    held_back: Option<Pose>,
+}
+
+/// What [`StateFilter::update`] made of a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Fusion {
+    /// Blended into the estimate.
+    Blended,
+    /// The estimate starts again from this frame: the first of an episode, or one that confirms
+    /// a held-back jump.
+    Reset,
+    /// Held back: it disagrees with the estimate by this much, and no earlier frame confirms it.
+    HeldBack { gap_mm: f64, gap_deg: f64 },
 }
 
 impl StateFilter {
@@ -69,6 +86,7 @@ impl StateFilter {
                 covariance: Matrix4::zeros(),
             }; 2],
             axial_variance: 0.0,
+            held_back: None,
         };
         tracker.reset();
         tracker
@@ -76,6 +94,7 @@ impl StateFilter {
 
     pub fn reset(&mut self) {
         self.m_f = None;
+        self.held_back = None;
         let drift_variance = self.tuning.drift_prior_sd.powi(2);
         for filter in &mut self.lateral {
             filter.state = Vector4::zeros();
@@ -95,6 +114,9 @@ impl StateFilter {
             return;
         };
         *m_f = executed.as_pose().inverse() * *m_f;
+        if let Some(held) = self.held_back.as_mut() {
+            *held = executed.as_pose().inverse() * *held;
+        }
         let commanded = executed.translation_mm;
         for (axis, filter) in self.lateral.iter_mut().enumerate() {
             // The true move carries drift · command on top of the command.
@@ -111,20 +133,29 @@ impl StateFilter {
         self.axial_variance += (t.move_error_per_mm * commanded.norm()).powi(2) + 1e-8;
     }
 
-    /// Blends in a new measurement of {F} in {M}.
-    pub fn update(&mut self, measured: &Pose) {
+    /// Takes in a new measurement of {F} in {M}: blends it in, starts again from it, or holds
+    /// it back (see the module's comment).
+    pub fn update(&mut self, measured: &Pose) -> Fusion {
         let t = self.tuning;
         let r = t.measurement_sd_mm.powi(2);
         let Some(predicted) = self.m_f else {
             self.set_to(*measured, r);
-            return;
+            return Fusion::Reset;
         };
-        let gap_mm = (measured.translation.vector - predicted.translation.vector).norm();
-        let gap_deg = measured.rotation.angle_to(&predicted.rotation).to_degrees();
+        let (gap_mm, gap_deg) = self.gap(&predicted, measured);
         if gap_mm > t.jump_mm || gap_deg > t.jump_deg {
-            self.set_to(*measured, r);
-            return;
+            let confirmed = self.held_back.is_some_and(|held| {
+                let (mm, deg) = self.gap(&held, measured);
+                mm <= t.jump_mm && deg <= t.jump_deg
+            });
+            if confirmed {
+                self.set_to(*measured, r);
+                return Fusion::Reset;
+            }
+            self.held_back = Some(*measured);
+            return Fusion::HeldBack { gap_mm, gap_deg };
         }
+        self.held_back = None;
         let mut blended = pose::interpolate(&predicted, measured, t.orientation_gain);
         for (axis, filter) in self.lateral.iter_mut().enumerate() {
             let innovation = measured.translation.vector[axis] - filter.state[0];
@@ -139,6 +170,15 @@ impl StateFilter {
             + gain * (measured.translation.vector.z - predicted.translation.vector.z);
         self.axial_variance *= 1.0 - gain;
         self.m_f = Some(blended);
+        Fusion::Blended
+    }
+
+    /// How far apart two estimates of {F} in {M} are (mm, deg).
+    fn gap(&self, a: &Pose, b: &Pose) -> (f64, f64) {
+        (
+            (b.translation.vector - a.translation.vector).norm(),
+            b.rotation.angle_to(&a.rotation).to_degrees(),
+        )
     }
 
     /// Starts again from a measurement, keeping the learned drift.
@@ -153,6 +193,7 @@ impl StateFilter {
         }
         self.axial_variance = variance;
         self.m_f = Some(measured);
+        self.held_back = None;
     }
 
     /// The estimate of {F} in {M}, once there is one.
@@ -208,9 +249,52 @@ mod tests {
         filter.update(&measured([0.1, 0.0, -10.0]));
         let p = filter.m_f().unwrap().translation.vector;
         assert!(p.x > 0.0 && p.x < 0.1, "{p}");
-        // A 3 mm surprise resets to the measurement.
-        filter.update(&measured([3.0, 0.0, -10.0]));
-        assert!((filter.m_f().unwrap().translation.vector.x - 3.0).abs() < 1e-12);
+        // A 3 mm surprise is held back; a second frame that agrees with it resets to it.
+        let before = filter.m_f();
+        assert!(matches!(
+            filter.update(&measured([3.0, 0.0, -10.0])),
+            Fusion::HeldBack { gap_mm, .. } if (gap_mm - 2.9).abs() < 0.1
+        ));
+        assert_eq!(filter.m_f(), before);
+        assert_eq!(filter.update(&measured([3.01, 0.0, -10.0])), Fusion::Reset);
+        assert!((filter.m_f().unwrap().translation.vector.x - 3.01).abs() < 1e-12);
+    }
+
+    #[test]
+    fn one_gross_frame_leaves_the_estimate_and_its_certainty_alone() {
+        // Twenty agreeing frames make the estimate sure; one frame 1 mm and 0.5 deg off between
+        // them is held back each time, and the estimate goes on as if it had not come.
+        let steady = measured([0.02, -0.01, -30.0]);
+        let gross = pose_from_mm_deg(Vector3::new(1.0, -0.01, -30.0), Vector3::new(0.5, 0.0, 0.0));
+        let mut clean = StateFilter::new(FusionTuning::default());
+        let mut disturbed = StateFilter::new(FusionTuning::default());
+        for i in 0..20 {
+            clean.update(&steady);
+            disturbed.update(&steady);
+            if i % 5 == 4 {
+                let verdict = disturbed.update(&gross);
+                assert!(matches!(verdict, Fusion::HeldBack { gap_deg, .. } if gap_deg > 0.49));
+            }
+        }
+        assert_eq!(disturbed.m_f(), clean.m_f());
+        assert_eq!(disturbed.lateral_sd_mm(), clean.lateral_sd_mm());
+        assert!(clean.lateral_sd_mm() < 0.01, "{}", clean.lateral_sd_mm());
+    }
+
+    #[test]
+    fn a_held_back_frame_is_carried_along_by_the_moves_until_confirmed() {
+        // The part really is 2 mm further in x than estimated: the first frame is held back, the
+        // robot then moves 1 mm in x, and the next frame (1 mm from the first one as seen
+        // before the move, but where the first one says it should be now) confirms it.
+        let mut filter = StateFilter::new(FusionTuning::default());
+        filter.update(&measured([0.0, 0.0, -10.0]));
+        assert!(matches!(
+            filter.update(&measured([2.0, 0.0, -10.0])),
+            Fusion::HeldBack { .. }
+        ));
+        filter.predict(&Move::translation(1.0, 0.0, 0.0));
+        assert_eq!(filter.update(&measured([1.0, 0.0, -10.0])), Fusion::Reset);
+        assert!((filter.m_f().unwrap().translation.vector.x - 1.0).abs() < 1e-12);
     }
 
     #[test]

@@ -2,7 +2,9 @@
 //! sees, one [`Shot`] in and one [`Estimate`] out. The twin's environment calls it inline; the
 //! service runs it on a thread of its own (`cell::ingestion`).
 
-use super::{CameraError, CameraFrame, FusionTuning, StateEstimator, StateFilter, state_vector};
+use super::{
+    CameraError, CameraFrame, Fusion, FusionTuning, StateEstimator, StateFilter, state_vector,
+};
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
 
@@ -93,8 +95,8 @@ impl Ingest {
 
     /// Takes in one capture. `remaining` is the part of the commanded move still to come after
     /// the exposure, in {M} (none when the robot had stopped). On success the fused estimate
-    /// and the state move on; on failure the state stays as it was and the estimate is stale
-    /// (the supervisor then vetoes every move).
+    /// and the state move on; on failure (no fit, or a frame the filter holds back) the state
+    /// stays as it was and the estimate is stale (the supervisor then vetoes every move).
     fn ingest(&mut self, frame: &CameraFrame, remaining: Option<&Pose>) -> Result<(), CameraError> {
         let mut measurement = match self.estimator.estimate(frame) {
             Ok(measurement) => measurement,
@@ -107,8 +109,11 @@ impl Ingest {
             measurement.w_m *= remaining;
             measurement.m_f = remaining.inverse() * measurement.m_f;
         }
+        if let Fusion::HeldBack { gap_mm, gap_deg } = self.filter.update(&measurement.m_f) {
+            self.estimated_m_f = None;
+            return Err(CameraError::HeldBack { gap_mm, gap_deg });
+        }
         self.raw_state = measurement.state(self.hole_pitch_deg);
-        self.filter.update(&measurement.m_f);
         let fused = self.filter.m_f().unwrap_or(measurement.m_f);
         self.state = state_vector(&measurement.w_m, &fused, self.hole_pitch_deg);
         self.estimated_m_f = Some(fused);

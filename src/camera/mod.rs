@@ -11,7 +11,7 @@ pub mod ingest;
 mod sim;
 
 pub use estimate::{Measurement, StateEstimator, state_vector};
-pub use fusion::{FusionTuning, StateFilter};
+pub use fusion::{Fusion, FusionTuning, StateFilter};
 pub use sim::{SimCamera, nominal_point_sigma_mm};
 
 use crate::geometry::fit::FitError;
@@ -59,6 +59,11 @@ pub enum CameraError {
     /// The estimate came out non-finite.
     #[error("the camera estimate is not finite")]
     NonFinite,
+    /// The frame disagrees with the fused estimate; held back until a second frame confirms it.
+    #[error(
+        "the frame is {gap_mm:.3} mm and {gap_deg:.3} deg from the fused estimate: held back until the next frame confirms it"
+    )]
+    HeldBack { gap_mm: f64, gap_deg: f64 },
 }
 
 fn describe_fit_error(error: &FitError) -> String {
