@@ -59,6 +59,22 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
             .unwrap()
             .contains("bc_epochs")
     );
+    for (settings, named) in [
+        (json!({"demonstrator": "a person"}), "demonstrator"),
+        (
+            json!({"bc_bore_lateral_weight": 0.0}),
+            "bc_bore_lateral_weight",
+        ),
+    ] {
+        let (status, refused) = server.post(
+            "/api/training",
+            Some(&admin),
+            Some(json!({ "settings": settings })),
+        );
+        assert_eq!(status, 422, "{refused}");
+        let message = refused["error"]["message"].as_str().unwrap();
+        assert!(message.contains(named), "{message}");
+    }
 
     // A long run: its curve is readable while it runs; a second run must wait; it cancels.
     let (status, long) = server.post("/api/training", Some(&admin), Some(tiny(100_000)));
@@ -86,8 +102,11 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
     assert_eq!(cancelled["status"], "cancelled", "{cancelled}");
     assert_eq!(cancelled["policy_id"], Value::Null);
 
-    // A short run to the end.
-    let (status, short) = server.post("/api/training", Some(&admin), Some(tiny(4)));
+    // A short run to the end, recording the bundled policy's demonstrator with its bore weight.
+    let mut careful = tiny(4);
+    careful["settings"]["demonstrator"] = json!("expert-careful");
+    careful["settings"]["bc_bore_lateral_weight"] = json!(30.0);
+    let (status, short) = server.post("/api/training", Some(&admin), Some(careful));
     assert_eq!(status, 202, "{short}");
     let id = short["id"].as_i64().unwrap();
     let done = wait(&server, id, "ended", |r| r["status"] != "running");
@@ -115,6 +134,10 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
         .expect("the run's demonstrations are stored")
         .clone();
     assert_eq!(listed["source"], "scripted");
+    assert!(
+        listed["name"].as_str().unwrap().contains("expert-careful"),
+        "{listed}"
+    );
     assert_eq!(listed["episodes"], 12);
     let policy_id = done["policy_id"].as_i64().unwrap();
     let (_, policy) = server.get(&format!("/api/policies/{policy_id}"), Some(&admin));

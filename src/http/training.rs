@@ -190,11 +190,12 @@ async fn train(context: &Context, job: &RunJob) -> Result<(i64, Value), RunError
     let mut episodes = job.episodes.clone();
     if let Some(count) = job.record {
         let (recorded, seed) = (cell.clone(), job.settings.seed);
+        let demonstrator = job.settings.demonstrator.clone();
         episodes = on_training_thread(move || {
             demos::record(
                 &recorded,
                 EnvOptions::from_cell(&recorded),
-                demos::DEFAULT_DEMONSTRATOR,
+                &demonstrator,
                 count,
                 seed,
             )
@@ -204,8 +205,7 @@ async fn train(context: &Context, job: &RunJob) -> Result<(i64, Value), RunError
         let new = NewDemonstration {
             name: &format!(
                 "training run {} (recorded {})",
-                job.id,
-                demos::DEFAULT_DEMONSTRATOR
+                job.id, job.settings.demonstrator
             ),
             source: "scripted",
             cell_hash: &cell.config_hash(),

@@ -4,7 +4,7 @@
 //! hierarchy), with the same defaults.
 
 use super::bc::BcConfig;
-use super::demos::DemoEpisode;
+use super::demos::{DEFAULT_DEMONSTRATOR, DEMONSTRATORS, DemoEpisode};
 use super::pipeline::{self, step_limits};
 use super::refine::{RefineConfig, Refinement};
 use super::selector::SelectorConfig;
@@ -38,6 +38,12 @@ pub struct TrainingSettings {
     /// Epochs of the orientation actor (see [`BcConfig::orientation_epochs`]).
     pub bc_orientation_epochs: usize,
     pub bc_learning_rate: f64,
+    /// Weight of the sideways errors of samples in the bore in the BC loss (see
+    /// [`BcConfig::bore_lateral_weight`]; the bundled policy was made with 30).
+    pub bc_bore_lateral_weight: f64,
+    /// The demonstrator recorded when the run is given no stored demonstrations (one of
+    /// [`DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
+    pub demonstrator: String,
     pub lstm_hidden: usize,
     pub lstm_epochs: usize,
     pub td3_episodes: usize,
@@ -55,6 +61,8 @@ impl Default for TrainingSettings {
             bc_epochs: BcConfig::default().epochs,
             bc_orientation_epochs: BcConfig::default().orientation_epochs,
             bc_learning_rate: 0.02,
+            bc_bore_lateral_weight: BcConfig::default().bore_lateral_weight,
+            demonstrator: DEFAULT_DEMONSTRATOR.to_string(),
             lstm_hidden: 64,
             lstm_epochs: 60,
             td3_episodes: 500,
@@ -83,10 +91,19 @@ impl TrainingSettings {
         if self.part == TrainingPart::All && self.td3_episodes == 0 {
             return Err("td3_episodes must be at least 1 (or part \"bc\")".into());
         }
-        if !(self.bc_learning_rate.is_finite() && self.bc_learning_rate > 0.0) {
+        for (field, value) in [
+            ("bc_learning_rate", self.bc_learning_rate),
+            ("bc_bore_lateral_weight", self.bc_bore_lateral_weight),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(format!("{field} = {value} must be a number > 0"));
+            }
+        }
+        if !DEMONSTRATORS.contains(&self.demonstrator.as_str()) {
             return Err(format!(
-                "bc_learning_rate = {} must be > 0",
-                self.bc_learning_rate
+                "demonstrator \"{}\" is not one; known: {}",
+                self.demonstrator,
+                DEMONSTRATORS.join(", ")
             ));
         }
         Ok(())
@@ -153,6 +170,7 @@ pub fn run(
         epochs: settings.bc_epochs,
         orientation_epochs: settings.bc_orientation_epochs,
         learning_rate: settings.bc_learning_rate,
+        bore_lateral_weight: settings.bc_bore_lateral_weight,
         seed: settings.seed,
         insertion_from_pz_mm: pipeline::insertion_from_pz_mm(cell),
         bore_from_pz_mm: pipeline::bore_from_pz_mm(cell),
