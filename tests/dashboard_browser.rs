@@ -87,14 +87,15 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     let shots = screenshots();
     browser.set_screenshot_dir(Some(&shots));
     let dir = tempfile::tempdir().unwrap();
-    // The bundled policy's first-start evaluation (200 episodes, not all successes) stays below
-    // a gate of 1, so that the gate's refusal can be shown below.
+    // The bundled policy's first-start evaluation (the Table 5 protocol's 1000 episodes, where
+    // it fails 2) stays below a gate of 1, so that the gate's refusal can be shown below. Over
+    // the first 200 episodes it now succeeds every time.
     let mut server = Server::start(
         dir.path(),
         &[
             ("CELLD_FAST", "true"),
             ("CELLD_ACTIVATION_THRESHOLD", "1"),
-            ("CELLD_EVALUATION_EPISODES", "200"),
+            ("CELLD_EVALUATION_EPISODES", "1000"),
         ],
     );
     let signin_url = server
