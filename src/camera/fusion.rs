@@ -142,10 +142,10 @@ impl StateFilter {
             self.set_to(*measured, r);
             return Fusion::Reset;
         };
-        let (gap_mm, gap_deg) = self.gap(&predicted, measured);
+        let (gap_mm, gap_deg) = gap(&predicted, measured);
         if gap_mm > t.jump_mm || gap_deg > t.jump_deg {
             let confirmed = self.held_back.is_some_and(|held| {
-                let (mm, deg) = self.gap(&held, measured);
+                let (mm, deg) = gap(&held, measured);
                 mm <= t.jump_mm && deg <= t.jump_deg
             });
             if confirmed {
@@ -171,14 +171,6 @@ impl StateFilter {
         self.axial_variance *= 1.0 - gain;
         self.m_f = Some(blended);
         Fusion::Blended
-    }
-
-    /// How far apart two estimates of {F} in {M} are (mm, deg).
-    fn gap(&self, a: &Pose, b: &Pose) -> (f64, f64) {
-        (
-            (b.translation.vector - a.translation.vector).norm(),
-            b.rotation.angle_to(&a.rotation).to_degrees(),
-        )
     }
 
     /// Starts again from a measurement, keeping the learned drift.
@@ -229,6 +221,14 @@ impl StateFilter {
         let row = |f: &LateralFilter| RowVector3::new(f.state[1], f.state[2], f.state[3]);
         Matrix2x3::from_rows(&[row(&self.lateral[0]), row(&self.lateral[1])])
     }
+}
+
+/// How far apart two estimates of {F} in {M} are (mm, deg).
+fn gap(a: &Pose, b: &Pose) -> (f64, f64) {
+    (
+        (b.translation.vector - a.translation.vector).norm(),
+        b.rotation.angle_to(&a.rotation).to_degrees(),
+    )
 }
 
 #[cfg(test)]
