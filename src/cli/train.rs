@@ -347,13 +347,8 @@ impl Run {
                 args.bc_anneal_factor
             );
         }
-        if !demos::DEMONSTRATORS.contains(&args.demonstrator.as_str()) {
-            bail!(
-                "--demonstrator {}: not a demonstrator; known: {}",
-                args.demonstrator,
-                demos::DEMONSTRATORS.join(", ")
-            );
-        }
+        demos::check_demonstrator(&args.demonstrator)
+            .map_err(|e| anyhow::anyhow!("--demonstrator {e}"))?;
         if let Some(path) = &args.demos_file
             && !path.is_file()
         {

@@ -56,6 +56,18 @@ pub const DEFAULT_DEMONSTRATOR: &str = "expert-state-only";
 /// The demonstrators a run may record: the scripted experts.
 pub const DEMONSTRATORS: [&str; 3] = ["expert-state-only", "expert-careful", "expert"];
 
+/// Refuses a name that is not one of [`DEMONSTRATORS`], listing them.
+pub fn check_demonstrator(name: &str) -> Result<(), String> {
+    if DEMONSTRATORS.contains(&name) {
+        Ok(())
+    } else {
+        Err(format!(
+            "{name}: not a demonstrator; known: {}",
+            DEMONSTRATORS.join(", ")
+        ))
+    }
+}
+
 /// Records `episodes` episodes of the `expert` in the twin; see [`record`].
 pub fn record_expert(
     cell: &CellConfig,

@@ -4,7 +4,7 @@
 //! hierarchy), with the same defaults.
 
 use super::bc::BcConfig;
-use super::demos::{DEFAULT_DEMONSTRATOR, DEMONSTRATORS, DemoEpisode};
+use super::demos::{DEFAULT_DEMONSTRATOR, DemoEpisode, check_demonstrator};
 use super::pipeline::{self, step_limits};
 use super::refine::{RefineConfig, Refinement};
 use super::selector::SelectorConfig;
@@ -42,7 +42,7 @@ pub struct TrainingSettings {
     /// [`BcConfig::bore_lateral_weight`]; the bundled policy was made with 30).
     pub bc_bore_lateral_weight: f64,
     /// The demonstrator recorded when the run is given no stored demonstrations (one of
-    /// [`DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
+    /// [`super::demos::DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
     pub demonstrator: String,
     pub lstm_hidden: usize,
     pub lstm_epochs: usize,
@@ -99,14 +99,7 @@ impl TrainingSettings {
                 return Err(format!("{field} = {value} must be a number > 0"));
             }
         }
-        if !DEMONSTRATORS.contains(&self.demonstrator.as_str()) {
-            return Err(format!(
-                "demonstrator \"{}\" is not one; known: {}",
-                self.demonstrator,
-                DEMONSTRATORS.join(", ")
-            ));
-        }
-        Ok(())
+        check_demonstrator(&self.demonstrator).map_err(|e| format!("demonstrator {e}"))
     }
 
     fn units(&self) -> usize {
