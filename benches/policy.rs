@@ -27,10 +27,13 @@ fn main() {
         .skip(1)
         .filter(|a| a != "--bench")
         .collect();
-    let episodes: usize = args.first().and_then(|a| a.parse().ok()).unwrap_or(200);
-    let batch: usize = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(64);
+    let episodes = count_argument(args.first(), "EPISODES", 200);
+    let batch = count_argument(args.get(1), "BATCH", 64);
     let file = match args.get(2) {
-        Some(path) => PolicyFile::from_path(path).expect("a valid policy file"),
+        Some(path) => PolicyFile::from_path(path).unwrap_or_else(|e| {
+            eprintln!("POLICY_FILE {path}: {e}");
+            std::process::exit(2)
+        }),
         None => PolicyFile::from_bytes(
             assembly_cell::policy::bundled_policy("hierarchical").expect("bundled"),
         )
@@ -94,6 +97,21 @@ fn main() {
         "  batch {batch}: {per_decision_us:.2} µs per decision, {:.0} decisions/s",
         1e6 / per_decision_us
     );
+}
+
+/// A positive count from the command line, `default` when it is absent; exits on anything else.
+fn count_argument(argument: Option<&String>, name: &str, default: usize) -> usize {
+    match argument.map(|a| a.parse::<usize>()) {
+        None => default,
+        Some(Ok(n)) if n > 0 => n,
+        _ => {
+            eprintln!(
+                "{name} must be a positive whole number, not {:?}",
+                argument.unwrap()
+            );
+            std::process::exit(2)
+        }
+    }
 }
 
 /// The states of the policy's fresh frames in `episodes` twin episodes it drives itself
