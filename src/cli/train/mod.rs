@@ -1,0 +1,470 @@
+//! `celld train bc|lstm|td3|all`: the training pipeline over a run directory; `celld train flat`:
+//! the flat TD3 baseline (one 6-DoF actor, no BC, no hierarchy) in the same kind of directory.
+//!
+//! A run directory holds each stage's output, so a stage is a checkpoint and a run resumes:
+//!
+//! | file | written by |
+//! |---|---|
+//! | `demos.jsonl` | demonstrations (recorded in the twin, after any `--dagger-policy` episodes; or copied from `--demos-file`) |
+//! | `bc.safetensors`, `bc_curve.csv` | `train bc`: both actors and the normaliser |
+//! | `lstm.safetensors`, `lstm_curve.csv`, `bc-policy.safetensors` | `train lstm`: + the selector |
+//! | `td3_checkpoint.safetensors`, `td3_progress.json` | `train td3`, every `--checkpoint-every` episodes |
+//! | `td3_curve.csv`, `td3_curve.json`, `policy.safetensors` | `train td3`: curve, best policy |
+//! | `td3-flat_checkpoint.safetensors`, `td3-flat_progress.json` | `train flat`, every `--checkpoint-every` episodes |
+//! | `td3-flat_curve.csv`, `td3-flat_curve.json`, `td3-flat-policy.safetensors` | `train flat`: curve, best policy |
+//! | `run.json` | every stage: settings, figures, wall times |
+//!
+//! The stages are in `imitation.rs` (demonstrations, DAgger, BC, the selector) and `refine.rs`
+//! (TD3 and the flat baseline); this module checks the settings and keeps the run directory.
+
+use anyhow::{Context, Result, bail};
+use assembly_cell::config::cell::CellConfig;
+use assembly_cell::learning::bc::BcConfig;
+use assembly_cell::learning::dataset::GoalScales;
+use assembly_cell::learning::demos;
+use assembly_cell::learning::refine::RefineConfig;
+use assembly_cell::learning::td3::Td3Config;
+use assembly_cell::policy::file::PolicyFile;
+use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::sim::EnvOptions;
+use candle_nn::VarMap;
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+mod imitation;
+mod refine;
+
+#[derive(Subcommand)]
+pub enum TrainCommand {
+    /// Behaviour cloning of the two actors on expert demonstrations (SGD).
+    Bc(TrainArgs),
+    /// The LSTM selector on the expert's choices of actor and step size (Adam); also writes the
+    /// BC policy (no TD3) as bc-policy.safetensors.
+    Lstm(TrainArgs),
+    /// TD3 refinement of the actors in the twin, from the BC actors.
+    Td3(TrainArgs),
+    /// Every stage: demonstrations, then bc and lstm at once (the selector needs only the
+    /// normaliser; the files are those of the stages run one by one), then td3.
+    All(TrainArgs),
+    /// The flat TD3 baseline (`td3`): one 6-DoF actor trained by TD3 from fresh weights, without
+    /// behaviour cloning and without the hierarchy. Uses the demonstrations' states only, for
+    /// the input normaliser. Writes td3-flat-policy.safetensors and td3-flat_curve.csv/.json.
+    Flat(TrainArgs),
+}
+
+#[derive(Args, Clone)]
+pub struct TrainArgs {
+    /// Run directory (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue the run in --out: stages whose output is there are skipped, TD3 continues from
+    /// its checkpoint. Without it, a stage refuses to overwrite its output.
+    #[arg(long)]
+    resume: bool,
+    #[arg(long, default_value_t = 2026)]
+    seed: u64,
+    /// Cell file (default: the bundled reference cell).
+    #[arg(long)]
+    cell: Option<PathBuf>,
+    /// Expert episodes to record in the twin (800: success 0.935 against 0.764 with 400, at
+    /// the same epochs; docs/learning.md, session 6).
+    #[arg(long, default_value_t = 800)]
+    demos: usize,
+    /// The scripted expert that records them: `expert-state-only` (decides on what the policy
+    /// sees), `expert-careful` (the same, with short insertion steps over the first 35 mm) or
+    /// `expert` (also uses the state filter's σ and drift).
+    #[arg(long, default_value = demos::DEFAULT_DEMONSTRATOR)]
+    demonstrator: String,
+    /// σ (mm) of sideways noise added to the demonstrator's position moves as they are
+    /// executed; the recorded label stays the move it meant (DART). 0: none (0.01 made the
+    /// policy far worse, 0.525 against 0.958; docs/learning.md, session 9).
+    #[arg(long, default_value_t = 0.0)]
+    demo_lateral_noise_mm: f64,
+    /// Read the demonstrations from this JSON Lines file instead of recording them.
+    #[arg(long)]
+    demos_file: Option<PathBuf>,
+    /// DAgger: a policy file that drives --dagger-episodes more episodes in the twin while the
+    /// demonstrator labels every state it visits; they are added to the demonstrations.
+    /// Repeat it for further rounds (each earlier round's policy, then the latest).
+    #[arg(long)]
+    dagger_policy: Vec<PathBuf>,
+    /// Fine-tune this policy instead of training from fresh weights: behaviour cloning starts
+    /// from its actors and keeps its input normaliser, the selector starts from its LSTM. Its
+    /// sizes must match --actor-width and --lstm-hidden. Use a lower --bc-lr (0.002) than from
+    /// scratch: docs/learning.md, session 12.
+    #[arg(long)]
+    init_policy: Option<PathBuf>,
+    /// Episodes each --dagger-policy drives.
+    #[arg(long, default_value_t = 800)]
+    dagger_episodes: usize,
+    /// Hidden width of each actor (D).
+    #[arg(long, default_value_t = 64)]
+    actor_width: usize,
+    /// BC epochs of the position actor (200: at 60 the actors were undertrained, success 0.374
+    /// against 0.665; docs/learning.md, session 6).
+    #[arg(long, default_value_t = BcConfig::default().epochs)]
+    bc_epochs: usize,
+    /// BC epochs of the orientation actor (its epochs are a hundredth of the position actor's
+    /// work).
+    #[arg(long, default_value_t = BcConfig::default().orientation_epochs)]
+    bc_orientation_epochs: usize,
+    /// BC batch size (Table 1: 32).
+    #[arg(long, default_value_t = BcConfig::default().batch_size)]
+    bc_batch: usize,
+    /// BC learning rate (SGD).
+    #[arg(long, default_value_t = 0.02)]
+    bc_lr: f64,
+    /// The last fraction of each actor's BC epochs (rounded up) runs at --bc-lr ×
+    /// --bc-anneal-factor: at a constant rate the weights end anywhere in SGD's noise (0: off).
+    #[arg(long, default_value_t = BcConfig::default().anneal_fraction)]
+    bc_anneal_fraction: f64,
+    #[arg(long, default_value_t = BcConfig::default().anneal_factor)]
+    bc_anneal_factor: f64,
+    /// Weight of the lateral (x, y) components in the position actor's BC loss.
+    #[arg(long, default_value_t = 1.0)]
+    bc_lateral_weight: f64,
+    /// A further weight of the x, y components in both actors' BC losses for states with the
+    /// tip in the bore, where the sideways corrections are hundredths of a millimetre (30 in
+    /// docs/learning.md, session 15; 1: none).
+    #[arg(long, default_value_t = BcConfig::default().bore_lateral_weight)]
+    bc_bore_lateral_weight: f64,
+    /// How many times each insertion step (from 1.5 mm above the entrance) appears in the
+    /// position actor's BC samples.
+    #[arg(long, default_value_t = BcConfig::default().insertion_repeat)]
+    bc_insertion_repeat: usize,
+    /// σ (mm) of P_x, P_y in the goal-centred input normaliser.
+    #[arg(long, default_value_t = GoalScales::default().lateral_mm)]
+    norm_lateral_std_mm: f64,
+    /// σ (mm) of P_z in the goal-centred input normaliser.
+    #[arg(long, default_value_t = GoalScales::default().depth_mm)]
+    norm_depth_std_mm: f64,
+    /// σ (deg) of O_x, O_y in the goal-centred input normaliser.
+    #[arg(long, default_value_t = GoalScales::default().tilt_deg)]
+    norm_tilt_std_deg: f64,
+    /// LSTM hidden size (H).
+    #[arg(long, default_value_t = 64)]
+    lstm_hidden: usize,
+    #[arg(long, default_value_t = 60)]
+    lstm_epochs: usize,
+    /// LSTM learning rate (Adam).
+    #[arg(long, default_value_t = 5e-3)]
+    lstm_lr: f64,
+    /// Episodes per LSTM batch.
+    #[arg(long, default_value_t = 8)]
+    lstm_batch: usize,
+    /// TD3 episodes (`train td3` and `train flat`).
+    #[arg(long, default_value_t = 500)]
+    td3_episodes: usize,
+    /// TD3 actor learning rate (Adam; Table 1: 3e-4).
+    #[arg(long, default_value_t = Td3Config::default().actor_learning_rate)]
+    td3_actor_lr: f64,
+    /// σ of TD3's Gaussian exploration noise on the actors' tanh outputs [default: 0.002 for
+    /// the BC actors (at 0.01 the BC policy fails one training episode in three), 0.1 for
+    /// `train flat` and --no-bc-init].
+    #[arg(long)]
+    td3_noise: Option<f64>,
+    /// Trust region of the TD3 stage around the BC actors: after each update no actor output
+    /// (tanh units; 0.001 is 3 µm of a full 3 mm step) may be further than this from the BC
+    /// actor's on replayed states. 0: plain TD3 (it wrecks the BC policy within 20 episodes).
+    /// Not used with --no-bc-init.
+    #[arg(long, default_value_t = RefineConfig::default().td3.trust_region.unwrap_or(0.0))]
+    td3_trust_region: f64,
+    /// TD3 episodes at the start in which only the critics learn (the actors are frozen; with
+    /// at least --td3-episodes of them the actors are never updated).
+    #[arg(long, default_value_t = RefineConfig::default().critic_warmup_episodes)]
+    td3_critic_warmup: usize,
+    /// Start TD3 from freshly initialised actors instead of the BC actors.
+    #[arg(long)]
+    no_bc_init: bool,
+    /// Validate (and keep the best policy) every this many TD3 episodes.
+    #[arg(long, default_value_t = 50)]
+    eval_every: usize,
+    #[arg(long, default_value_t = 200)]
+    eval_episodes: usize,
+    #[arg(long, default_value_t = 50)]
+    checkpoint_every: usize,
+    /// Hidden width of the flat baseline's actor and critics (`train flat`; TD3's own 256).
+    #[arg(long, default_value_t = Td3Config::default().hidden)]
+    flat_hidden: usize,
+}
+
+const DEMOS: &str = "demos.jsonl";
+/// Sets DAgger's episode seeds apart from the demonstrations' (both derive from --seed).
+const DAGGER_SEED_SALT: u64 = 0xDA66_E500;
+const BC: &str = "bc.safetensors";
+const LSTM: &str = "lstm.safetensors";
+const BC_POLICY: &str = "bc-policy.safetensors";
+const TD3_CHECKPOINT: &str = "td3_checkpoint.safetensors";
+const TD3_PROGRESS: &str = "td3_progress.json";
+const POLICY: &str = "policy.safetensors";
+const FLAT_CHECKPOINT: &str = "td3-flat_checkpoint.safetensors";
+const FLAT_PROGRESS: &str = "td3-flat_progress.json";
+const FLAT_POLICY: &str = "td3-flat-policy.safetensors";
+
+/// Reads and checks --init-policy: a hierarchical policy file of this run's sizes and the
+/// cell's step limits.
+fn init_policy(path: &Path, args: &TrainArgs, cell: &CellConfig) -> Result<PolicyFile> {
+    let file =
+        PolicyFile::from_path(path).with_context(|| format!("--init-policy {}", path.display()))?;
+    let context = |what: String| format!("--init-policy {}: {what}", path.display());
+    for (name, ours, theirs) in [
+        ("--actor-width", args.actor_width, file.actor_width()),
+        ("--lstm-hidden", args.lstm_hidden, file.hidden_size()),
+    ] {
+        if ours != theirs {
+            bail!(context(format!(
+                "its size is {theirs}, this run's {name} is {ours}"
+            )));
+        }
+    }
+    for (name, ours, theirs) in [
+        ("position", cell.steps.position_mm, file.step_limit_mm()),
+        (
+            "orientation",
+            cell.steps.orientation_deg,
+            file.step_limit_deg(),
+        ),
+    ] {
+        if ours != theirs {
+            bail!(context(format!(
+                "its {name} step limit is {theirs}, the cell's is {ours}"
+            )));
+        }
+    }
+    Ok(file)
+}
+
+pub fn run(command: TrainCommand) -> Result<()> {
+    let (args, stages): (TrainArgs, &[Stage]) = match command {
+        TrainCommand::Bc(a) => (a, &[Stage::Bc]),
+        TrainCommand::Lstm(a) => (a, &[Stage::Lstm]),
+        TrainCommand::Td3(a) => (a, &[Stage::Td3]),
+        TrainCommand::All(a) => (a, &[Stage::BcAndLstm, Stage::Td3]),
+        TrainCommand::Flat(a) => (a, &[Stage::Flat]),
+    };
+    let run = Run::open(args)?;
+    for stage in stages {
+        run.stage(*stage)?;
+    }
+    Ok(())
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Stage {
+    Bc,
+    Lstm,
+    BcAndLstm,
+    Td3,
+    Flat,
+}
+
+/// A stage's trained weights, before they are written, with its figures for run.json.
+struct Fitted {
+    varmap: VarMap,
+    /// How long the training took (s), not counting the wait for the other one.
+    wall_s: f64,
+    figures: Value,
+}
+
+struct Run {
+    args: TrainArgs,
+    cell: CellConfig,
+    options: EnvOptions,
+    /// The --dagger-policy files, loaded and checked, in order.
+    dagger_drivers: Vec<HierarchicalPolicy>,
+    /// The --init-policy file, checked.
+    init: Option<PolicyFile>,
+}
+
+impl Run {
+    /// Checks every setting before any work starts.
+    fn open(args: TrainArgs) -> Result<Self> {
+        let cell = match &args.cell {
+            Some(path) => CellConfig::load(path)?,
+            None => CellConfig::reference(),
+        };
+        let positive = [
+            ("--actor-width", args.actor_width),
+            ("--bc-epochs", args.bc_epochs),
+            ("--bc-orientation-epochs", args.bc_orientation_epochs),
+            ("--bc-batch", args.bc_batch),
+            ("--bc-insertion-repeat", args.bc_insertion_repeat),
+            ("--lstm-hidden", args.lstm_hidden),
+            ("--lstm-epochs", args.lstm_epochs),
+            ("--lstm-batch", args.lstm_batch),
+            ("--eval-episodes", args.eval_episodes),
+            ("--checkpoint-every", args.checkpoint_every),
+            ("--flat-hidden", args.flat_hidden),
+        ];
+        for (name, value) in positive {
+            if value == 0 {
+                bail!("{name} must be at least 1");
+            }
+        }
+        if args.demos_file.is_none() && args.demos < 10 {
+            bail!(
+                "--demos must be at least 10 (a tenth is held out to check the selector), got {}",
+                args.demos
+            );
+        }
+        for (name, lr) in [
+            ("--bc-lr", args.bc_lr),
+            ("--lstm-lr", args.lstm_lr),
+            ("--bc-lateral-weight", args.bc_lateral_weight),
+            ("--bc-bore-lateral-weight", args.bc_bore_lateral_weight),
+            ("--td3-actor-lr", args.td3_actor_lr),
+            ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
+            ("--norm-depth-std-mm", args.norm_depth_std_mm),
+            ("--norm-tilt-std-deg", args.norm_tilt_std_deg),
+        ]
+        .into_iter()
+        .chain(args.td3_noise.map(|noise| ("--td3-noise", noise)))
+        {
+            if !(lr.is_finite() && lr > 0.0) {
+                bail!("{name} must be a finite number > 0, got {lr}");
+            }
+        }
+        if !(args.td3_trust_region.is_finite() && args.td3_trust_region >= 0.0) {
+            bail!(
+                "--td3-trust-region must be a finite number >= 0 (0: none), got {}",
+                args.td3_trust_region
+            );
+        }
+        if !(0.0..=1.0).contains(&args.bc_anneal_fraction) {
+            bail!(
+                "--bc-anneal-fraction must be between 0 and 1, got {}",
+                args.bc_anneal_fraction
+            );
+        }
+        if !(args.bc_anneal_factor > 0.0 && args.bc_anneal_factor <= 1.0) {
+            bail!(
+                "--bc-anneal-factor must be > 0 and at most 1, got {}",
+                args.bc_anneal_factor
+            );
+        }
+        demos::check_demonstrator(&args.demonstrator)
+            .map_err(|e| anyhow::anyhow!("--demonstrator {e}"))?;
+        if let Some(path) = &args.demos_file
+            && !path.is_file()
+        {
+            bail!("--demos-file {}: no such file", path.display());
+        }
+        if !args.dagger_policy.is_empty() {
+            if args.demos_file.is_some() {
+                bail!("--dagger-policy records in the twin; it cannot add to --demos-file");
+            }
+            if args.dagger_episodes == 0 {
+                bail!("--dagger-episodes must be at least 1");
+            }
+        }
+        let dagger_drivers = args
+            .dagger_policy
+            .iter()
+            .map(|path| {
+                HierarchicalPolicy::from_path(path)
+                    .with_context(|| format!("--dagger-policy {}", path.display()))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let init = args
+            .init_policy
+            .as_ref()
+            .map(|path| init_policy(path, &args, &cell))
+            .transpose()?;
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
+        let options = EnvOptions::from_cell(&cell);
+        Ok(Run {
+            args,
+            cell,
+            options,
+            dagger_drivers,
+            init,
+        })
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.args.out.join(name)
+    }
+
+    /// Whether a stage whose output is `name` should run: not if it exists and --resume is on;
+    /// an error if it exists without --resume.
+    fn should_run(&self, name: &str) -> Result<bool> {
+        if !self.path(name).exists() {
+            return Ok(true);
+        }
+        if self.args.resume {
+            eprintln!(
+                "{}: already there, kept (--resume)",
+                self.path(name).display()
+            );
+            return Ok(false);
+        }
+        bail!(
+            "{} exists; pass --resume to continue that run, or choose another --out",
+            self.path(name).display()
+        )
+    }
+
+    fn needs(&self, name: &str, stage: &str) -> Result<PathBuf> {
+        let path = self.path(name);
+        if !path.is_file() {
+            bail!(
+                "{} is missing: run `celld train {stage} --out {}` first",
+                path.display(),
+                self.args.out.display()
+            );
+        }
+        Ok(path)
+    }
+
+    fn stage(&self, stage: Stage) -> Result<()> {
+        match stage {
+            Stage::Bc => self.bc(),
+            Stage::Lstm => self.lstm(),
+            Stage::BcAndLstm => self.bc_and_lstm(),
+            Stage::Td3 => self.td3(),
+            Stage::Flat => self.flat(),
+        }
+    }
+
+    fn provenance(&self, kind: &str) -> BTreeMap<String, String> {
+        BTreeMap::from([
+            ("policy".to_string(), kind.to_string()),
+            ("seed".to_string(), self.args.seed.to_string()),
+            ("cell".to_string(), self.cell.name.clone()),
+            (
+                "trained_by".to_string(),
+                format!("celld {}", env!("CARGO_PKG_VERSION")),
+            ),
+        ])
+    }
+
+    /// Adds a stage's figures and wall time to run.json.
+    fn note(&self, stage: &str, wall_s: f64, figures: Value) -> Result<()> {
+        let path = self.path("run.json");
+        let mut run: Value = match std::fs::read(&path) {
+            Ok(bytes) => serde_json::from_slice(&bytes).unwrap_or_else(|_| json!({})),
+            Err(_) => json!({}),
+        };
+        run["seed"] = json!(self.args.seed);
+        run["cell"] = json!(self.cell.name);
+        run[stage] = json!({"wall_s": wall_s, "figures": figures});
+        std::fs::write(&path, serde_json::to_vec_pretty(&run)?)?;
+        eprintln!("{stage}: {wall_s:.1} s");
+        Ok(())
+    }
+}
+
+fn bar(len: u64, stage: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template(&format!(
+            "{stage:>4} {{bar:30}} {{pos}}/{{len}} {{elapsed}} (eta {{eta}}) {{msg}}"
+        ))
+        .expect("valid template"),
+    );
+    bar
+}
