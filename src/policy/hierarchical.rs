@@ -15,7 +15,7 @@
 //!                orientation: (0, a · scale · step_limit_deg)
 //! ```
 //!
-//! Two implementations read the same weights by name. Plain f32 loops run
+//! Two implementations read the same weights by name. Plain f32 loops (`plain.rs`) run
 //! [`HierarchicalPolicy::step`] (one episode) and [`HierarchicalPolicy::step_batch`] (B episodes,
 //! on all cores): at these sizes candle's per-op overhead dominates, and the loops evaluate only
 //! the actor that acts. candle ([`HierarchicalNet`], [`HierarchicalPolicy::step_batch_candle`]) is
@@ -37,6 +37,10 @@ use candle_nn::rnn::{LSTMState, RNN};
 use candle_nn::{LSTM, LSTMConfig, Linear, VarBuilder};
 use serde::Serialize;
 use std::sync::Once;
+
+mod plain;
+pub(crate) use plain::Dense;
+use plain::{PlainNet, Scratch};
 
 /// Sets `RAYON_NUM_THREADS` (to the number of available cores) when it is unset. Without it,
 /// candle 0.11 re-reads /proc/cpuinfo on every matmul, which makes a batch-1 step several times
@@ -285,204 +289,6 @@ impl HierarchicalNet {
             ori,
             state,
         })
-    }
-}
-
-// ---------------------------------------------------------------------------------------------
-// plain f32 implementation (batch 1)
-
-/// A dense layer y = W x + b. W is kept transposed, [in, out] (PyTorch stores [out, in]), so the
-/// product runs as a sum of scaled columns, which the compiler vectorises without reordering any
-/// reduction.
-#[derive(Debug, Clone)]
-pub(crate) struct Dense {
-    outputs: usize,
-    /// W transposed: column j of W (the weights of input j) at `wt[j * outputs..]`.
-    wt: Vec<f32>,
-    b: Vec<f32>,
-}
-
-impl Dense {
-    /// From PyTorch's row-major [out, in] weights.
-    pub(crate) fn new(w: &[f32], b: Vec<f32>, inputs: usize) -> Self {
-        let outputs = b.len();
-        assert_eq!(w.len(), inputs * outputs, "weights of a dense layer");
-        let mut wt = vec![0.0; w.len()];
-        for (o, row) in w.chunks_exact(inputs).enumerate() {
-            for (i, v) in row.iter().enumerate() {
-                wt[i * outputs + o] = *v;
-            }
-        }
-        Dense { outputs, wt, b }
-    }
-
-    fn from_linear(vb: &VarBuilder, inputs: usize, outputs: usize) -> candle_core::Result<Self> {
-        let w: Vec<f32> = vb
-            .get((outputs, inputs), "weight")?
-            .flatten_all()?
-            .to_vec1()?;
-        Ok(Dense::new(&w, vb.get(outputs, "bias")?.to_vec1()?, inputs))
-    }
-
-    /// y = W x + b.
-    pub(crate) fn forward(&self, x: &[f32], y: &mut [f32]) {
-        let n = self.outputs;
-        let y = &mut y[..n];
-        y.copy_from_slice(&self.b);
-        // Four columns at a time: a quarter of the loads and stores of y.
-        let mut cols = self.wt.chunks_exact(4 * n);
-        let mut xs = x.chunks_exact(4);
-        for (c, xq) in cols.by_ref().zip(xs.by_ref()) {
-            let (c0, rest) = c.split_at(n);
-            let (c1, rest) = rest.split_at(n);
-            let (c2, c3) = rest.split_at(n);
-            let (x0, x1, x2, x3) = (xq[0], xq[1], xq[2], xq[3]);
-            for i in 0..n {
-                y[i] += (c0[i] * x0 + c1[i] * x1) + (c2[i] * x2 + c3[i] * x3);
-            }
-        }
-        for (c, &xj) in cols.remainder().chunks_exact(n).zip(xs.remainder()) {
-            for (yi, wi) in y.iter_mut().zip(c) {
-                *yi += wi * xj;
-            }
-        }
-    }
-}
-
-#[derive(Debug, Clone)]
-struct PlainActor {
-    l0: Dense,
-    l2: Dense,
-    l4: Dense,
-}
-
-impl PlainActor {
-    fn load(vb: &VarBuilder, width: usize) -> candle_core::Result<Self> {
-        Ok(PlainActor {
-            l0: Dense::from_linear(&vb.pp("0"), STATE_DIM, width)?,
-            l2: Dense::from_linear(&vb.pp("2"), width, width)?,
-            l4: Dense::from_linear(&vb.pp("4"), width, ACTOR_DIM)?,
-        })
-    }
-
-    fn forward(&self, x: &[f32], s1: &mut [f32], s2: &mut [f32]) -> [f32; 3] {
-        self.l0.forward(x, s1);
-        s1.iter_mut().for_each(|v| *v = v.max(0.0));
-        self.l2.forward(s1, s2);
-        s2.iter_mut().for_each(|v| *v = v.max(0.0));
-        let mut a = [0f32; 3];
-        self.l4.forward(s2, &mut a);
-        a.map(f32::tanh)
-    }
-}
-
-/// The network as plain f32 loops, one episode (row) at a time.
-#[derive(Debug, Clone)]
-struct PlainNet {
-    hidden: usize,
-    width: usize,
-    /// [W_ih | W_hh]: [4H, 12 + H], so one matrix-vector product gives the gates.
-    w_gates: Dense,
-    head: Dense,
-    pos: PlainActor,
-    ori: PlainActor,
-    obs_mean: [f64; 12],
-    obs_std: [f64; 12],
-    config: PolicyConfig,
-}
-
-/// Working memory of the plain path (no allocation per step).
-#[derive(Debug, Clone)]
-struct Scratch {
-    /// [x (12) | h (H)]: the LSTM's input.
-    xh: Vec<f32>,
-    gates: Vec<f32>,
-    s1: Vec<f32>,
-    s2: Vec<f32>,
-}
-
-impl PlainNet {
-    fn load(vb: &VarBuilder, config: &PolicyConfig) -> candle_core::Result<Self> {
-        let (h, d) = (config.hidden_size, config.actor_width);
-        let lstm = vb.pp("high").pp("lstm");
-        let get = |shape: (usize, usize), name: &str| -> candle_core::Result<Vec<f32>> {
-            lstm.get(shape, name)?.flatten_all()?.to_vec1()
-        };
-        let w_ih = get((4 * h, STATE_DIM), "weight_ih_l0")?;
-        let w_hh = get((4 * h, h), "weight_hh_l0")?;
-        let b_ih: Vec<f32> = lstm.get(4 * h, "bias_ih_l0")?.to_vec1()?;
-        let b_hh: Vec<f32> = lstm.get(4 * h, "bias_hh_l0")?.to_vec1()?;
-        let mut w = Vec::with_capacity(4 * h * (STATE_DIM + h));
-        for (ri, rh) in w_ih.chunks_exact(STATE_DIM).zip(w_hh.chunks_exact(h)) {
-            w.extend_from_slice(ri);
-            w.extend_from_slice(rh);
-        }
-        let b = b_ih.iter().zip(&b_hh).map(|(a, b)| a + b).collect();
-        let to_array = |name: &str| -> candle_core::Result<[f64; 12]> {
-            let v: Vec<f32> = vb.get(STATE_DIM, name)?.to_vec1()?;
-            Ok(std::array::from_fn(|i| v[i] as f64))
-        };
-        Ok(PlainNet {
-            hidden: h,
-            width: d,
-            w_gates: Dense::new(&w, b, STATE_DIM + h),
-            head: Dense::from_linear(&vb.pp("high").pp("head"), h, HEAD_DIM)?,
-            pos: PlainActor::load(&vb.pp("pos"), d)?,
-            ori: PlainActor::load(&vb.pp("ori"), d)?,
-            obs_mean: to_array("obs_mean")?,
-            obs_std: to_array("obs_std")?,
-            config: *config,
-        })
-    }
-
-    fn scratch(&self) -> Scratch {
-        Scratch {
-            xh: vec![0.0; STATE_DIM + self.hidden],
-            gates: vec![0.0; 4 * self.hidden],
-            s1: vec![0.0; self.width],
-            s2: vec![0.0; self.width],
-        }
-    }
-
-    /// One step of one episode: reads h, c and writes the next ones into `h_out`, `c_out`. On an
-    /// error the caller keeps h, c (the outputs are then garbage).
-    fn step(
-        &self,
-        state: &[f64; 12],
-        (h, c): (&[f32], &[f32]),
-        (h_out, c_out): (&mut [f32], &mut [f32]),
-        s: &mut Scratch,
-    ) -> candle_core::Result<PolicyOutput> {
-        if let Some(e) = state_error(state) {
-            return Err(e);
-        }
-        let hidden = self.hidden;
-        normalise(state, &self.obs_mean, &self.obs_std, &mut s.xh[..STATE_DIM]);
-        s.xh[STATE_DIM..].copy_from_slice(h);
-        self.w_gates.forward(&s.xh, &mut s.gates);
-        // PyTorch: gates i, f, g, o; c' = f c + i g; h' = o tanh(c').
-        let (i_g, rest) = s.gates.split_at(hidden);
-        let (f_g, rest) = rest.split_at(hidden);
-        let (g_g, o_g) = rest.split_at(hidden);
-        for k in 0..hidden {
-            let c_new = sigmoid(f_g[k]) * c[k] + sigmoid(i_g[k]) * g_g[k].tanh();
-            c_out[k] = c_new;
-            h_out[k] = sigmoid(o_g[k]) * c_new.tanh();
-        }
-        if !c_out.iter().chain(h_out.iter()).all(|v| v.is_finite()) {
-            return Err(candle_core::Error::Msg(
-                "the LSTM state is not finite after this step".into(),
-            ));
-        }
-        let mut omega = [0f32; 3];
-        self.head.forward(h_out, &mut omega);
-        let (actor, scale) = select(omega);
-        let x = &s.xh[..STATE_DIM];
-        let a = match actor {
-            Actor::Position => self.pos.forward(x, &mut s.s1, &mut s.s2),
-            Actor::Orientation => self.ori.forward(x, &mut s.s1, &mut s.s2),
-        };
-        Ok(compose(&self.config, omega, actor, scale, a))
     }
 }
 
