@@ -11,16 +11,21 @@ use assembly_cell::learning::flat::{FlatConfig, FlatProgress, FlatTraining};
 use assembly_cell::learning::pipeline::{self, step_limits};
 use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgress, Refinement};
 use assembly_cell::learning::td3::Td3Config;
+use candle_core::Tensor;
+use serde::de::DeserializeOwned;
 use serde_json::{Value, json};
+use std::collections::HashMap;
+use std::path::Path;
 use std::time::Instant;
 
 impl Run {
-    pub(super) fn td3(&self) -> Result<()> {
-        let checkpoint = self.path(TD3_CHECKPOINT);
-        let progress_path = self.path(TD3_PROGRESS);
-        let resuming = self.args.resume && checkpoint.is_file() && progress_path.is_file();
-        if !resuming && !self.should_run(POLICY)? {
-            return Ok(());
+    /// Whether a TD3 stage resumes from its checkpoint (--resume, with the checkpoint and its
+    /// progress file there); `None` when it need not run (its `output` is there and kept).
+    /// Refuses to start afresh over a checkpoint.
+    fn resumes(&self, checkpoint: &Path, progress: &Path, output: &str) -> Result<Option<bool>> {
+        let resuming = self.args.resume && checkpoint.is_file() && progress.is_file();
+        if !resuming && !self.should_run(output)? {
+            return Ok(None);
         }
         if !resuming && checkpoint.exists() {
             bail!(
@@ -28,6 +33,15 @@ impl Run {
                 checkpoint.display()
             );
         }
+        Ok(Some(resuming))
+    }
+
+    pub(super) fn td3(&self) -> Result<()> {
+        let checkpoint = self.path(TD3_CHECKPOINT);
+        let progress_path = self.path(TD3_PROGRESS);
+        let Some(resuming) = self.resumes(&checkpoint, &progress_path, POLICY)? else {
+            return Ok(());
+        };
         let varmap = pipeline::load_vars(&self.needs(LSTM, "lstm")?)?;
         let defaults = RefineConfig::default();
         let config = RefineConfig {
@@ -56,9 +70,8 @@ impl Run {
             self.args.seed,
         )?;
         if resuming {
-            let tensors = candle_core::safetensors::load(&checkpoint, &candle_core::Device::Cpu)?;
-            let progress: RefineProgress = serde_json::from_slice(&std::fs::read(&progress_path)?)
-                .with_context(|| format!("{}", progress_path.display()))?;
+            let (tensors, progress) =
+                load_checkpoint::<RefineProgress>(&checkpoint, &progress_path)?;
             refinement.restore(&tensors, progress)?;
             eprintln!("resuming TD3 at episode {}", refinement.episode());
         }
@@ -166,16 +179,9 @@ impl Run {
     pub(super) fn flat(&self) -> Result<()> {
         let checkpoint = self.path(FLAT_CHECKPOINT);
         let progress_path = self.path(FLAT_PROGRESS);
-        let resuming = self.args.resume && checkpoint.is_file() && progress_path.is_file();
-        if !resuming && !self.should_run(FLAT_POLICY)? {
+        let Some(resuming) = self.resumes(&checkpoint, &progress_path, FLAT_POLICY)? else {
             return Ok(());
-        }
-        if !resuming && checkpoint.exists() {
-            bail!(
-                "{} exists; pass --resume to continue it, or choose another --out",
-                checkpoint.display()
-            );
-        }
+        };
         if self.args.td3_episodes == 0 {
             bail!("--td3-episodes must be at least 1");
         }
@@ -205,9 +211,7 @@ impl Run {
             self.args.seed,
         )?;
         if resuming {
-            let tensors = candle_core::safetensors::load(&checkpoint, &candle_core::Device::Cpu)?;
-            let progress: FlatProgress = serde_json::from_slice(&std::fs::read(&progress_path)?)
-                .with_context(|| format!("{}", progress_path.display()))?;
+            let (tensors, progress) = load_checkpoint::<FlatProgress>(&checkpoint, &progress_path)?;
             training.restore(&tensors, progress)?;
             eprintln!("resuming flat TD3 at episode {}", training.episode());
         }
@@ -278,4 +282,15 @@ impl Run {
             }),
         )
     }
+}
+
+/// A TD3 stage's checkpoint: its tensors and its progress file.
+fn load_checkpoint<P: DeserializeOwned>(
+    checkpoint: &Path,
+    progress: &Path,
+) -> Result<(HashMap<String, Tensor>, P)> {
+    let tensors = candle_core::safetensors::load(checkpoint, &candle_core::Device::Cpu)?;
+    let progress = serde_json::from_slice(&std::fs::read(progress)?)
+        .with_context(|| format!("{}", progress.display()))?;
+    Ok((tensors, progress))
 }
