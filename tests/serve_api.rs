@@ -31,14 +31,12 @@ fn jobs_run_in_order_and_every_step_is_stored() {
 
     // The runner takes the first job off the queue within a step or two (on a loaded machine,
     // not at once); the second then waits for the robot.
-    let started = Instant::now();
-    let cell = loop {
-        let (_, cell) = server.get("/api/cell", Some(&operator));
-        if !cell["current_job"].is_null() || started.elapsed() > Duration::from_secs(5) {
-            break cell;
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    };
+    let cell = server.poll(
+        "/api/cell",
+        "took the first job",
+        Duration::from_secs(5),
+        |cell| !cell["current_job"].is_null(),
+    );
     assert_eq!(
         cell["queue_length"], 1,
         "the second job waits for the robot: {cell}"

@@ -4,7 +4,7 @@ mod serve_support;
 
 use serde_json::{Map, Value, json};
 use serve_support::Server;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 const BUNDLED: &[u8] = include_bytes!("../policies/default.safetensors");
 const BC: &[u8] = include_bytes!("../policies/bc.safetensors");
@@ -20,18 +20,13 @@ fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value
 }
 
 fn wait_evaluated(server: &Server, id: i64) -> Value {
-    let start = Instant::now();
-    loop {
-        let (_, policy) = server.get(&format!("/api/policies/{id}"), Some(&server.admin));
-        if policy["evaluation"]["status"] != "running" {
-            return policy;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(120),
-            "evaluation never ended: {policy}"
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    let path = format!("/api/policies/{id}");
+    server.poll(
+        &path,
+        "ended its evaluation",
+        Duration::from_secs(120),
+        |policy| policy["evaluation"]["status"] != "running",
+    )
 }
 
 fn policy_count(server: &Server) -> usize {

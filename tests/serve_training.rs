@@ -5,7 +5,7 @@ mod serve_support;
 
 use serde_json::{Value, json};
 use serve_support::Server;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 fn tiny(td3_episodes: usize) -> Value {
     json!({
@@ -18,25 +18,9 @@ fn tiny(td3_episodes: usize) -> Value {
     })
 }
 
-fn run(server: &Server, id: i64) -> Value {
-    let (status, run) = server.get(&format!("/api/training/{id}"), Some(&server.admin));
-    assert_eq!(status, 200, "{run}");
-    run
-}
-
 fn wait(server: &Server, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
-    let start = Instant::now();
-    loop {
-        let run = run(server, id);
-        if done(&run) {
-            return run;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(300),
-            "run {id} never {what}: {run}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    let path = format!("/api/training/{id}");
+    server.poll(&path, what, Duration::from_secs(300), done)
 }
 
 #[test]

@@ -194,20 +194,31 @@ impl Server {
         body["items"].as_array().unwrap().clone()
     }
 
-    /// Polls the job until `done` holds (up to 60 s).
-    pub fn wait_job(&self, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+    /// GETs `path` (as admin, expecting 200) until `done` holds for the answer; fails naming
+    /// `what` never happened if that takes longer than `limit`.
+    pub fn poll(
+        &self,
+        path: &str,
+        what: &str,
+        limit: Duration,
+        done: impl Fn(&Value) -> bool,
+    ) -> Value {
         let start = Instant::now();
         loop {
-            let job = self.job(id);
-            if done(&job) {
-                return job;
+            let (status, body) = self.get(path, Some(&self.admin));
+            assert_eq!(status, 200, "{path}: {body}");
+            if done(&body) {
+                return body;
             }
-            assert!(
-                start.elapsed() < Duration::from_secs(60),
-                "job {id} never {what}: {job}"
-            );
+            assert!(start.elapsed() < limit, "{path} never {what}: {body}");
             std::thread::sleep(Duration::from_millis(20));
         }
+    }
+
+    /// Polls the job until `done` holds (up to 60 s).
+    pub fn wait_job(&self, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+        let path = format!("/api/jobs/{id}");
+        self.poll(&path, what, Duration::from_secs(60), done)
     }
 
     pub fn wait_final(&self, id: i64) -> Value {
