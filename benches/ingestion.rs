@@ -7,6 +7,8 @@
 //! `cargo bench --bench ingestion -- [CPU|any] [PERIOD_MS]`: CPU pins this thread and the
 //! ingestion thread to one CPU, as `control.cpu` does in the service (default: any, 20 ms).
 
+mod support;
+
 use assembly_cell::cell::{CellBackend, TwinBackend};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy;
@@ -65,11 +67,11 @@ fn main() {
         ("ingestion thread, tick", &mut threaded),
         ("inline, step", &mut inline),
     ] {
-        ticks.sort_by(f64::total_cmp);
-        let at = |p: f64| ticks[((ticks.len() - 1) as f64 * p) as usize];
+        let count = ticks.len();
+        let mut at = |p: f64| support::percentile(ticks, p);
         println!(
             "  {name}: {} ticks, p50 {:.1} µs, p99 {:.1} µs, max {:.1} µs",
-            ticks.len(),
+            count,
             at(0.5),
             at(0.99),
             at(1.0)

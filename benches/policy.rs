@@ -10,6 +10,8 @@
 //! 64 rows, the bundled `hierarchical` policy). `celld` and this bench set `RAYON_NUM_THREADS`
 //! to the core count when it is unset (`init_cpu_threads`; ../shared/notes/crates.md).
 
+mod support;
+
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::Controller;
 use assembly_cell::policy::eval::episode_seed;
@@ -171,11 +173,11 @@ fn time_one_by_one(
 
 /// Prints nearest-rank percentiles of `values_us` (sorted in place).
 fn print_latency(name: &str, values_us: &mut [f64]) {
-    values_us.sort_by(f64::total_cmp);
-    let at = |p: f64| values_us[((values_us.len() - 1) as f64 * p).round() as usize];
+    let calls = values_us.len();
+    let mut at = |p: f64| support::percentile(values_us, p);
     println!(
         "  {name}: {} calls, p50 {:.1} µs, p90 {:.1} µs, p99 {:.1} µs, p99.9 {:.1} µs, max {:.1} µs",
-        values_us.len(),
+        calls,
         at(0.5),
         at(0.9),
         at(0.99),

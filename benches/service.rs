@@ -7,6 +7,8 @@
 //! `cargo bench --bench service` (add `-- --quick` for a shorter run). The load generators run on
 //! the same machine at nice 10, standing in for clients on other machines.
 
+mod support;
+
 use assembly_cell::cell::StepRecord;
 use assembly_cell::sim::RewardTerms;
 use assembly_cell::storage::{Db, steps};
@@ -16,6 +18,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
+use support::percentile;
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
@@ -197,11 +200,6 @@ fn behave_as_remote_client() {
     unsafe {
         libc::setpriority(libc::PRIO_PROCESS, 0, 10);
     }
-}
-
-fn percentile(values: &mut [f64], p: f64) -> f64 {
-    values.sort_by(|a, b| a.total_cmp(b));
-    values[((values.len() as f64 - 1.0) * p).round() as usize]
 }
 
 /// Reads at `rate` requests/s from `threads` threads until `stop`; latencies in ms.
