@@ -18,7 +18,7 @@ use crate::http::{self, Context, TelemetryMessage};
 use crate::metrics::Metrics;
 use crate::policy;
 use crate::storage::tokens::{self, Role};
-use crate::storage::{Db, audit, jobs, recorder, training};
+use crate::storage::{Db, audit, jobs, policies, recorder, training};
 use anyhow::{Context as _, Result, bail};
 use serde_json::json;
 use std::io::Write;
@@ -65,6 +65,13 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     }
     if training::fail_leftovers(&db).await? > 0 {
         tracing::warn!("a training run left running by the last run is marked failed");
+    }
+    let evaluations = policies::fail_leftover_evaluations(&db).await?;
+    if evaluations > 0 {
+        tracing::warn!(
+            evaluations,
+            "policy evaluations left running by the last run are marked failed"
+        );
     }
     let first_token = if tokens::count(&db).await? == 0 {
         Some(first_admin_token(&db, &settings.db).await?)

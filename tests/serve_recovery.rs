@@ -112,3 +112,65 @@ fn sigterm_interrupts_the_job_and_exits_promptly() {
     assert_eq!(queued["status"], "interrupted");
     assert_eq!(queued["steps"], 0);
 }
+
+/// The status and error of evaluation `id`, read from the database file.
+fn evaluation_row(db: &std::path::Path, id: i64) -> (String, Option<String>) {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(async {
+            let db = Db::open(db).await.unwrap();
+            let row: (String, Option<String>) =
+                sqlx::query_as("SELECT status, error FROM policy_evaluations WHERE id = ?")
+                    .bind(id)
+                    .fetch_one(&db.reader)
+                    .await
+                    .unwrap();
+            db.writer.close().await;
+            db.reader.close().await;
+            row
+        })
+}
+
+#[test]
+fn an_evaluation_cut_short_by_a_kill_is_failed_and_the_bundled_policy_evaluated_again() {
+    let dir = tempfile::tempdir().unwrap();
+    // The service's default evaluation (1000 episodes, not the tests' 20), on one low-priority
+    // thread, takes seconds: the first start's is still running when the service is killed.
+    let full = [("CELLD_EVALUATION_EPISODES", "1000")];
+    let mut server = Server::start(dir.path(), &full);
+    let (_, bundled) = server.get("/api/policies/1", Some(&server.admin));
+    assert_eq!(bundled["name"], "bundled-default", "{bundled}");
+    assert_eq!(bundled["evaluation"]["status"], "running", "{bundled}");
+    let cut_short = bundled["evaluation"]["id"].as_i64().unwrap();
+    server.kill9();
+    assert_eq!(evaluation_row(&server.db, cut_short).0, "running");
+
+    let server = Server::start(dir.path(), &full);
+    assert_eq!(
+        evaluation_row(&server.db, cut_short),
+        (
+            "failed".to_string(),
+            Some("the service stopped during the evaluation".to_string())
+        )
+    );
+    let evaluated = server.poll(
+        "/api/policies/1",
+        "evaluated again",
+        Duration::from_secs(120),
+        |policy| policy["evaluation"]["status"] != "running",
+    );
+    let again = &evaluated["evaluation"];
+    assert!(again["id"].as_i64().unwrap() > cut_short, "{evaluated}");
+    assert_eq!(again["status"], "done", "{evaluated}");
+    assert_eq!(again["episodes"], 1000);
+    // It passes the gate and nothing else is active, as at a first start that was not cut short.
+    let active = server.poll(
+        "/api/policies/1",
+        "activated",
+        Duration::from_secs(10),
+        |policy| policy["status"] == "active",
+    );
+    assert_eq!(active["evaluation"]["id"], again["id"]);
+}

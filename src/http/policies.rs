@@ -322,14 +322,19 @@ async fn activate(
     })))
 }
 
-/// Registers the bundled default policy (idempotent, by its bytes). At its first registration
-/// it is evaluated on the cell, and activated if it passes the gate and nothing else is active.
+/// Registers the bundled default policy (idempotent, by its bytes). Until it has a finished
+/// evaluation on this cell (its first registration, or a service stopped during that
+/// evaluation) it is evaluated, and activated if it passes the gate and nothing else is active.
 pub async fn register_bundled(context: &Context) -> ApiResult<()> {
     let Some(bytes) = crate::policy::bundled_policy("hierarchical") else {
         return Ok(());
     };
-    let (policy, created) = register(&context.db, "bundled-default", bytes, "celld").await?;
-    if !created {
+    let (policy, _) = register(&context.db, "bundled-default", bytes, "celld").await?;
+    let cell_hash = context.cell_config.config_hash();
+    if policies::latest_evaluation_on(&context.db, policy.id, &cell_hash)
+        .await?
+        .is_some()
+    {
         return Ok(());
     }
     let episodes = context.settings.policies.evaluation_episodes;

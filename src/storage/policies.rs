@@ -255,6 +255,19 @@ pub async fn latest_evaluation(db: &Db, policy_id: i64) -> Result<Option<Evaluat
     Ok(row.as_ref().map(evaluation_from))
 }
 
+/// At start: every evaluation a previous run left `running` becomes `failed`, so that none
+/// reads as running forever. Returns how many.
+pub async fn fail_leftover_evaluations(db: &Db) -> Result<u64, DbError> {
+    let done = sqlx::query(&format!(
+        "UPDATE policy_evaluations SET status = 'failed',
+                error = 'the service stopped during the evaluation', finished_at = {NOW}
+         WHERE status = 'running'"
+    ))
+    .execute(&db.writer)
+    .await?;
+    Ok(done.rows_affected())
+}
+
 /// The latest finished evaluation of `policy_id` on the cell with `cell_hash`.
 pub async fn latest_evaluation_on(
     db: &Db,
