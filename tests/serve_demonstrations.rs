@@ -85,6 +85,28 @@ fn a_recorded_demonstration_round_trips_and_a_bad_import_stores_nothing() {
         "nothing of the bad import stored"
     );
 
+    // A training run on them is refused before it starts: one episode each is too few, and a
+    // demonstration named twice would count twice.
+    let one_episode = recorded["id"].as_i64().unwrap();
+    for (named, says) in [
+        (
+            json!([one_episode, imported["id"]]),
+            "2 episodes with steps; at least 10",
+        ),
+        (json!([one_episode, one_episode]), "named twice"),
+    ] {
+        let (status, refused) = server.post(
+            "/api/training",
+            Some(&admin),
+            Some(json!({ "demonstrations": named })),
+        );
+        assert_eq!(status, 422, "{refused}");
+        let message = refused["error"]["message"].as_str().unwrap();
+        assert!(message.contains(says), "{message}");
+    }
+    let (_, runs) = server.get("/api/training", Some(&admin));
+    assert_eq!(runs["items"].as_array().unwrap().len(), 0, "{runs}");
+
     // Roles, then delete.
     let operator = server.token("operator");
     let (status, _) = server.post_raw(

@@ -49,6 +49,8 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
             json!({"bc_bore_lateral_weight": 0.0}),
             "bc_bore_lateral_weight",
         ),
+        (json!({"actor_width": 1_000_000}), "actor_width"),
+        (json!({"td3_episodes": 10_000_000}), "td3_episodes"),
     ] {
         let (status, refused) = server.post(
             "/api/training",

@@ -4,7 +4,7 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path, Query};
+use super::error::{ApiError, ApiResult, Json, Path, Query, off_the_runtime};
 use crate::learning::demos::{self, DemoError};
 use crate::storage::audit;
 use crate::storage::demonstrations::{self, Demonstration, NewDemonstration};
@@ -48,10 +48,13 @@ async fn import(
     if name.is_empty() || name.len() > 100 {
         return Err(ApiError::bad_request("name must be 1 to 100 characters"));
     }
-    let episodes = demos::read_jsonl(&body[..]).map_err(|e| match e {
-        DemoError::BadLine { .. } => ApiError::unprocessable(format!("nothing imported: {e}")),
-        DemoError::Io(_) => ApiError::bad_request(format!("nothing imported: {e}")),
-    })?;
+    let episodes = off_the_runtime(move || {
+        demos::read_jsonl(&body[..]).map_err(|e| match e {
+            DemoError::BadLine { .. } => ApiError::unprocessable(format!("nothing imported: {e}")),
+            DemoError::Io(_) => ApiError::bad_request(format!("nothing imported: {e}")),
+        })
+    })
+    .await?;
     if episodes.is_empty() {
         return Err(ApiError::unprocessable(
             "nothing imported: the body has no steps",

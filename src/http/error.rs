@@ -138,3 +138,18 @@ pub struct Query<T>(pub T);
 pub struct Path<T>(pub T);
 
 pub type ApiResult<T> = Result<T, ApiError>;
+
+/// Runs CPU-bound work of a request (parsing an uploaded file of up to the body limit) on
+/// tokio's blocking pool. The async workers may be a single thread when `control.cpu` keeps
+/// the service off the control CPU, and an e-stop request must not wait behind a parse.
+pub async fn off_the_runtime<T: Send + 'static>(
+    work: impl FnOnce() -> ApiResult<T> + Send + 'static,
+) -> ApiResult<T> {
+    tokio::task::spawn_blocking(work).await.map_err(|e| {
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "internal",
+            format!("the request's work stopped: {e}"),
+        )
+    })?
+}

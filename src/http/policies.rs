@@ -3,7 +3,7 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path, Query};
+use super::error::{ApiError, ApiResult, Json, Path, Query, off_the_runtime};
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
 use crate::policy::{Controller, ControllerFactory};
@@ -43,23 +43,32 @@ pub struct UploadQuery {
 
 /// Checks a policy file (hierarchical or flat, by its `format` metadata) as an upload is checked,
 /// and stores it (or finds the same bytes).
-pub async fn register(db: &Db, name: &str, bytes: &[u8], by: &str) -> ApiResult<(Policy, bool)> {
-    let file = LearnedPolicyFile::from_bytes(bytes)
-        .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, e.code(), e.to_string()))?;
-    let shapes: serde_json::Map<String, Value> = file
-        .shapes()
-        .into_iter()
-        .map(|(name, shape)| (name, json!(shape)))
-        .collect();
-    let sha256 = tokens::hash_bytes(bytes);
+pub async fn register(db: &Db, name: &str, bytes: Bytes, by: &str) -> ApiResult<(Policy, bool)> {
+    let checked = bytes.clone();
+    let (metadata, shapes, sha256) = off_the_runtime(move || {
+        let file = LearnedPolicyFile::from_bytes(&checked).map_err(|e| {
+            ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, e.code(), e.to_string())
+        })?;
+        let shapes: serde_json::Map<String, Value> = file
+            .shapes()
+            .into_iter()
+            .map(|(name, shape)| (name, json!(shape)))
+            .collect();
+        Ok((
+            json!(file.raw_metadata()),
+            Value::Object(shapes),
+            tokens::hash_bytes(&checked),
+        ))
+    })
+    .await?;
     Ok(policies::insert_or_find(
         db,
         &NewPolicy {
             name,
             sha256: &sha256,
-            file: bytes,
-            metadata: json!(file.raw_metadata()),
-            shapes: Value::Object(shapes),
+            file: &bytes,
+            metadata,
+            shapes,
             uploaded_by: by,
         },
     )
@@ -80,7 +89,7 @@ async fn upload(
         .filter(|n| !n.is_empty() && n.len() <= 100)
         .ok_or_else(|| ApiError::bad_request("`?name=` (1 to 100 characters) names the policy"))?;
     let bytes = body?;
-    let (policy, created) = register(&context.db, name, &bytes, &caller.name).await?;
+    let (policy, created) = register(&context.db, name, bytes, &caller.name).await?;
     if created {
         audit::record(
             &context.db,
@@ -329,7 +338,13 @@ pub async fn register_bundled(context: &Context) -> ApiResult<()> {
     let Some(bytes) = crate::policy::bundled_policy("hierarchical") else {
         return Ok(());
     };
-    let (policy, _) = register(&context.db, "bundled-default", bytes, "celld").await?;
+    let (policy, _) = register(
+        &context.db,
+        "bundled-default",
+        Bytes::from_static(bytes),
+        "celld",
+    )
+    .await?;
     let cell_hash = context.cell_config.config_hash();
     if policies::latest_evaluation_on(&context.db, policy.id, &cell_hash)
         .await?

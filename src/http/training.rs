@@ -5,7 +5,7 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path};
+use super::error::{ApiError, ApiResult, Json, Path, off_the_runtime};
 use crate::learning::demos::{self, DemoEpisode};
 use crate::learning::run::{self, CurvePoint, RunError, TrainingPart, TrainingSettings};
 use crate::sim::EnvOptions;
@@ -52,6 +52,8 @@ pub struct StartBody {
 
 const DEFAULT_RECORDED_EPISODES: usize = 400;
 const MAX_RECORDED_EPISODES: usize = 100_000;
+/// Stored demonstrations one run may name.
+const MAX_NAMED_DEMONSTRATIONS: usize = 1000;
 
 async fn start(
     State(context): State<Context>,
@@ -77,15 +79,36 @@ async fn start(
         )));
     }
     // The demonstrations named, read and checked before the run starts.
-    let mut episodes: Vec<DemoEpisode> = Vec::new();
     let ids = body.demonstrations.unwrap_or_default();
-    for id in &ids {
-        let text = demonstrations::body(&context.db, *id)
+    if ids.len() > MAX_NAMED_DEMONSTRATIONS {
+        return Err(ApiError::unprocessable(format!(
+            "{} demonstrations named; at most {MAX_NAMED_DEMONSTRATIONS}",
+            ids.len()
+        )));
+    }
+    let mut seen = std::collections::HashSet::new();
+    if let Some(id) = ids.iter().find(|&&id| !seen.insert(id)) {
+        return Err(ApiError::unprocessable(format!(
+            "demonstration {id} is named twice"
+        )));
+    }
+    let mut episodes: Vec<DemoEpisode> = Vec::new();
+    for &id in &ids {
+        let text = demonstrations::body(&context.db, id)
             .await?
             .ok_or_else(|| ApiError::not_found(format!("no demonstration with id {id}")))?;
-        let read = demos::read_jsonl(text.as_bytes())
-            .map_err(|e| ApiError::unprocessable(format!("demonstration {id}: {e}")))?;
+        let read = off_the_runtime(move || {
+            demos::read_jsonl(text.as_bytes())
+                .map_err(|e| ApiError::unprocessable(format!("demonstration {id}: {e}")))
+        })
+        .await?;
         episodes.extend(read);
+    }
+    let with_steps = episodes.iter().filter(|e| !e.steps.is_empty()).count();
+    if !ids.is_empty() && with_steps < 10 {
+        return Err(ApiError::unprocessable(format!(
+            "the demonstrations named hold {with_steps} episodes with steps; at least 10 are needed"
+        )));
     }
 
     let cancel = Arc::new(AtomicBool::new(false));
@@ -249,7 +272,7 @@ async fn train(context: &Context, job: &RunJob) -> Result<(i64, Value), RunError
     let (policy, _) = super::policies::register(
         &context.db,
         &format!("training-{}", job.id),
-        &file.to_bytes(),
+        file.to_bytes().into(),
         &job.by,
     )
     .await

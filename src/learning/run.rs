@@ -26,6 +26,15 @@ pub enum TrainingPart {
     All,
 }
 
+/// Largest actor width and LSTM hidden size a run accepts.
+pub const MAX_WIDTH: usize = 1024;
+/// Most epochs of any one BC or LSTM stage.
+pub const MAX_EPOCHS: usize = 100_000;
+/// Most TD3 episodes of a run.
+pub const MAX_TD3_EPISODES: usize = 1_000_000;
+/// Most validation episodes.
+pub const MAX_EVAL_EPISODES: usize = 100_000;
+
 /// A run's settings (the defaults are `celld train all`'s).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -75,21 +84,30 @@ impl Default for TrainingSettings {
 impl TrainingSettings {
     /// Refuses settings no run can use, naming the field.
     pub fn check(&self) -> Result<(), String> {
-        let positive = [
-            ("actor_width", self.actor_width),
-            ("bc_epochs", self.bc_epochs),
-            ("bc_orientation_epochs", self.bc_orientation_epochs),
-            ("lstm_hidden", self.lstm_hidden),
-            ("lstm_epochs", self.lstm_epochs),
-            ("eval_episodes", self.eval_episodes),
+        // The upper bounds keep a typing slip from holding the training thread for days or
+        // asking for gigabytes of weights; each is far above any run we have needed.
+        let counts = [
+            ("actor_width", self.actor_width, MAX_WIDTH),
+            ("bc_epochs", self.bc_epochs, MAX_EPOCHS),
+            (
+                "bc_orientation_epochs",
+                self.bc_orientation_epochs,
+                MAX_EPOCHS,
+            ),
+            ("lstm_hidden", self.lstm_hidden, MAX_WIDTH),
+            ("lstm_epochs", self.lstm_epochs, MAX_EPOCHS),
+            ("eval_episodes", self.eval_episodes, MAX_EVAL_EPISODES),
         ];
-        for (field, value) in positive {
-            if value == 0 {
-                return Err(format!("{field} must be at least 1"));
+        for (field, value, max) in counts {
+            if !(1..=max).contains(&value) {
+                return Err(format!("{field} = {value} is outside 1..={max}"));
             }
         }
-        if self.part == TrainingPart::All && self.td3_episodes == 0 {
-            return Err("td3_episodes must be at least 1 (or part \"bc\")".into());
+        if self.part == TrainingPart::All && !(1..=MAX_TD3_EPISODES).contains(&self.td3_episodes) {
+            return Err(format!(
+                "td3_episodes = {} is outside 1..={MAX_TD3_EPISODES} (or part \"bc\")",
+                self.td3_episodes
+            ));
         }
         for (field, value) in [
             ("bc_learning_rate", self.bc_learning_rate),
