@@ -125,6 +125,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         shutdown: shutdown.clone(),
         known_callers: Default::default(),
         training: Default::default(),
+        latch_writes: Default::default(),
     };
     let listener = tokio::net::TcpListener::bind(settings.listen)
         .await

@@ -174,3 +174,49 @@ fn an_evaluation_cut_short_by_a_kill_is_failed_and_the_bundled_policy_evaluated_
     );
     assert_eq!(active["evaluation"]["id"], again["id"]);
 }
+
+fn stored_estop(db: &std::path::Path) -> bool {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(async {
+            let db = Db::open(db).await.unwrap();
+            let latched = db.cell_flag("estop").await.unwrap();
+            db.writer.close().await;
+            db.reader.close().await;
+            latched
+        })
+}
+
+/// E-stops and resets from several operators at once: whatever the control thread ends with
+/// is what is stored, so a restart comes up in the same state.
+#[test]
+fn racing_estops_and_resets_store_the_latch_the_cell_ends_with() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[]);
+    for round in 0..6 {
+        std::thread::scope(|scope| {
+            for operator in 0..8 {
+                let server = &server;
+                scope.spawn(move || {
+                    for press in 0..16 {
+                        let path = if (press + operator + round) % 2 == 0 {
+                            "/api/cell/estop"
+                        } else {
+                            "/api/cell/reset"
+                        };
+                        let (status, body) = server.post(path, Some(&server.admin), None);
+                        assert_eq!(status, 200, "{path}: {body}");
+                    }
+                });
+            }
+        });
+        let (_, cell) = server.get("/api/cell", Some(&server.admin));
+        assert_eq!(
+            stored_estop(&server.db),
+            cell["estop_latched"].as_bool().unwrap(),
+            "round {round}: {cell}"
+        );
+    }
+}

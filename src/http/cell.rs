@@ -2,7 +2,7 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiResult, Json};
+use super::error::{ApiError, ApiResult, Json};
 use crate::cell::{CellCommand, CellStatus};
 use crate::storage::tokens::Role;
 use crate::storage::{self, audit};
@@ -59,7 +59,14 @@ async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
         .cell
         .ask(|reply| CellCommand::EStop { reply })
         .await?;
-    storage::set_cell_flag(&context.db.writer, "estop", true).await?;
+    store_latch(&context).await.map_err(|e| ApiError {
+        message: format!(
+            "motion is stopped and the e-stop latched, but the latch could not be stored and \
+             would not survive a restart: {}",
+            e.message
+        ),
+        ..e
+    })?;
     audit::record(
         &context.db,
         &caller.name,
@@ -81,7 +88,18 @@ async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
         .cell
         .ask(|reply| CellCommand::Reset { reply })
         .await?;
-    storage::set_cell_flag(&context.db.writer, "estop", false).await?;
+    store_latch(&context).await?;
     audit::record(&context.db, &caller.name, "cell.reset", json!({})).await?;
     Ok(Json(view(&context)))
+}
+
+/// Stores the control thread's latch as it is now. The control thread is asked first, so a
+/// stop never waits on storage; the writes are serialised and each stores the latest state,
+/// so an e-stop and a reset racing each other cannot leave the stored latch behind the
+/// control thread's (which a restart would then believe).
+async fn store_latch(context: &Context) -> ApiResult<()> {
+    let _one_writer = context.latch_writes.lock().await;
+    let latched = context.cell.status().estop_latched;
+    storage::set_cell_flag(&context.db.writer, "estop", latched).await?;
+    Ok(())
 }

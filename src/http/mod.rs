@@ -53,6 +53,8 @@ pub struct Context {
     pub known_callers: Arc<RwLock<HashMap<String, Caller>>>,
     /// The training run in progress (one at a time).
     pub training: Arc<Mutex<Option<training::ActiveRun>>>,
+    /// Held while the e-stop latch is stored (see `cell::store_latch`).
+    pub latch_writes: Arc<tokio::sync::Mutex<()>>,
 }
 
 impl Context {
