@@ -215,6 +215,28 @@ fn cancel_estop_and_reset() {
         actions.contains(&"cell.estop") && actions.contains(&"cell.reset"),
         "{actions:?}"
     );
+
+    // The queue is bounded: past 100 waiting jobs a new one is refused, naming the limit. (The
+    // count read is the control thread's last published one, so a few more may slip in.)
+    let mut created = 0;
+    let refused = loop {
+        let (status, body) = server.post(
+            "/api/jobs",
+            Some(&operator),
+            Some(json!({"controller": "expert", "seed": created})),
+        );
+        match status {
+            201 => created += 1,
+            409 => break body,
+            _ => panic!("{status}: {body}"),
+        }
+        assert!(created < 200, "200 jobs taken without a refusal");
+    };
+    assert!(created >= 100, "refused after {created}: {refused}");
+    let message = refused["error"]["message"].as_str().unwrap();
+    assert!(message.contains("at most 100"), "{message}");
+    let (status, _) = server.post("/api/cell/estop", Some(&operator), None);
+    assert_eq!(status, 200);
 }
 
 #[test]
@@ -255,6 +277,12 @@ fn roles_are_enforced() {
     for open in ["/api/health", "/metrics", "/api/openapi.json"] {
         assert_eq!(server.get(open, None).0, 200, "{open}");
     }
+    let (_, health) = server.get("/api/health", None);
+    assert_eq!(
+        (&health["database"], &health["control_thread"]),
+        (&json!(true), &json!(true)),
+        "{health}"
+    );
     let (_, jobs) = server.get("/api/jobs", Some(&viewer));
     assert_eq!(jobs["total"], 0, "refused requests created nothing");
 

@@ -79,6 +79,12 @@ impl CellHandle {
         self.status.borrow().clone()
     }
 
+    /// Whether the control thread is still there (it owns the status sender, which a panic
+    /// drops).
+    pub fn is_running(&self) -> bool {
+        self.status.has_changed().is_ok()
+    }
+
     pub fn send(&self, command: CellCommand) -> Result<(), CellStopped> {
         self.commands.send(command).map_err(|_| CellStopped)
     }
@@ -392,5 +398,56 @@ impl ControlLoop {
             }
             changed
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::backend::TwinBackend;
+
+    fn start(sink: Box<dyn FnMut(CellEvent) + Send>) -> (CellHandle, std::thread::JoinHandle<()>) {
+        let cell = CellConfig::reference();
+        let settings = LoopSettings {
+            period: None,
+            limits: SafetyLimits {
+                deadline_s: 1.0,
+                max_stale_steps: 4,
+            },
+            estop_latched: false,
+            cpu: None,
+        };
+        spawn(
+            cell.clone(),
+            Box::new(TwinBackend::new(&cell, None)),
+            settings,
+            sink,
+        )
+    }
+
+    fn estop() -> CellCommand {
+        CellCommand::EStop {
+            reply: oneshot::channel().0,
+        }
+    }
+
+    #[test]
+    fn a_handle_knows_when_its_thread_has_ended() {
+        let (handle, thread) = start(Box::new(|_| {}));
+        assert!(handle.is_running());
+        let (reply, _answer) = oneshot::channel();
+        handle.send(CellCommand::Shutdown { reply }).unwrap();
+        thread.join().unwrap();
+        assert!(!handle.is_running());
+        assert!(handle.send(estop()).is_err());
+    }
+
+    #[test]
+    fn a_handle_knows_when_its_thread_has_panicked() {
+        let (handle, thread) = start(Box::new(|event| panic!("a sink that fails on {event:?}")));
+        handle.send(estop()).unwrap();
+        assert!(thread.join().is_err(), "the sink's panic ends the thread");
+        assert!(!handle.is_running());
+        assert!(handle.send(estop()).is_err());
     }
 }

@@ -5,7 +5,7 @@ use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Json, Path, Query};
 use super::stats::check_time_range;
-use crate::cell::{CellCommand, ControllerSource, JobSpec, JobStatus};
+use crate::cell::{CellCommand, ControllerSource, JobEnd, JobSpec, JobStatus};
 use crate::policy;
 use crate::sim::InitialConditions;
 use crate::storage::jobs::{self, Job, JobFilter, NewJob};
@@ -50,6 +50,9 @@ pub struct InitialBody {
     ori_deg: f64,
 }
 
+/// Jobs waiting at most: each holds its controller (a policy's weights) in memory until it runs.
+const MAX_QUEUED_JOBS: usize = 100;
+
 async fn create(
     State(context): State<Context>,
     auth: Auth,
@@ -63,6 +66,12 @@ async fn create(
         return Err(ApiError::conflict(
             "the e-stop is latched: reset the cell (POST /api/cell/reset) first",
         ));
+    }
+    let queued = context.cell.status().queue.len();
+    if queued >= MAX_QUEUED_JOBS {
+        return Err(ApiError::conflict(format!(
+            "{queued} jobs are waiting already (at most {MAX_QUEUED_JOBS}): wait or cancel some"
+        )));
     }
     let (name, source, policy_id) = resolve_controller(&context, &body.controller).await?;
     let defaults = InitialConditions::from_cell(&context.cell_config);
@@ -91,13 +100,19 @@ async fn create(
         },
     )
     .await?;
-    context.cell.send(CellCommand::Enqueue(JobSpec {
+    let sent = context.cell.send(CellCommand::Enqueue(JobSpec {
         id: job.id,
         controller: source,
         seed,
         initial,
         demonstration: job.demonstration,
-    }))?;
+    }));
+    if let Err(stopped) = sent {
+        // No thread will ever run it: close it now rather than leave it `queued`.
+        let end = JobEnd::unstarted(JobStatus::Failed, "control_stopped");
+        jobs::mark_ended(&context.db.writer, job.id, &end).await?;
+        return Err(stopped.into());
+    }
     Ok((StatusCode::CREATED, Json(job)))
 }
 

@@ -32,15 +32,18 @@ async fn health(State(context): State<Context>) -> impl IntoResponse {
         .fetch_one(&context.db.reader)
         .await
         .is_ok();
-    let status = if database {
+    let control_thread = context.cell.is_running();
+    let healthy = database && control_thread;
+    let status = if healthy {
         StatusCode::OK
     } else {
         StatusCode::SERVICE_UNAVAILABLE
     };
     let body = json!({
-        "status": if database { "ok" } else { "degraded" },
+        "status": if healthy { "ok" } else { "degraded" },
         "version": env!("CARGO_PKG_VERSION"),
         "database": database,
+        "control_thread": control_thread,
         "accepting_jobs": context.accepting_jobs(),
     });
     (status, Json(body))
