@@ -10,6 +10,7 @@ pub mod camera;
 pub mod cell;
 pub mod collision;
 pub mod config;
+pub mod files;
 pub mod geometry;
 pub mod http;
 pub mod kinematics;

@@ -287,9 +287,8 @@ pub fn save_vars(varmap: &VarMap, path: &Path) -> candle_core::Result<()> {
             .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
             .collect()
     };
-    let partial = path.with_extension("safetensors.partial");
-    candle_core::safetensors::save(&tensors, &partial)?;
-    std::fs::rename(&partial, path)?;
+    let bytes = safetensors::serialize(&tensors, None).map_err(candle_core::Error::wrap)?;
+    crate::files::write_atomically(path, &bytes)?;
     Ok(())
 }
 

@@ -4,6 +4,7 @@
 
 use super::{BC, BC_POLICY, DAGGER_SEED_SALT, DEMOS, Fitted, LSTM, Run, bar};
 use anyhow::{Context, Result, bail};
+use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos::{self, DemoEpisode};
@@ -16,7 +17,6 @@ use candle_nn::VarMap;
 use indicatif::MultiProgress;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::time::Instant;
 
 impl Run {
@@ -67,9 +67,9 @@ impl Run {
                     // demonstrator's own.
                     episodes.extend(recorded);
                     let episodes = renumbered(episodes);
-                    let mut file = std::io::BufWriter::new(std::fs::File::create(&path)?);
-                    demos::write_jsonl(&episodes, &mut file)?;
-                    file.flush()?;
+                    let mut jsonl = Vec::new();
+                    demos::write_jsonl(&episodes, &mut jsonl)?;
+                    write_atomically(&path, &jsonl)?;
                     let wall_s = started.elapsed().as_secs_f64();
                     self.note("demos", wall_s, figures)?;
                 }

@@ -14,11 +14,15 @@
 //! | `td3-flat_curve.csv`, `td3-flat_curve.json`, `td3-flat-policy.safetensors` | `train flat`: curve, best policy |
 //! | `run.json` | every stage: settings, figures, wall times |
 //!
+//! Every file is written with `files::write_atomically`; a checkpoint holds its progress in its
+//! metadata (the progress file is a copy to read), so a run stopped at any moment resumes.
+//!
 //! The stages are in `imitation.rs` (demonstrations, DAgger, BC, the selector) and `refine.rs`
 //! (TD3 and the flat baseline); this module checks the settings and keeps the run directory.
 
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
+use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos;
@@ -452,7 +456,7 @@ impl Run {
         run["seed"] = json!(self.args.seed);
         run["cell"] = json!(self.cell.name);
         run[stage] = json!({"wall_s": wall_s, "figures": figures});
-        std::fs::write(&path, serde_json::to_vec_pretty(&run)?)?;
+        write_atomically(&path, &serde_json::to_vec_pretty(&run)?)?;
         eprintln!("{stage}: {wall_s:.1} s");
         Ok(())
     }

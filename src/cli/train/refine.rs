@@ -6,12 +6,14 @@ use super::{
     bar,
 };
 use anyhow::{Context, Result, bail};
+use assembly_cell::files::write_atomically;
 use assembly_cell::learning::dataset::Normaliser;
 use assembly_cell::learning::flat::{FlatConfig, FlatProgress, FlatTraining};
 use assembly_cell::learning::pipeline::{self, step_limits};
 use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgress, Refinement};
 use assembly_cell::learning::td3::Td3Config;
 use candle_core::Tensor;
+use serde::Serialize;
 use serde::de::DeserializeOwned;
 use serde_json::{Value, json};
 use std::collections::HashMap;
@@ -19,11 +21,11 @@ use std::path::Path;
 use std::time::Instant;
 
 impl Run {
-    /// Whether a TD3 stage resumes from its checkpoint (--resume, with the checkpoint and its
-    /// progress file there); `None` when it need not run (its `output` is there and kept).
-    /// Refuses to start afresh over a checkpoint.
-    fn resumes(&self, checkpoint: &Path, progress: &Path, output: &str) -> Result<Option<bool>> {
-        let resuming = self.args.resume && checkpoint.is_file() && progress.is_file();
+    /// Whether a TD3 stage resumes from its checkpoint (--resume, with the checkpoint there);
+    /// `None` when it need not run (its `output` is there and kept). Refuses to start afresh
+    /// over a checkpoint.
+    fn resumes(&self, checkpoint: &Path, output: &str) -> Result<Option<bool>> {
+        let resuming = self.args.resume && checkpoint.is_file();
         if !resuming && !self.should_run(output)? {
             return Ok(None);
         }
@@ -39,7 +41,7 @@ impl Run {
     pub(super) fn td3(&self) -> Result<()> {
         let checkpoint = self.path(TD3_CHECKPOINT);
         let progress_path = self.path(TD3_PROGRESS);
-        let Some(resuming) = self.resumes(&checkpoint, &progress_path, POLICY)? else {
+        let Some(resuming) = self.resumes(&checkpoint, POLICY)? else {
             return Ok(());
         };
         let varmap = pipeline::load_vars(&self.needs(LSTM, "lstm")?)?;
@@ -107,10 +109,7 @@ impl Run {
             }
             if done % self.args.checkpoint_every == 0 || done == config.episodes {
                 let (tensors, progress) = refinement.checkpoint()?;
-                let partial = checkpoint.with_extension("partial");
-                candle_core::safetensors::save(&tensors, &partial)?;
-                std::fs::rename(&partial, &checkpoint)?;
-                std::fs::write(&progress_path, serde_json::to_vec(&progress)?)?;
+                save_checkpoint(&tensors, &progress, &checkpoint, &progress_path)?;
             }
         }
         if refinement.validations().last().map(|v| v.episode) != Some(config.episodes) {
@@ -163,10 +162,10 @@ impl Run {
                 r.steps
             ));
         }
-        std::fs::write(self.path(&format!("{stem}.csv")), csv)?;
-        std::fs::write(
-            self.path(&format!("{stem}.json")),
-            serde_json::to_vec_pretty(&json!({
+        write_atomically(&self.path(&format!("{stem}.csv")), csv.as_bytes())?;
+        write_atomically(
+            &self.path(&format!("{stem}.json")),
+            &serde_json::to_vec_pretty(&json!({
                 "episodes": curve,
                 "validations": validations,
             }))?,
@@ -179,7 +178,7 @@ impl Run {
     pub(super) fn flat(&self) -> Result<()> {
         let checkpoint = self.path(FLAT_CHECKPOINT);
         let progress_path = self.path(FLAT_PROGRESS);
-        let Some(resuming) = self.resumes(&checkpoint, &progress_path, FLAT_POLICY)? else {
+        let Some(resuming) = self.resumes(&checkpoint, FLAT_POLICY)? else {
             return Ok(());
         };
         if self.args.td3_episodes == 0 {
@@ -235,13 +234,8 @@ impl Run {
             }
             if done % checkpoint_every == 0 || done == config.episodes {
                 let (tensors, progress) = training.checkpoint();
-                let partial = checkpoint.with_extension("partial");
-                candle_core::safetensors::save(&tensors, &partial)?;
-                std::fs::rename(&partial, &checkpoint)?;
-                std::fs::write(
-                    &progress_path,
-                    serde_json::to_vec(&progress).map_err(candle_core::Error::wrap)?,
-                )?;
+                save_checkpoint(&tensors, &progress, &checkpoint, &progress_path)
+                    .map_err(candle_core::Error::wrap)?;
             }
             Ok(())
         });
@@ -284,13 +278,42 @@ impl Run {
     }
 }
 
-/// A TD3 stage's checkpoint: its tensors and its progress file.
+/// The key of a checkpoint's metadata that holds its progress.
+const PROGRESS_KEY: &str = "progress";
+
+/// Writes a TD3 stage's checkpoint: the tensors, with the progress in the file's metadata, so
+/// that one rename replaces both (a crash leaves the previous checkpoint whole, never the
+/// weights of one episode with the progress of another). The progress is also written beside
+/// it as JSON, to read.
+fn save_checkpoint<P: Serialize>(
+    tensors: &HashMap<String, Tensor>,
+    progress: &P,
+    checkpoint: &Path,
+    progress_path: &Path,
+) -> Result<()> {
+    let progress = serde_json::to_string(progress)?;
+    let metadata = HashMap::from([(PROGRESS_KEY.to_string(), progress.clone())]);
+    let bytes = safetensors::serialize(tensors.iter(), Some(metadata))?;
+    write_atomically(checkpoint, &bytes)?;
+    write_atomically(progress_path, progress.as_bytes())?;
+    Ok(())
+}
+
+/// A TD3 stage's checkpoint: its tensors and its progress (from the checkpoint's metadata; a
+/// checkpoint written before it held its progress is read with its progress file).
 fn load_checkpoint<P: DeserializeOwned>(
     checkpoint: &Path,
-    progress: &Path,
+    progress_path: &Path,
 ) -> Result<(HashMap<String, Tensor>, P)> {
-    let tensors = candle_core::safetensors::load(checkpoint, &candle_core::Device::Cpu)?;
-    let progress = serde_json::from_slice(&std::fs::read(progress)?)
-        .with_context(|| format!("{}", progress.display()))?;
+    let bytes = std::fs::read(checkpoint).with_context(|| format!("{}", checkpoint.display()))?;
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
+        .with_context(|| format!("{}", checkpoint.display()))?;
+    let progress = match header.metadata().as_ref().and_then(|m| m.get(PROGRESS_KEY)) {
+        Some(progress) => serde_json::from_str(progress)
+            .with_context(|| format!("the progress in {}", checkpoint.display()))?,
+        None => serde_json::from_slice(&std::fs::read(progress_path)?)
+            .with_context(|| format!("{}", progress_path.display()))?,
+    };
+    let tensors = candle_core::safetensors::load_buffer(&bytes, &candle_core::Device::Cpu)?;
     Ok((tensors, progress))
 }

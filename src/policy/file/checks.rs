@@ -29,9 +29,9 @@ pub(crate) fn read_path(path: &Path) -> Result<Vec<u8>, PolicyFileError> {
     })
 }
 
-/// Writes `bytes` to `path`.
+/// Writes `bytes` to `path` (whole or not at all).
 pub(crate) fn write_path(path: &Path, bytes: &[u8]) -> Result<(), PolicyFileError> {
-    std::fs::write(path, bytes).map_err(|e| PolicyFileError::Io {
+    crate::files::write_atomically(path, bytes).map_err(|e| PolicyFileError::Io {
         path: path.display().to_string(),
         reason: e.to_string(),
     })
