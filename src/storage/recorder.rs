@@ -3,7 +3,10 @@
 //! Steps are written in batches (a transaction per batch, or every 100 ms, whichever comes
 //! first); a job's start and end are written after the steps before them, in the same
 //! transaction, so a job never shows more steps than are stored. A failed write is logged and
-//! retried with everything after it; nothing is dropped.
+//! retried with everything after it. The one exception: an event the database refuses outright
+//! (it breaks a constraint, as a step with a NaN reward breaks `NOT NULL`) would be refused on
+//! every retry and hold back everything after it, so the batch is then written one event at a
+//! time and the refused event alone is dropped, logged with its job and step.
 
 use super::demonstrations::{self, NewDemonstration};
 use super::{Db, DbError, jobs, steps};
@@ -66,16 +69,61 @@ async fn flush(
     pending_steps: &mut usize,
     cell_hash: &str,
 ) {
-    match write(db, pending, cell_hash).await {
+    match write(db, pending.iter(), cell_hash).await {
         Ok(()) => {
             pending.clear();
             *pending_steps = 0;
+        }
+        Err(error) if refused(&error) => {
+            while let Some(event) = pending.front() {
+                match write(db, [event], cell_hash).await {
+                    Ok(()) => {}
+                    Err(error) if refused(&error) => {
+                        tracing::error!(%error, event = %describe(event), "dropped an event the database refuses");
+                    }
+                    Err(error) => {
+                        tracing::error!(%error, "storing steps failed; will retry");
+                        break;
+                    }
+                }
+                pending.pop_front();
+            }
+            *pending_steps = pending
+                .iter()
+                .filter(|e| matches!(e, CellEvent::Step(_)))
+                .count();
         }
         Err(error) => tracing::error!(%error, "storing steps failed; will retry"),
     }
 }
 
-async fn write(db: &Db, events: &VecDeque<CellEvent>, cell_hash: &str) -> Result<(), DbError> {
+/// Whether the database refused the rows themselves (a constraint), so that retrying the same
+/// rows can never succeed; other errors (a busy or full disk) may pass on a retry.
+fn refused(error: &DbError) -> bool {
+    use sqlx::error::ErrorKind;
+    matches!(error, sqlx::Error::Database(e) if matches!(
+        e.kind(),
+        ErrorKind::UniqueViolation
+            | ErrorKind::ForeignKeyViolation
+            | ErrorKind::NotNullViolation
+            | ErrorKind::CheckViolation
+    ))
+}
+
+fn describe(event: &CellEvent) -> String {
+    match event {
+        CellEvent::Step(record) => format!("step {} of job {}", record.step, record.job_id),
+        CellEvent::JobStarted { job_id } => format!("start of job {job_id}"),
+        CellEvent::JobEnded { job_id, .. } => format!("end of job {job_id}"),
+        CellEvent::EStop { latched } => format!("e-stop latched = {latched}"),
+    }
+}
+
+async fn write(
+    db: &Db,
+    events: impl IntoIterator<Item = &CellEvent>,
+    cell_hash: &str,
+) -> Result<(), DbError> {
     let mut tx = db.writer.begin().await?;
     let mut run: Vec<StepRecord> = Vec::new();
     for event in events {
@@ -120,4 +168,92 @@ async fn write(db: &Db, events: &VecDeque<CellEvent>, cell_hash: &str) -> Result
     }
     steps::insert_rows(&mut *tx, &run).await?;
     tx.commit().await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cell::{JobEnd, JobStatus};
+    use crate::sim::reward::RewardTerms;
+    use crate::storage::jobs::NewJob;
+
+    fn step(job_id: i64, step: u32, reward: f64) -> CellEvent {
+        CellEvent::Step(Box::new(StepRecord {
+            job_id,
+            step,
+            t_s: 0.1 * f64::from(step),
+            state: [0.0; 12],
+            action: [0.0; 6],
+            actor: None,
+            scale: None,
+            legs_mm: [0.0; 6],
+            verdict: "allowed",
+            veto_reason: None,
+            reward: RewardTerms {
+                total: reward,
+                ..RewardTerms::default()
+            },
+            compute_us: 1.0,
+        }))
+    }
+
+    fn ended(job_id: i64, reason: &str) -> CellEvent {
+        CellEvent::JobEnded {
+            job_id,
+            end: JobEnd::unstarted(JobStatus::Failed, reason),
+        }
+    }
+
+    async fn stored(db: &Db, job_id: i64) -> (String, Vec<i64>) {
+        let status = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
+            .bind(job_id)
+            .fetch_one(&db.reader)
+            .await
+            .unwrap();
+        let steps = sqlx::query_scalar("SELECT step FROM steps WHERE job_id = ? ORDER BY step")
+            .bind(job_id)
+            .fetch_all(&db.reader)
+            .await
+            .unwrap();
+        (status, steps)
+    }
+
+    /// A step with a NaN reward breaks `NOT NULL` (SQLite stores NaN as NULL). Before, every
+    /// retry of its batch failed and nothing after it was ever stored.
+    #[tokio::test]
+    async fn an_event_the_database_refuses_is_dropped_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = Db::open(&dir.path().join("celld.db")).await.unwrap();
+        let job = NewJob {
+            controller: "expert".into(),
+            policy_id: None,
+            seed: 1,
+            initial_pos_mm: 1.0,
+            initial_ori_deg: 1.0,
+            demonstration: false,
+            created_by: "test".into(),
+        };
+        let first = jobs::insert(&db, &job).await.unwrap().id;
+        let second = jobs::insert(&db, &job).await.unwrap().id;
+        let (events, inbox) = tokio::sync::mpsc::unbounded_channel();
+        for event in [
+            CellEvent::JobStarted { job_id: first },
+            step(first, 1, -1.0),
+            step(first, 2, f64::NAN),
+            ended(first, "nan_state"),
+            CellEvent::JobStarted { job_id: second },
+            step(second, 1, -1.0),
+            step(second, 2, -2.0),
+            ended(second, "contact"),
+        ] {
+            events.send(event).unwrap();
+        }
+        drop(events);
+        run(db.clone(), inbox, 100, "cell".into()).await;
+        assert_eq!(stored(&db, first).await, ("failed".to_string(), vec![1]));
+        assert_eq!(
+            stored(&db, second).await,
+            ("failed".to_string(), vec![1, 2])
+        );
+    }
 }
