@@ -295,7 +295,12 @@ async fn on_training_thread<T: Send + 'static>(
                 .start_handler(|_| crate::cell::task::lower_priority())
                 .build();
             let result = match pool {
-                Ok(pool) => Ok(pool.install(work)),
+                Ok(pool) => {
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pool.install(work)))
+                        .map_err(|panic| {
+                            format!("the training thread panicked: {}", panic_text(&*panic))
+                        })
+                }
                 Err(error) => Err(error.to_string()),
             };
             let _ = reply.send(result);
@@ -306,22 +311,42 @@ async fn on_training_thread<T: Send + 'static>(
         .map_err(|_| "the training thread stopped".to_string())?
 }
 
-/// Stores the live progress every half second while the run lasts.
+/// A panic's message (a `&str` or a `String` payload; anything else is unnamed).
+fn panic_text(panic: &(dyn std::any::Any + Send)) -> &str {
+    panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("(no message)")
+}
+
+/// Stores the live progress every half second while the run lasts, when it has moved.
 async fn keep_progress(db: Db, id: i64, live: Arc<Mutex<Live>>) {
+    let mut stored = (0, f64::NAN);
     loop {
         tokio::time::sleep(Duration::from_millis(500)).await;
-        store_progress(&db, id, &live).await;
+        let now = {
+            let live = live.lock().expect("live lock");
+            (live.curve.len(), live.progress)
+        };
+        if now != stored {
+            store_progress(&db, id, &live).await;
+            stored = now;
+        }
     }
 }
 
 async fn store_progress(db: &Db, id: i64, live: &Mutex<Live>) {
+    // Copied under the lock and serialised outside it: the training thread takes the lock
+    // at each report.
     let (stage, progress, curve) = {
         let live = live.lock().expect("live lock");
-        (live.stage.clone(), live.progress, json!(live.curve))
+        (live.stage.clone(), live.progress, live.curve.clone())
     };
     if stage.is_empty() {
         return;
     }
+    let curve = json!(curve);
     if let Err(error) = training::update(db, id, &stage, progress, &curve).await {
         tracing::warn!(%error, run = id, "could not store training progress");
     }
@@ -374,4 +399,24 @@ async fn cancel(
         StatusCode::ACCEPTED,
         Json(json!({"id": id, "status": "cancelling"})),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn a_panic_on_the_training_thread_is_reported_with_its_message() {
+        let answer = on_training_thread(|| -> u8 { panic!("the loss is {}", f64::NAN) }).await;
+        assert_eq!(
+            answer,
+            Err("the training thread panicked: the loss is NaN".to_string())
+        );
+        let answer = on_training_thread(|| -> u8 { std::panic::panic_any(7_u8) }).await;
+        assert_eq!(
+            answer,
+            Err("the training thread panicked: (no message)".to_string())
+        );
+        assert_eq!(on_training_thread(|| 3_u8).await, Ok(3));
+    }
 }
