@@ -9,20 +9,24 @@ use std::time::Duration;
 
 const SLOW: [(&str, &str); 1] = [("CELLD_STEP_PERIOD_MS", "60")];
 
-fn integrity(db: &std::path::Path) -> String {
+/// Opens the database file of a server (stopped, or running: SQLite's WAL lets a second
+/// process read) and asks it one thing.
+fn ask_db<T>(path: &std::path::Path, ask: impl AsyncFnOnce(&Db) -> T) -> T {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .unwrap()
         .block_on(async {
-            let db = Db::open(db)
-                .await
-                .expect("the database opens after the kill");
-            let answer = db.integrity_check().await.unwrap();
+            let db = Db::open(path).await.expect("the database opens");
+            let answer = ask(&db).await;
             db.writer.close().await;
             db.reader.close().await;
             answer
         })
+}
+
+fn integrity(path: &std::path::Path) -> String {
+    ask_db(path, async |db| db.integrity_check().await.unwrap())
 }
 
 #[test]
@@ -114,23 +118,14 @@ fn sigterm_interrupts_the_job_and_exits_promptly() {
 }
 
 /// The status and error of evaluation `id`, read from the database file.
-fn evaluation_row(db: &std::path::Path, id: i64) -> (String, Option<String>) {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap()
-        .block_on(async {
-            let db = Db::open(db).await.unwrap();
-            let row: (String, Option<String>) =
-                sqlx::query_as("SELECT status, error FROM policy_evaluations WHERE id = ?")
-                    .bind(id)
-                    .fetch_one(&db.reader)
-                    .await
-                    .unwrap();
-            db.writer.close().await;
-            db.reader.close().await;
-            row
-        })
+fn evaluation_row(path: &std::path::Path, id: i64) -> (String, Option<String>) {
+    ask_db(path, async |db| {
+        sqlx::query_as("SELECT status, error FROM policy_evaluations WHERE id = ?")
+            .bind(id)
+            .fetch_one(&db.reader)
+            .await
+            .unwrap()
+    })
 }
 
 #[test]
@@ -175,18 +170,8 @@ fn an_evaluation_cut_short_by_a_kill_is_failed_and_the_bundled_policy_evaluated_
     assert_eq!(active["evaluation"]["id"], again["id"]);
 }
 
-fn stored_estop(db: &std::path::Path) -> bool {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap()
-        .block_on(async {
-            let db = Db::open(db).await.unwrap();
-            let latched = db.cell_flag("estop").await.unwrap();
-            db.writer.close().await;
-            db.reader.close().await;
-            latched
-        })
+fn stored_estop(path: &std::path::Path) -> bool {
+    ask_db(path, async |db| db.cell_flag("estop").await.unwrap())
 }
 
 /// E-stops and resets from several operators at once: whatever the control thread ends with
