@@ -104,11 +104,9 @@ async fn start(
         .await?;
         episodes.extend(read);
     }
-    let with_steps = episodes.iter().filter(|e| !e.steps.is_empty()).count();
-    if !ids.is_empty() && with_steps < 10 {
-        return Err(ApiError::unprocessable(format!(
-            "the demonstrations named hold {with_steps} episodes with steps; at least 10 are needed"
-        )));
+    if !ids.is_empty() {
+        run::check_demonstrations(&episodes)
+            .map_err(|e| ApiError::unprocessable(format!("the demonstrations named hold {e}")))?;
     }
 
     let cancel = Arc::new(AtomicBool::new(false));

@@ -143,10 +143,22 @@ pub struct CurvePoint {
 pub enum RunError {
     #[error("cancelled")]
     Cancelled,
-    #[error("{0} demonstrated episodes with steps; at least 10 are needed")]
+    #[error("{0} episodes with steps; at least {MIN_EPISODES} are needed")]
     TooFewDemonstrations(usize),
     #[error("{0}")]
     Training(String),
+}
+
+/// Episodes with steps a run needs: a tenth of them is held out to check the selector.
+pub const MIN_EPISODES: usize = 10;
+
+/// Refuses demonstrations too few to learn from (episodes without steps do not count).
+pub fn check_demonstrations(demos: &[DemoEpisode]) -> Result<(), RunError> {
+    let with_steps = demos.iter().filter(|e| !e.steps.is_empty()).count();
+    if with_steps < MIN_EPISODES {
+        return Err(RunError::TooFewDemonstrations(with_steps));
+    }
+    Ok(())
 }
 
 /// Runs the pipeline on `demos` (a tenth held out for the selector). `report` gets each curve
@@ -160,10 +172,8 @@ pub fn run(
     cancelled: &dyn Fn() -> bool,
 ) -> Result<(PolicyFile, Value), RunError> {
     settings.check().map_err(RunError::Training)?;
+    check_demonstrations(&demos)?;
     demos.retain(|e| !e.steps.is_empty());
-    if demos.len() < 10 {
-        return Err(RunError::TooFewDemonstrations(demos.len()));
-    }
     let held_out = demos.split_off(demos.len() - demos.len() / 10);
     let limits = step_limits(cell);
     let units = settings.units() as f64;

@@ -3,12 +3,13 @@
 //! choices.
 
 use super::{BC, BC_POLICY, DAGGER_SEED_SALT, DEMOS, Fitted, LSTM, Run, bar};
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos::{self, DemoEpisode};
 use assembly_cell::learning::pipeline::{self, step_limits};
+use assembly_cell::learning::run;
 use assembly_cell::learning::selector::SelectorConfig;
 use assembly_cell::policy::eval::episode_seed;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
@@ -78,14 +79,8 @@ impl Run {
         let file = std::fs::File::open(&path)?;
         let mut episodes = demos::read_jsonl(std::io::BufReader::new(file))
             .with_context(|| format!("{}", path.display()))?;
+        run::check_demonstrations(&episodes).with_context(|| format!("{}", path.display()))?;
         episodes.retain(|e| !e.steps.is_empty());
-        if episodes.len() < 10 {
-            bail!(
-                "{}: {} demonstrated episodes, at least 10 are needed",
-                path.display(),
-                episodes.len()
-            );
-        }
         let held_out = episodes.split_off(episodes.len() - episodes.len() / 10);
         Ok((episodes, held_out))
     }
