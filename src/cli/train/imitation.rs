@@ -202,7 +202,7 @@ impl Run {
         )
         .context("behaviour cloning (no checkpoint written)")?;
         bar.finish_and_clear();
-        std::fs::write(self.path("bc_curve.csv"), curve)?;
+        write_atomically(&self.path("bc_curve.csv"), curve.as_bytes())?;
         Ok(Fitted {
             varmap,
             wall_s: started.elapsed().as_secs_f64(),
@@ -253,7 +253,7 @@ impl Run {
         )
         .context("LSTM selector training (no checkpoint written)")?;
         bar.finish_and_clear();
-        std::fs::write(self.path("lstm_curve.csv"), curve)?;
+        write_atomically(&self.path("lstm_curve.csv"), curve.as_bytes())?;
         eprintln!(
             "selector: held-out agreement with the expert's actor choice {:.4}",
             report.held_out_agreement
