@@ -1,4 +1,4 @@
-//! Service figures (DESIGN.md §9), printed rather than asserted:
+//! Service figures (docs/design.md §9), printed rather than asserted:
 //! - step rows written to SQLite in batches, rows/s;
 //! - a real `celld serve` running expert jobs back to back: the control step's p99 alone, under
 //!   1000 HTTP reads/s (and those reads' p50/p99 and errors), and with 100 telemetry

@@ -1,4 +1,4 @@
-//! Speed of the twin's parts (DESIGN.md §9). Run: `cargo bench --bench twin`.
+//! Speed of the twin's parts (docs/design.md §9). Run: `cargo bench --bench twin`.
 
 use assembly_cell::camera::{CameraFrame, SimCamera, StateEstimator};
 use assembly_cell::collision::clearance::{PartGeometry, clearance};

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes the PyTorch-layout policy fixture of tests/policy_file.rs (DESIGN.md §6).
+"""Writes the PyTorch-layout policy fixture of tests/policy_file.rs (docs/design.md §6).
 
   tests/fixtures/policy_small.safetensors      seeded random weights, H = 16, D = 32, f32, the
                                                PyTorch state_dict names and the §6 metadata
@@ -88,7 +88,7 @@ def sigmoid(x):
 
 
 def forward(t, states):
-    """DESIGN.md §6, float64, PyTorch LSTM equations with gate order i, f, g, o."""
+    """docs/design.md §6, float64, PyTorch LSTM equations with gate order i, f, g, o."""
     w = {k: v.astype(np.float64) for k, v in t.items()}
     h = np.zeros(H)
     c = np.zeros(H)

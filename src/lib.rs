@@ -3,7 +3,7 @@
 //! Pure libraries (no async runtime, no storage): [`geometry`], [`kinematics`], [`collision`],
 //! [`camera`], [`robot`] (the robot trait and its supervisor), [`sim`], [`policy`], [`learning`]. The service: [`cell`] (hardware seam, job
 //! core, control thread), [`storage`] (SQLite), [`http`] (axum), [`metrics`], wired by [`app`].
-//! See DESIGN.md §3 and docs/.
+//! See docs/design.md §3 and docs/.
 
 pub mod app;
 pub mod camera;

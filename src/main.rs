@@ -38,7 +38,7 @@ enum Command {
     Train(cli::train::TrainCommand),
     /// Reproduce the structure of the paper's Tables 2–6 and Fig. 7 on the twin.
     Report(cli::report::ReportArgs),
-    /// Run the cell service: jobs, telemetry, history over HTTP (DESIGN.md §7).
+    /// Run the cell service: jobs, telemetry, history over HTTP (docs/design.md §7).
     Serve(cli::serve::ServeArgs),
     /// Manage API tokens.
     #[command(subcommand)]
@@ -122,7 +122,7 @@ impl Imperfection {
 }
 
 fn main() -> ExitCode {
-    // candle re-reads the CPU count on every matmul unless this is set (../shared/notes).
+    // candle 0.11 re-reads the CPU count on every matmul unless RAYON_NUM_THREADS is set.
     hierarchical::init_cpu_threads();
     let cli = Cli::parse();
     if !matches!(cli.command, Command::Serve(_)) {

@@ -1,4 +1,4 @@
-//! Policy files (DESIGN.md §6): the PyTorch-layout fixture written by
+//! Policy files (docs/design.md §6): the PyTorch-layout fixture written by
 //! scripts/make_policy_fixture.py loads and its forward pass matches the script's independent
 //! numpy implementation to 1e-5, one episode at a time, batched and through `celld policy run`;
 //! and the loader refuses each kind of bad file with its own message.

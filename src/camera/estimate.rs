@@ -119,7 +119,7 @@ impl StateEstimator {
 }
 
 impl Measurement {
-    /// The 12-dim state `[A1..A6, Px, Py, Pz, Ox, Oy, Oz]` (DESIGN.md §5): A = pose of {M} in
+    /// The 12-dim state `[A1..A6, Px, Py, Pz, Ox, Oy, Oz]` (docs/design.md §5): A = pose of {M} in
     /// {W} (translation mm, rotation vector deg); P = translation of {F} in {M} (mm); O =
     /// rotation vector of {F} in {M} (deg), its z component wrapped into
     /// `[-pitch/2, pitch/2)` with `hole_pitch_deg` = 360 / holes.
@@ -128,7 +128,7 @@ impl Measurement {
     }
 }
 
-/// The 12-dim state of DESIGN.md §5 from {M} in {W} (A: translation mm, rotation vector deg) and
+/// The 12-dim state of docs/design.md §5 from {M} in {W} (A: translation mm, rotation vector deg) and
 /// {F} in {M} (P mm, O rotation vector deg with O_z wrapped into [-pitch/2, pitch/2)).
 pub fn state_vector(w_m: &Pose, m_f: &Pose, hole_pitch_deg: f64) -> [f64; 12] {
     let a_t = w_m.translation.vector;

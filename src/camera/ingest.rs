@@ -38,7 +38,7 @@ pub struct Estimate {
 }
 
 /// Fits each capture, carries it forward by the part of the move still to come, fuses it into
-/// the state filter and forms the 12-dim state (DESIGN.md §5).
+/// the state filter and forms the 12-dim state (docs/design.md §5).
 #[derive(Debug, Clone)]
 pub struct Ingest {
     estimator: StateEstimator,

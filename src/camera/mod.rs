@@ -1,4 +1,4 @@
-//! The digital twin's binocular camera and the state estimate (paper Eq. 1, DESIGN.md §5).
+//! The digital twin's binocular camera and the state estimate (paper Eq. 1, docs/design.md §5).
 //!
 //! [`SimCamera`] turns the true poses of Segment I ({M}) and Segment II ({F}) in the camera
 //! frame {W} into one capture of decoded coded points, with the cell's noise, dropped points and

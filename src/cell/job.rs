@@ -124,7 +124,7 @@ impl JobEnd {
     }
 }
 
-/// The control loop's own stop rules (DESIGN.md §8).
+/// The control loop's own stop rules (docs/design.md §8).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SafetyLimits {
     /// Longest a step's decision, supervision and execution may take, s.
@@ -140,7 +140,7 @@ pub struct StepRecord {
     pub step: u32,
     /// Time since the job started, s.
     pub t_s: f64,
-    /// The 12-dim state after the step (DESIGN.md §5).
+    /// The 12-dim state after the step (docs/design.md §5).
     pub state: [f64; 12],
     /// The commanded move `[Δx, Δy, Δz, θx, θy, θz]`, mm and deg.
     pub action: [f64; 6],

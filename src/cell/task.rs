@@ -46,7 +46,7 @@ pub enum CellEvent {
     EStop { latched: bool },
 }
 
-/// The relative pose the cell last estimated: P (mm) and O (deg) of DESIGN.md §5.
+/// The relative pose the cell last estimated: P (mm) and O (deg) of docs/design.md §5.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct LastPose {
     pub position_mm: [f64; 3],

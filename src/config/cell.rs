@@ -1,4 +1,4 @@
-//! The cell file: every physical parameter of one assembly cell (DESIGN.md §4), in one TOML file.
+//! The cell file: every physical parameter of one assembly cell (docs/design.md §4), in one TOML file.
 //!
 //! Loading refuses unknown keys, malformed values and physically impossible cells, with a message
 //! that names the key. Frames (see `docs/twin.md`): {F} sits at the centre of the bore entrance,
@@ -189,7 +189,7 @@ pub struct StepLimitConfig {
     pub orientation_deg: f64,
 }
 
-/// The collision supervisor (DESIGN.md §8).
+/// The collision supervisor (docs/design.md §8).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SupervisorConfig {

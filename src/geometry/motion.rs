@@ -1,4 +1,4 @@
-//! One commanded move of Segment I: a small rigid motion of {M} expressed in {M} (DESIGN.md §5).
+//! One commanded move of Segment I: a small rigid motion of {M} expressed in {M} (docs/design.md §5).
 
 use super::pose::{Pose, pose_from_mm_deg};
 use nalgebra::Vector3;

@@ -112,7 +112,7 @@ pub fn init_linear(
     Ok(())
 }
 
-/// Adds the weights of one actor (`{prefix}.0`, `.2`, `.4`, DESIGN.md §6) of width `width`.
+/// Adds the weights of one actor (`{prefix}.0`, `.2`, `.4`, docs/design.md §6) of width `width`.
 pub fn init_actor(
     varmap: &VarMap,
     prefix: &str,

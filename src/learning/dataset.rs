@@ -1,7 +1,7 @@
 //! Training data from demonstrations: input normalisation and the labels each network learns.
 //!
 //! A recorded move Δ (mm or deg, by actor) is split the way the policy composes it
-//! (DESIGN.md §6: move = a · sigmoid(ω3) · step limit):
+//! (docs/design.md §6: move = a · sigmoid(ω3) · step limit):
 //! - the step-size label s = clamp(max|Δᵢ| / (0.9 · limit), s_min, 0.98), the target of
 //!   sigmoid(ω3);
 //! - the actor's label a = clamp(Δ / (s · limit), −0.95, 0.95), the target of its tanh output.

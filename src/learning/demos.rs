@@ -1,7 +1,7 @@
 //! Expert demonstrations: what the expert saw and did, step by step, as JSON Lines.
 //!
 //! In the real cell a person guides Segment I by hand and the camera records at 4 Hz; in the twin
-//! the scripted expert stands in (DESIGN.md §5). One line per step:
+//! the scripted expert stands in (docs/design.md §5). One line per step:
 //!
 //! ```json
 //! {"episode":0,"step":0,"state":[12 numbers],"action":[6 numbers],"actor":"position","scale":0.93}

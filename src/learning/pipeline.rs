@@ -1,5 +1,5 @@
 //! The supervised half of the training pipeline (paper §3.1–§3.2): demonstrations → BC actors →
-//! LSTM selector → a policy file (DESIGN.md §6). `refine` does the TD3 half.
+//! LSTM selector → a policy file (docs/design.md §6). `refine` does the TD3 half.
 //!
 //! Every stage works on one `VarMap` holding tensors by the policy file's names, so a stage's
 //! output is a checkpoint (`save_vars`) and the last stage's output is the policy file.

@@ -206,7 +206,7 @@ pub fn train_selector(
 }
 
 /// The fraction of steps at which the selector picks the expert's actor (the position actor
-/// when p_pos ≥ p_ori, DESIGN.md §6), over whole episodes run from a zero LSTM state.
+/// when p_pos ≥ p_ori, docs/design.md §6), over whole episodes run from a zero LSTM state.
 pub fn agreement(
     varmap: &VarMap,
     hidden: usize,

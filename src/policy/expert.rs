@@ -1,4 +1,4 @@
-//! The scripted knowledge-guided expert (DESIGN.md §5): what a skilled operator does when guiding
+//! The scripted knowledge-guided expert (docs/design.md §5): what a skilled operator does when guiding
 //! Segment I by hand — orientation first, then lateral alignment above the entrance, then
 //! insertion, with steps that shrink near the goal and a person's variability in step length.
 //!

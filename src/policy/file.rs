@@ -1,4 +1,4 @@
-//! Policy files (DESIGN.md §6): one safetensors file, f32, with the names PyTorch's `state_dict`
+//! Policy files (docs/design.md §6): one safetensors file, f32, with the names PyTorch's `state_dict`
 //! writes, and `__metadata__` carrying the format, its version and the step limits the policy was
 //! trained with.
 //!
@@ -27,7 +27,7 @@ pub(crate) use checks::{
 pub const FORMAT: &str = "assembly-cell/hierarchical-policy";
 /// `__metadata__["format_version"]` this build reads and writes (both kinds of policy file).
 pub const FORMAT_VERSION: &str = "1";
-/// Size of the state the policy reads (DESIGN.md §5).
+/// Size of the state the policy reads (docs/design.md §5).
 pub const STATE_DIM: usize = 12;
 /// Outputs of the high-level head: ω1, ω2, ω3.
 pub const HEAD_DIM: usize = 3;
@@ -69,7 +69,7 @@ pub const METADATA_KEYS: [&str; 4] = [
 /// Which learned policy a file holds, by its `__metadata__["format"]`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum PolicyKind {
-    /// DESIGN.md §6: the LSTM selector and two 3-value actors ([`FORMAT`]).
+    /// docs/design.md §6: the LSTM selector and two 3-value actors ([`FORMAT`]).
     Hierarchical,
     /// The flat TD3 baseline: one 6-value actor ([`super::flat::FORMAT`]).
     Flat,
@@ -223,7 +223,7 @@ pub struct PolicyTensor {
 }
 
 /// A checked policy file: every tensor of [`TENSOR_NAMES`] with consistent shapes and finite
-/// values, and the metadata of DESIGN.md §6.
+/// values, and the metadata of docs/design.md §6.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PolicyFile {
     tensors: BTreeMap<String, PolicyTensor>,

@@ -1,4 +1,4 @@
-//! The learned hierarchical policy (paper §3.1, DESIGN.md §6): an LSTM over the state sequence
+//! The learned hierarchical policy (paper §3.1, docs/design.md §6): an LSTM over the state sequence
 //! whose head gives ω1, ω2 (softmax: position vs orientation actor) and ω3 (step size), and two
 //! actors (Linear-ReLU-Linear-ReLU-Linear-Tanh) that each give 3 values in [-1, 1].
 //!

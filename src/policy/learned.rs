@@ -1,4 +1,4 @@
-//! A learned policy of either kind — hierarchical (DESIGN.md §6) or the flat TD3 baseline
+//! A learned policy of either kind — hierarchical (docs/design.md §6) or the flat TD3 baseline
 //! (`super::flat`) — chosen by the file's `__metadata__["format"]`. This is what a policy file
 //! given by path (`celld eval --controller FILE`, `celld report --policy`), an uploaded policy
 //! and a bundled policy load as. A file whose format is not the flat one is checked as a

@@ -2,7 +2,7 @@
 //!
 //! [`Robot`] is the trait a driver implements (the twin's is `sim::TwinDrive`). Safety is not
 //! the driver's business: [`Supervised`] wraps any `Robot` and is itself a `Robot`, so every
-//! move passes the collision supervisor before the driver sees it (DESIGN.md §3 and §8).
+//! move passes the collision supervisor before the driver sees it (docs/design.md §3 and §8).
 
 mod supervised;
 

@@ -27,7 +27,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::Serialize;
 
-/// Initial conditions of an episode (DESIGN.md §4, Table 5 protocol by default).
+/// Initial conditions of an episode (docs/design.md §4, Table 5 protocol by default).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct InitialConditions {
     /// Offset of Segment I from the mouth pose (tip centred on the entrance), in a random
@@ -83,7 +83,7 @@ pub enum Outcome {
 /// What a controller sees before it decides.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Observation {
-    /// The 12-dim state of DESIGN.md §5, from the cell's fused estimate (A from the last frame;
+    /// The 12-dim state of docs/design.md §5, from the cell's fused estimate (A from the last frame;
     /// P and O from the state filter, see `camera::fusion`).
     pub state: [f64; 12],
     /// The same state from the last camera frame alone.

@@ -1,5 +1,5 @@
 //! The digital twin of the cell: an imperfect robot, an imperfect camera and the two parts,
-//! wrapped as a reinforcement-learning environment (paper §4.1, DESIGN.md §4).
+//! wrapped as a reinforcement-learning environment (paper §4.1, docs/design.md §4).
 
 pub mod batch;
 pub mod env;
