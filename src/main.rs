@@ -17,11 +17,14 @@ mod cli;
 #[command(
     name = "celld",
     version,
-    about = "Runs and evaluates the Φ170 shaft-in-bore assembly cell"
+    about = "Runs the Φ170 shaft-in-bore assembly cell: the service, its twin, training and evaluation",
+    long_about = "Runs the Φ170 shaft-in-bore assembly cell. With no command, celld serves the \
+                  twin of the reference cell on 127.0.0.1:8080 and prints the dashboard link \
+                  (the same as `celld serve`). Docs: README.md and docs/."
 )]
 struct Cli {
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
 }
 
 // Parsed once per process: the size of the largest variant (`train`'s arguments) costs nothing.
@@ -38,7 +41,7 @@ enum Command {
     Train(cli::train::TrainCommand),
     /// Reproduce the structure of the paper's Tables 2–6 and Fig. 7 on the twin.
     Report(cli::report::ReportArgs),
-    /// Run the cell service: jobs, telemetry, history over HTTP (docs/design.md §7).
+    /// Run the cell service: dashboard, jobs, telemetry and history over HTTP (the default).
     Serve(cli::serve::ServeArgs),
     /// Manage API tokens.
     #[command(subcommand)]
@@ -47,12 +50,12 @@ enum Command {
 
 #[derive(Subcommand)]
 enum PolicyCommand {
-    /// Run a policy file over one episode of states (JSON Lines, 12 numbers a line) and print
-    /// one JSON line per state: omega, actor, scale, action. For checking a policy file against
-    /// another implementation.
+    /// Print a policy file's decisions (omega, actor, scale, action) for a file of states.
     Run {
+        /// The policy file (.safetensors).
         #[arg(long)]
         policy: PathBuf,
+        /// One episode of states: JSON Lines, 12 numbers a line.
         #[arg(long)]
         states: PathBuf,
     },
@@ -60,16 +63,17 @@ enum PolicyCommand {
 
 #[derive(Args)]
 struct EvalArgs {
-    /// Controller: expert, expert-state-only, expert-careful, visual-servo, spiral, da-dmp,
-    /// hierarchical, bc, td3, or the path of a policy file (.safetensors, hierarchical or flat,
-    /// told apart by its `format` metadata).
+    /// A built-in controller (expert, expert-state-only, expert-careful, visual-servo, spiral,
+    /// da-dmp, hierarchical, bc, td3) or a policy file (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).
     #[arg(long)]
     cell: Option<PathBuf>,
+    /// Episodes to run.
     #[arg(long, default_value_t = 1000)]
     episodes: usize,
+    /// Seed of the evaluation (each episode's seed is derived from it).
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Initial offset from the mouth pose, mm (default: the cell file's, 50 mm).
@@ -81,7 +85,7 @@ struct EvalArgs {
     /// Multiplies the camera's point noise (0 = noiseless, 1 = the spec).
     #[arg(long, default_value_t = 1.0)]
     noise_scale: f64,
-    /// Switch imperfections of the twin off (comma-separated), to see what each one costs.
+    /// Imperfections of the twin to switch off (comma-separated).
     #[arg(long, value_enum, value_delimiter = ',')]
     without: Vec<Imperfection>,
     /// Print the summary as one JSON object on the last line.
@@ -124,11 +128,13 @@ impl Imperfection {
 fn main() -> ExitCode {
     // candle 0.11 re-reads the CPU count on every matmul unless RAYON_NUM_THREADS is set.
     hierarchical::init_cpu_threads();
-    let cli = Cli::parse();
-    if !matches!(cli.command, Command::Serve(_)) {
+    let command = Cli::parse()
+        .command
+        .unwrap_or_else(|| Command::Serve(Default::default()));
+    if !matches!(command, Command::Serve(_)) {
         stop_quietly_when_stdout_closes();
     }
-    let result = match cli.command {
+    let result = match command {
         Command::Eval(args) => run_eval(args),
         Command::Policy(PolicyCommand::Run { policy, states }) => run_policy(&policy, &states),
         Command::Train(command) => cli::train::run(command),

@@ -232,7 +232,15 @@ fn the_gate_holds_unless_forced_with_a_reason() {
         Some(&admin),
         Some(json!({"force": true})),
     );
-    assert_eq!(status, 422, "{no_reason}");
+    // The gate stays shut: forcing it needs a reason.
+    assert_eq!(status, 409, "{no_reason}");
+    assert!(
+        no_reason["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("needs a reason"),
+        "{no_reason}"
+    );
     let (status, forced) = server.post(
         &format!("/api/policies/{id}/activate"),
         Some(&admin),

@@ -47,14 +47,14 @@ pub enum CellEvent {
 }
 
 /// The relative pose the cell last estimated: P (mm) and O (deg) of docs/design.md §5.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct LastPose {
     pub position_mm: [f64; 3],
     pub orientation_deg: [f64; 3],
 }
 
 /// The cell as `GET /api/cell` shows it.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct CellStatus {
     pub backend: String,
     pub estop_latched: bool,

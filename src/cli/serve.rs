@@ -8,10 +8,9 @@ use clap::{Args, Subcommand};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
-#[derive(Args)]
+#[derive(Args, Default)]
 pub struct ServeArgs {
-    /// Service settings (TOML; see deploy/celld.example.toml). `CELLD_*` variables override
-    /// it, and these flags override both.
+    /// Settings file (TOML, deploy/celld.example.toml); CELLD_* variables and flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Address to listen on (default 127.0.0.1:8080; port 0 picks a free one).

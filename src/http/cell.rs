@@ -6,21 +6,23 @@ use super::error::{ApiError, ApiResult, Json};
 use crate::cell::{CellCommand, CellStatus};
 use crate::storage::tokens::Role;
 use crate::storage::{self, audit};
-use axum::Router;
 use axum::extract::State;
-use axum::routing::{get, post};
 use serde::Serialize;
 use serde_json::json;
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-pub fn router() -> Router<Context> {
-    Router::new()
-        .route("/api/cell", get(read))
-        .route("/api/cell/estop", post(estop))
-        .route("/api/cell/reset", post(reset))
+pub fn router() -> OpenApiRouter<Context> {
+    OpenApiRouter::new()
+        .routes(routes!(read))
+        .routes(routes!(estop))
+        .routes(routes!(reset))
 }
 
-#[derive(Serialize)]
-struct CellView {
+/// The cell: its backend, e-stop latch, running and queued jobs, last estimated pose.
+#[derive(Serialize, ToSchema)]
+pub struct CellView {
     #[serde(flatten)]
     status: CellStatus,
     cell: String,
@@ -45,13 +47,18 @@ fn view(context: &Context) -> CellView {
     }
 }
 
+/// The cell as it is now.
+#[utoipa::path(get, path = "/api/cell", tag = "cell",
+    responses((status = 200, description = "The cell", body = CellView)))]
 async fn read(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
     auth.require(Role::Viewer)?;
     Ok(Json(view(&context)))
 }
 
-/// Latches the e-stop: motion stops at once, the running job fails with `estop`, queued jobs
-/// are cancelled. Stays latched (across restarts too) until a reset.
+/// Latches the e-stop (operator): motion stops at once, the running job fails with `estop`,
+/// queued jobs are cancelled. Stays latched (across restarts too) until a reset.
+#[utoipa::path(post, path = "/api/cell/estop", tag = "cell",
+    responses((status = 200, description = "Stopped and latched", body = CellView)))]
 async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
     let caller = auth.require(Role::Operator)?;
     let running = context.cell.status().current_job;
@@ -80,8 +87,10 @@ async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
     Ok(Json(view(&context)))
 }
 
-/// Clears the e-stop latch. Starts nothing: the next motion is the next job an operator
-/// creates.
+/// Clears the e-stop latch (operator). Starts nothing: the next motion is the next job an
+/// operator creates.
+#[utoipa::path(post, path = "/api/cell/reset", tag = "cell",
+    responses((status = 200, description = "Unlatched", body = CellView)))]
 async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
     let caller = auth.require(Role::Operator)?;
     context

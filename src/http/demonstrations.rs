@@ -4,38 +4,41 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path, Query, off_the_runtime};
+use super::error::{ApiError, ApiResult, Items, Json, Path, Query, off_the_runtime};
 use crate::learning::demos::{self, DemoError};
 use crate::storage::audit;
 use crate::storage::demonstrations::{self, Demonstration, NewDemonstration};
 use crate::storage::tokens::Role;
-use axum::Router;
 use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::{StatusCode, header};
 use axum::response::IntoResponse;
-use axum::routing::get;
 use serde::Deserialize;
-use serde_json::{Value, json};
+use serde_json::json;
+use utoipa::IntoParams;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-pub fn router(max_import_bytes: usize) -> Router<Context> {
-    Router::new()
-        .route(
-            "/api/demonstrations",
-            axum::routing::post(import)
-                .get(list)
-                .layer(DefaultBodyLimit::max(max_import_bytes)),
-        )
-        .route("/api/demonstrations/{id}", get(export).delete(remove))
+pub fn router(max_import_bytes: usize) -> OpenApiRouter<Context> {
+    OpenApiRouter::new()
+        .routes(routes!(import, list).layer(DefaultBodyLimit::max(max_import_bytes)))
+        .routes(routes!(export, remove))
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct ImportQuery {
+    /// The demonstration's name (default `imported`); spaces around it are dropped.
+    #[param(min_length = 1, max_length = 100, pattern = r"\S")]
     name: Option<String>,
 }
 
+/// Imports demonstrations (admin): JSON Lines, one step a line, as `celld train --demos-file`
+/// reads and the export writes. A bad line refuses the whole body (422 names the line).
+#[utoipa::path(post, path = "/api/demonstrations", tag = "demonstrations", params(ImportQuery),
+    request_body(content = String, content_type = "application/x-ndjson"),
+    responses((status = 201, description = "Stored", body = Demonstration)))]
 async fn import(
     State(context): State<Context>,
     auth: Auth,
@@ -45,7 +48,7 @@ async fn import(
     let caller = auth.require(Role::Admin)?;
     let body = body?;
     let name = query.name.as_deref().map(str::trim).unwrap_or("imported");
-    if name.is_empty() || name.len() > 100 {
+    if name.is_empty() || name.chars().count() > 100 {
         return Err(ApiError::bad_request("name must be 1 to 100 characters"));
     }
     let episodes = off_the_runtime(move || {
@@ -85,13 +88,24 @@ async fn import(
     Ok((StatusCode::CREATED, Json(stored)))
 }
 
-async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Value>> {
+/// Every stored demonstration (viewer).
+#[utoipa::path(get, path = "/api/demonstrations", tag = "demonstrations",
+    responses((status = 200, description = "The demonstrations", body = Items<Demonstration>)))]
+async fn list(
+    State(context): State<Context>,
+    auth: Auth,
+) -> ApiResult<Json<Items<Demonstration>>> {
     auth.require(Role::Viewer)?;
-    Ok(Json(
-        json!({"items": demonstrations::list(&context.db).await?}),
-    ))
+    Ok(Json(Items {
+        items: demonstrations::list(&context.db).await?,
+    }))
 }
 
+/// One demonstration's steps as JSON Lines (viewer).
+#[utoipa::path(get, path = "/api/demonstrations/{id}", tag = "demonstrations",
+    params(("id" = i64, Path)),
+    responses((status = 200, description = "The steps", body = String,
+        content_type = "application/x-ndjson")))]
 async fn export(
     State(context): State<Context>,
     auth: Auth,
@@ -104,6 +118,10 @@ async fn export(
     Ok(([(header::CONTENT_TYPE, "application/x-ndjson")], body))
 }
 
+/// Deletes a demonstration (admin).
+#[utoipa::path(delete, path = "/api/demonstrations/{id}", tag = "demonstrations",
+    params(("id" = i64, Path)),
+    responses((status = 204, description = "Deleted")))]
 async fn remove(
     State(context): State<Context>,
     auth: Auth,

@@ -139,6 +139,12 @@ pub struct Path<T>(pub T);
 
 pub type ApiResult<T> = Result<T, ApiError>;
 
+/// A list answer: `{"items": [...]}`.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct Items<T> {
+    pub items: Vec<T>,
+}
+
 /// Runs CPU-bound work of a request (parsing an uploaded file of up to the body limit) on
 /// tokio's blocking pool. The async workers may be a single thread when `control.cpu` keeps
 /// the service off the control CPU, and an e-stop request must not wait behind a parse.

@@ -3,56 +3,77 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path, Query};
+use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
+use super::stats::ISO_TIME_PATTERN;
 use super::stats::check_time_range;
 use crate::cell::{CellCommand, ControllerSource, JobEnd, JobSpec, JobStatus};
 use crate::policy;
 use crate::sim::InitialConditions;
 use crate::storage::jobs::{self, Job, JobFilter, NewJob};
+use crate::storage::steps::{self, StoredStep};
+use crate::storage::policies;
 use crate::storage::tokens::Role;
-use crate::storage::{policies, steps};
-use axum::Router;
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
 use rand::Rng;
-use serde::Deserialize;
-use serde_json::{Value, json};
+use serde::{Deserialize, Serialize};
 use std::time::Duration;
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-pub fn router() -> Router<Context> {
-    Router::new()
-        .route("/api/jobs", post(create).get(list))
-        .route("/api/jobs/{id}", get(read))
-        .route("/api/jobs/{id}/cancel", post(cancel))
-        .route("/api/jobs/{id}/steps", get(read_steps))
+pub fn router() -> OpenApiRouter<Context> {
+    OpenApiRouter::new()
+        .routes(routes!(create, list))
+        .routes(routes!(read))
+        .routes(routes!(cancel))
+        .routes(routes!(read_steps))
 }
+
+/// The names a job's `controller` takes: `active`, a built-in controller, a bundled policy, or
+/// `policy:<id>` (checked against `policy::BUILTIN_CONTROLLERS` and `LEARNED_CONTROLLERS` by a
+/// test below).
+const CONTROLLER_PATTERN: &str = "^(active|expert|expert-state-only|expert-careful|visual-servo|\
+spiral|da-dmp|hierarchical|bc|td3|policy:[0-9]{1,18})$";
 
 /// Largest initial offset and orientation error a job may ask for (the workspace the twin's
 /// protocol covers; Table 2's widest is 50 mm and 9 deg).
 const MAX_INITIAL_POS_MM: f64 = 200.0;
 const MAX_INITIAL_ORI_DEG: f64 = 20.0;
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CreateJob {
+    /// `active` (the active policy, or the configured controller when none is active), a
+    /// built-in controller, a bundled policy, or `policy:<id>`.
+    #[schema(pattern = CONTROLLER_PATTERN)]
     controller: String,
+    /// The episode's seed (default: a random one, stored with the job).
     seed: Option<u64>,
+    /// Initial offset and orientation error (default: the cell file's).
     initial: Option<InitialBody>,
+    /// Keep the job's steps as a demonstration when it succeeds.
     demonstration: Option<bool>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct InitialBody {
+    /// Offset from the mouth pose, mm.
+    #[schema(minimum = 0.0, maximum = 200.0)]
     pos_mm: f64,
+    /// Orientation error, deg.
+    #[schema(minimum = 0.0, maximum = 20.0)]
     ori_deg: f64,
 }
 
 /// Jobs waiting at most: each holds its controller (a policy's weights) in memory until it runs.
 const MAX_QUEUED_JOBS: usize = 100;
 
+/// Queues a job on the cell (operator).
+#[utoipa::path(post, path = "/api/jobs", tag = "jobs", request_body = CreateJob,
+    responses((status = 201, description = "Queued", body = Job)))]
 async fn create(
     State(context): State<Context>,
     auth: Auth,
@@ -158,25 +179,48 @@ async fn resolve_controller(
     Ok((name.clone(), ControllerSource::Builtin(name), None))
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct ListQuery {
+    /// Only jobs in this state.
+    #[param(inline, value_type = Option<JobStatus>)]
     status: Option<String>,
+    /// Only jobs of this controller (as stored: a name or `policy:<id>`).
     controller: Option<String>,
+    /// Only jobs of this policy.
     policy_id: Option<i64>,
+    /// Created at or after this UTC time (2026-11-22 or 2026-11-22T08:00:00Z).
+    #[param(pattern = ISO_TIME_PATTERN)]
     since: Option<String>,
+    /// Created before this UTC time.
+    #[param(pattern = ISO_TIME_PATTERN)]
     until: Option<String>,
+    /// Jobs per page (default 50).
+    #[param(minimum = 1, maximum = 1000)]
     limit: Option<i64>,
+    /// Jobs to skip.
+    #[param(minimum = 0)]
     offset: Option<i64>,
 }
 
 const MAX_PAGE: i64 = 1000;
 
+/// A page of jobs and how many match.
+#[derive(Serialize, ToSchema)]
+pub struct JobPage {
+    items: Vec<Job>,
+    /// Jobs that match the filter, on every page.
+    total: i64,
+}
+
+/// Jobs, newest first, filtered (viewer).
+#[utoipa::path(get, path = "/api/jobs", tag = "jobs", params(ListQuery),
+    responses((status = 200, description = "A page of jobs", body = JobPage)))]
 async fn list(
     State(context): State<Context>,
     auth: Auth,
     Query(query): Query<ListQuery>,
-) -> ApiResult<Json<Value>> {
+) -> ApiResult<Json<JobPage>> {
     auth.require(Role::Viewer)?;
     let status = match query.status.as_deref() {
         None => None,
@@ -211,7 +255,7 @@ async fn list(
         offset,
     };
     let (items, total) = jobs::list(&context.db, &filter).await?;
-    Ok(Json(json!({"items": items, "total": total})))
+    Ok(Json(JobPage { items, total }))
 }
 
 async fn find(context: &Context, id: i64) -> ApiResult<Job> {
@@ -220,6 +264,9 @@ async fn find(context: &Context, id: i64) -> ApiResult<Job> {
         .ok_or_else(|| ApiError::not_found(format!("no job with id {id}")))
 }
 
+/// One job (viewer).
+#[utoipa::path(get, path = "/api/jobs/{id}", tag = "jobs", params(("id" = i64, Path)),
+    responses((status = 200, description = "The job", body = Job)))]
 async fn read(
     State(context): State<Context>,
     auth: Auth,
@@ -229,6 +276,9 @@ async fn read(
     Ok(Json(find(&context, id).await?))
 }
 
+/// Cancels a queued or running job (operator); answers once its end is stored.
+#[utoipa::path(post, path = "/api/jobs/{id}/cancel", tag = "jobs", params(("id" = i64, Path)),
+    responses((status = 200, description = "The job, cancelled", body = Job)))]
 async fn cancel(
     State(context): State<Context>,
     auth: Auth,
@@ -249,6 +299,28 @@ async fn cancel(
     Ok(Json(wait_until_final(&context, id).await?))
 }
 
+#[cfg(test)]
+mod tests {
+    use super::CONTROLLER_PATTERN;
+    use crate::policy::{BUILTIN_CONTROLLERS, LEARNED_CONTROLLERS};
+
+    #[test]
+    fn the_controller_pattern_names_every_controller_and_nothing_else() {
+        let names = CONTROLLER_PATTERN
+            .trim_start_matches("^(")
+            .trim_end_matches(")$")
+            .split('|')
+            .filter(|name| *name != "active" && !name.starts_with("policy:"))
+            .collect::<std::collections::BTreeSet<_>>();
+        let known = BUILTIN_CONTROLLERS
+            .iter()
+            .chain(&LEARNED_CONTROLLERS)
+            .copied()
+            .collect::<std::collections::BTreeSet<_>>();
+        assert_eq!(names, known);
+    }
+}
+
 /// The job once the storage writer has recorded its end (it does so within milliseconds of
 /// the control thread's answer), or as it stands after two seconds.
 pub async fn wait_until_final(context: &Context, id: i64) -> ApiResult<Job> {
@@ -262,12 +334,28 @@ pub async fn wait_until_final(context: &Context, id: i64) -> ApiResult<Job> {
     find(context, id).await
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct StepsQuery {
+    /// `json` (default) or `csv`.
+    #[param(inline, value_type = Option<StepsFormat>)]
     format: Option<String>,
 }
 
+/// The answers `/api/jobs/{id}/steps` can give.
+#[derive(ToSchema)]
+#[allow(dead_code)] // Described, not built: the query carries the name as text.
+#[schema(rename_all = "snake_case")]
+enum StepsFormat {
+    Json,
+    Csv,
+}
+
+/// A job's recorded steps, in order (viewer), as JSON or CSV.
+#[utoipa::path(get, path = "/api/jobs/{id}/steps", tag = "jobs",
+    params(("id" = i64, Path), StepsQuery),
+    responses((status = 200, description = "The steps",
+        content((Items<StoredStep> = "application/json"), (String = "text/csv")))))]
 async fn read_steps(
     State(context): State<Context>,
     auth: Auth,
@@ -278,7 +366,7 @@ async fn read_steps(
     find(&context, id).await?;
     let rows = steps::list(&context.db, id).await?;
     match query.format.as_deref() {
-        None | Some("json") => Ok(Json(json!({"items": rows})).into_response()),
+        None | Some("json") => Ok(Json(Items { items: rows }).into_response()),
         Some("csv") => Ok((
             [(header::CONTENT_TYPE, "text/csv; charset=utf-8")],
             steps::to_csv(&rows),

@@ -1,32 +1,47 @@
-//! Health, Prometheus metrics and the OpenAPI document (no token), the caller's own token
+//! Health, Prometheus metrics and the OpenAPI description (no token), the caller's own token
 //! (any role), tokens and the audit log (admin).
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Query};
+use super::error::{ApiError, ApiResult, Items, Json, Query};
 use crate::storage::audit::{self, AuditEntry};
 use crate::storage::tokens::{self, NewToken, Role};
-use axum::Router;
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::IntoResponse;
-use axum::routing::{get, post};
-use serde::Deserialize;
-use serde_json::{Value, json};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-/// The OpenAPI 3 description of every route.
-pub const OPENAPI: &str = include_str!("openapi.json");
-
-pub fn router() -> Router<Context> {
-    Router::new()
-        .route("/api/health", get(health))
-        .route("/metrics", get(metrics))
-        .route("/api/openapi.json", get(openapi))
-        .route("/api/me", get(me))
-        .route("/api/tokens", post(create_token))
-        .route("/api/audit", get(read_audit))
+pub fn router() -> OpenApiRouter<Context> {
+    OpenApiRouter::new()
+        .routes(routes!(health))
+        .routes(routes!(metrics))
+        .routes(routes!(openapi))
+        .routes(routes!(me))
+        .routes(routes!(create_token))
+        .routes(routes!(read_audit))
 }
 
+#[derive(Serialize, ToSchema)]
+pub struct Health {
+    /// `ok`, or `degraded` when the database or the control thread is gone.
+    status: &'static str,
+    version: &'static str,
+    database: bool,
+    control_thread: bool,
+    accepting_jobs: bool,
+}
+
+/// Whether the service can work: 200 when it can, 503 when the database or the control thread
+/// is gone.
+#[utoipa::path(get, path = "/api/health", tag = "service", security(()),
+    responses(
+        (status = 200, description = "Healthy", body = Health),
+        (status = 503, description = "Degraded: the body says what is missing", body = Health),
+    ))]
 async fn health(State(context): State<Context>) -> impl IntoResponse {
     let database = sqlx::query_scalar::<_, i64>("SELECT 1")
         .fetch_one(&context.db.reader)
@@ -39,16 +54,20 @@ async fn health(State(context): State<Context>) -> impl IntoResponse {
     } else {
         StatusCode::SERVICE_UNAVAILABLE
     };
-    let body = json!({
-        "status": if healthy { "ok" } else { "degraded" },
-        "version": env!("CARGO_PKG_VERSION"),
-        "database": database,
-        "control_thread": control_thread,
-        "accepting_jobs": context.accepting_jobs(),
-    });
+    let body = Health {
+        status: if healthy { "ok" } else { "degraded" },
+        version: env!("CARGO_PKG_VERSION"),
+        database,
+        control_thread,
+        accepting_jobs: context.accepting_jobs(),
+    };
     (status, Json(body))
 }
 
+/// Prometheus metrics (text exposition format).
+#[utoipa::path(get, path = "/metrics", tag = "service", security(()),
+    responses((status = 200, description = "The metrics", body = String,
+        content_type = "text/plain")))]
 async fn metrics(State(context): State<Context>) -> impl IntoResponse {
     let status = context.cell.status();
     context.metrics.queue_length.set(status.queue.len() as i64);
@@ -61,32 +80,61 @@ async fn metrics(State(context): State<Context>) -> impl IntoResponse {
     )
 }
 
+/// This description (OpenAPI 3.1); browse it at `/api/docs`.
+#[utoipa::path(get, path = "/api/openapi.json", tag = "service", security(()),
+    responses((status = 200, description = "The OpenAPI document", body = Object)))]
 async fn openapi() -> impl IntoResponse {
-    ([(header::CONTENT_TYPE, "application/json")], OPENAPI)
+    (
+        [(header::CONTENT_TYPE, "application/json")],
+        super::openapi_json(),
+    )
+}
+
+#[derive(Serialize, ToSchema)]
+pub struct Me {
+    token_id: i64,
+    name: String,
+    role: Role,
+    may: May,
+}
+
+/// What the caller's role allows.
+#[derive(Serialize, ToSchema)]
+pub struct May {
+    view: bool,
+    operate: bool,
+    administer: bool,
 }
 
 /// Who the token belongs to and what its role may do (the dashboard shows only that).
-async fn me(auth: Auth) -> Json<Value> {
-    let caller = &auth.0;
-    Json(json!({
-        "token_id": caller.token_id,
-        "name": caller.name,
-        "role": caller.role,
-        "may": {
-            "view": true,
-            "operate": caller.role >= Role::Operator,
-            "administer": caller.role >= Role::Admin,
+#[utoipa::path(get, path = "/api/me", tag = "service",
+    responses((status = 200, description = "The caller", body = Me)))]
+async fn me(auth: Auth) -> Json<Me> {
+    let caller = auth.0;
+    Json(Me {
+        may: May {
+            view: true,
+            operate: caller.role >= Role::Operator,
+            administer: caller.role >= Role::Admin,
         },
-    }))
+        token_id: caller.token_id,
+        name: caller.name,
+        role: caller.role,
+    })
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CreateToken {
     role: Role,
+    /// Who or what the token is for; spaces around it are dropped.
+    #[schema(min_length = 1, max_length = 100, pattern = r"\S")]
     name: String,
 }
 
+/// A new token (admin). The secret is in the answer once and stored only as a hash.
+#[utoipa::path(post, path = "/api/tokens", tag = "service", request_body = CreateToken,
+    responses((status = 201, description = "The new token, with its secret", body = NewToken)))]
 async fn create_token(
     State(context): State<Context>,
     auth: Auth,
@@ -94,7 +142,7 @@ async fn create_token(
 ) -> ApiResult<(StatusCode, Json<NewToken>)> {
     let caller = auth.require(Role::Admin)?;
     let name = body.name.trim();
-    if name.is_empty() || name.len() > 100 {
+    if name.is_empty() || name.chars().count() > 100 {
         return Err(ApiError::unprocessable("name must be 1 to 100 characters"));
     }
     let token = tokens::create(&context.db, body.role, name, &caller.name).await?;
@@ -108,21 +156,26 @@ async fn create_token(
     Ok((StatusCode::CREATED, Json(token)))
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct Page {
+    /// Entries, newest first (default 100; clamped to 1..=1000).
     limit: Option<i64>,
+    /// Entries to skip (default 0; a negative value counts as 0).
     offset: Option<i64>,
 }
 
+/// Who did what and when (admin), newest first.
+#[utoipa::path(get, path = "/api/audit", tag = "service", params(Page),
+    responses((status = 200, description = "A page of the audit log", body = Items<AuditEntry>)))]
 async fn read_audit(
     State(context): State<Context>,
     auth: Auth,
     Query(page): Query<Page>,
-) -> ApiResult<Json<Value>> {
+) -> ApiResult<Json<Items<AuditEntry>>> {
     auth.require(Role::Admin)?;
     let limit = page.limit.unwrap_or(100).clamp(1, 1000);
     let offset = page.offset.unwrap_or(0).max(0);
-    let items: Vec<AuditEntry> = audit::list(&context.db, limit, offset).await?;
-    Ok(Json(json!({"items": items})))
+    let items = audit::list(&context.db, limit, offset).await?;
+    Ok(Json(Items { items }))
 }

@@ -1,9 +1,11 @@
 //! The REST surface (axum): each resource owns its `router()`; [`Context`] is the one shared
-//! state; [`error::ApiError`] is the one error. Described by `openapi.json` in this folder,
-//! served at `/api/openapi.json`.
+//! state; [`error::ApiError`] is the one error. The OpenAPI description is derived from the
+//! handlers' annotations and the types they take and return ([`openapi`]), so it cannot drift
+//! from them; it is served at `/api/openapi.json` and browsable at `/api/docs`.
 
 pub mod auth;
 pub mod cell;
+pub mod document;
 pub mod dashboard;
 pub mod demonstrations;
 pub mod error;
@@ -22,6 +24,7 @@ use crate::storage::Db;
 use crate::storage::tokens::Caller;
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
+use utoipa_axum::router::OpenApiRouter;
 use error::ApiError;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -63,21 +66,41 @@ impl Context {
     }
 }
 
-/// The whole API.
-pub fn router(context: Context) -> Router {
-    let body_limit = context.settings.http.body_limit_bytes;
-    Router::new()
-        .merge(dashboard::router())
+/// Every described route, with the OpenAPI description collected from their annotations.
+/// `max_upload_bytes` is the body limit of the two upload routes (policies, demonstrations).
+fn described_routes(max_upload_bytes: usize) -> OpenApiRouter<Context> {
+    OpenApiRouter::with_openapi(document::base())
         .merge(meta::router())
         .merge(cell::router())
         .merge(jobs::router())
-        .merge(policies::router(context.settings.policies.max_upload_bytes))
-        .merge(demonstrations::router(
-            context.settings.policies.max_upload_bytes,
-        ))
+        .merge(policies::router(max_upload_bytes))
+        .merge(demonstrations::router(max_upload_bytes))
         .merge(stats::router())
         .merge(telemetry::router())
         .merge(training::router())
+}
+
+/// The OpenAPI description of every route, as served at `/api/openapi.json`.
+pub fn openapi() -> utoipa::openapi::OpenApi {
+    document::finish(described_routes(usize::MAX).into_openapi())
+}
+
+/// [`openapi`] as JSON, made once.
+pub fn openapi_json() -> &'static str {
+    static JSON: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    JSON.get_or_init(|| {
+        serde_json::to_string(&openapi()).expect("the OpenAPI document serialises")
+    })
+}
+
+/// The whole API.
+pub fn router(context: Context) -> Router {
+    let body_limit = context.settings.http.body_limit_bytes;
+    let api: Router<Context> = described_routes(context.settings.policies.max_upload_bytes).into();
+    Router::new()
+        .merge(dashboard::router())
+        .merge(document::browser())
+        .merge(api)
         .fallback(|| async { ApiError::not_found("no such route") })
         .method_not_allowed_fallback(|| async {
             ApiError::new(

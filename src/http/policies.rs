@@ -3,7 +3,7 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path, Query, off_the_runtime};
+use super::error::{ApiError, ApiResult, Items, Json, Path, Query, off_the_runtime};
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
 use crate::policy::{Controller, ControllerFactory};
@@ -11,34 +11,32 @@ use crate::sim::EnvOptions;
 use crate::storage::policies::{self, Evaluation, NewPolicy, Policy};
 use crate::storage::tokens::{self, Role};
 use crate::storage::{Db, audit};
-use axum::Router;
 use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::{StatusCode, header};
 use axum::response::IntoResponse;
-use axum::routing::{get, post};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-pub fn router(max_upload_bytes: usize) -> Router<Context> {
-    Router::new()
-        .route(
-            "/api/policies",
-            post(upload)
-                .get(list)
-                .layer(DefaultBodyLimit::max(max_upload_bytes)),
-        )
-        .route("/api/policies/{id}", get(read))
-        .route("/api/policies/{id}/file", get(download))
-        .route("/api/policies/{id}/evaluate", post(evaluate))
-        .route("/api/policies/{id}/activate", post(activate))
+pub fn router(max_upload_bytes: usize) -> OpenApiRouter<Context> {
+    OpenApiRouter::new()
+        .routes(routes!(upload, list).layer(DefaultBodyLimit::max(max_upload_bytes)))
+        .routes(routes!(read))
+        .routes(routes!(download))
+        .routes(routes!(evaluate))
+        .routes(routes!(activate))
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct UploadQuery {
-    name: Option<String>,
+    /// The policy's name; spaces around it are dropped.
+    #[param(min_length = 1, max_length = 100, pattern = r"\S")]
+    name: String,
 }
 
 /// Checks a policy file (hierarchical or flat, by its `format` metadata) as an upload is checked,
@@ -75,6 +73,15 @@ pub async fn register(db: &Db, name: &str, bytes: Bytes, by: &str) -> ApiResult<
     .await?)
 }
 
+/// Uploads a policy file (admin): the raw safetensors bytes of a hierarchical or a flat TD3
+/// policy, told apart by the `format` metadata. It is checked whole before anything is
+/// stored (422 names the tensor or key at fault); the same bytes again find the stored one.
+#[utoipa::path(post, path = "/api/policies", tag = "policies", params(UploadQuery),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream"),
+    responses(
+        (status = 201, description = "Stored", body = Policy),
+        (status = 200, description = "The same file was stored already", body = Policy),
+    ))]
 async fn upload(
     State(context): State<Context>,
     auth: Auth,
@@ -82,11 +89,8 @@ async fn upload(
     body: Result<Bytes, BytesRejection>,
 ) -> ApiResult<(StatusCode, Json<Policy>)> {
     let caller = auth.require(Role::Admin)?;
-    let name = query
-        .name
-        .as_deref()
-        .map(str::trim)
-        .filter(|n| !n.is_empty() && n.len() <= 100)
+    let name = Some(query.name.trim())
+        .filter(|n| !n.is_empty() && n.chars().count() <= 100)
         .ok_or_else(|| ApiError::bad_request("`?name=` (1 to 100 characters) names the policy"))?;
     let bytes = body?;
     let (policy, created) = register(&context.db, name, bytes, &caller.name).await?;
@@ -107,9 +111,14 @@ async fn upload(
     Ok((status, Json(policy)))
 }
 
-async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Value>> {
+/// Every policy, with its latest evaluation (viewer).
+#[utoipa::path(get, path = "/api/policies", tag = "policies",
+    responses((status = 200, description = "The policies", body = Items<Policy>)))]
+async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Items<Policy>>> {
     auth.require(Role::Viewer)?;
-    Ok(Json(json!({"items": policies::list(&context.db).await?})))
+    Ok(Json(Items {
+        items: policies::list(&context.db).await?,
+    }))
 }
 
 async fn find(context: &Context, id: i64) -> ApiResult<Policy> {
@@ -118,6 +127,9 @@ async fn find(context: &Context, id: i64) -> ApiResult<Policy> {
         .ok_or_else(|| ApiError::not_found(format!("no policy with id {id}")))
 }
 
+/// One policy (viewer).
+#[utoipa::path(get, path = "/api/policies/{id}", tag = "policies", params(("id" = i64, Path)),
+    responses((status = 200, description = "The policy", body = Policy)))]
 async fn read(
     State(context): State<Context>,
     auth: Auth,
@@ -127,6 +139,11 @@ async fn read(
     Ok(Json(find(&context, id).await?))
 }
 
+/// The policy file as uploaded (viewer).
+#[utoipa::path(get, path = "/api/policies/{id}/file", tag = "policies",
+    params(("id" = i64, Path)),
+    responses((status = 200, description = "The safetensors file", body = Vec<u8>,
+        content_type = "application/octet-stream")))]
 async fn download(
     State(context): State<Context>,
     auth: Auth,
@@ -148,23 +165,33 @@ async fn download(
     ))
 }
 
-/// A JSON body that may also be left out.
+/// A JSON body that may also be left out or be `null`.
 fn optional_body<T: serde::de::DeserializeOwned + Default>(bytes: &[u8]) -> ApiResult<T> {
     if bytes.iter().all(u8::is_ascii_whitespace) {
         return Ok(T::default());
     }
-    serde_json::from_slice(bytes).map_err(|e| ApiError::unprocessable(format!("body: {e}")))
+    serde_json::from_slice::<Option<T>>(bytes)
+        .map(Option::unwrap_or_default)
+        .map_err(|e| ApiError::unprocessable(format!("body: {e}")))
 }
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct EvaluateBody {
+    /// Episodes (default: the service's `policies.evaluation_episodes`).
+    #[schema(minimum = 1, maximum = 100_000)]
     episodes: Option<u32>,
+    /// The evaluation's seed (default 1).
     seed: Option<u64>,
 }
 
 const MAX_EVALUATION_EPISODES: u32 = 100_000;
 
+/// Evaluates the policy in the twin of this cell (admin), in the background at low priority;
+/// the answer is the evaluation as it starts. The body may be left out.
+#[utoipa::path(post, path = "/api/policies/{id}/evaluate", tag = "policies",
+    params(("id" = i64, Path)), request_body(content = Option<EvaluateBody>),
+    responses((status = 202, description = "Started", body = Evaluation)))]
 async fn evaluate(
     State(context): State<Context>,
     auth: Auth,
@@ -256,21 +283,36 @@ pub async fn spawn_evaluation(
     Ok(evaluation)
 }
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ActivateBody {
+    /// Activate past the gate; needs a `reason`.
     force: Option<bool>,
+    /// Why the gate is passed by (kept in the audit log).
     reason: Option<String>,
 }
 
-/// The gate: a policy drives the robot only after an evaluation on this cell's current
-/// configuration reached the configured success rate, unless an admin forces it with a reason.
+#[derive(Serialize, ToSchema)]
+pub struct Activated {
+    policy: Policy,
+    /// The policy that was active before, now retired.
+    retired: Option<i64>,
+    /// Whether the gate was passed by.
+    forced: bool,
+}
+
+/// Makes the policy the one `"controller": "active"` runs (admin). The gate: only after an
+/// evaluation on this cell's current configuration reached `policies.activation_threshold`,
+/// unless forced with a reason (409 says why it is shut). The body may be left out.
+#[utoipa::path(post, path = "/api/policies/{id}/activate", tag = "policies",
+    params(("id" = i64, Path)), request_body(content = Option<ActivateBody>),
+    responses((status = 200, description = "Active", body = Activated)))]
 async fn activate(
     State(context): State<Context>,
     auth: Auth,
     Path(id): Path<i64>,
     body: Bytes,
-) -> ApiResult<Json<Value>> {
+) -> ApiResult<Json<Activated>> {
     let caller = auth.require(Role::Admin)?;
     let body: ActivateBody = optional_body(&body)?;
     let policy = find(&context, id).await?;
@@ -280,11 +322,6 @@ async fn activate(
         .as_deref()
         .map(str::trim)
         .filter(|r| !r.is_empty());
-    if force && reason.is_none() {
-        return Err(ApiError::unprocessable(
-            "force needs a reason: {\"force\": true, \"reason\": \"...\"}",
-        ));
-    }
     let cell_hash = context.cell_config.config_hash();
     let threshold = context.settings.policies.activation_threshold;
     let evaluation = policies::latest_evaluation_on(&context.db, id, &cell_hash).await?;
@@ -300,10 +337,16 @@ async fn activate(
         )),
         Some(_) => Ok(()),
     };
-    if let Err(why) = &gate
-        && !force
-    {
-        return Err(ApiError::conflict(why.clone()));
+    if let Err(why) = &gate {
+        match (force, reason) {
+            (false, _) => return Err(ApiError::conflict(why.clone())),
+            (true, None) => {
+                return Err(ApiError::conflict(format!(
+                    "{why}; forcing it needs a reason: {{\"force\": true, \"reason\": \"...\"}}"
+                )));
+            }
+            (true, Some(_)) => {}
+        }
     }
     let retired = if policy.status == "active" {
         None
@@ -324,11 +367,11 @@ async fn activate(
         }),
     )
     .await?;
-    Ok(Json(json!({
-        "policy": find(&context, id).await?,
-        "retired": retired,
-        "forced": force && gate.is_err(),
-    })))
+    Ok(Json(Activated {
+        policy: find(&context, id).await?,
+        retired,
+        forced: force && gate.is_err(),
+    }))
 }
 
 /// Registers the bundled default policy (idempotent, by its bytes). Until it has a finished

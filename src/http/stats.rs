@@ -4,31 +4,60 @@
 use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Json, Query};
-use crate::storage::jobs::{self, GroupBy};
+use crate::storage::jobs::{self, GroupBy, JobStats};
 use crate::storage::tokens::Role;
-use axum::Router;
 use axum::extract::State;
-use axum::routing::get;
-use serde::Deserialize;
-use serde_json::{Value, json};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-pub fn router() -> Router<Context> {
-    Router::new().route("/api/stats", get(read))
+pub fn router() -> OpenApiRouter<Context> {
+    OpenApiRouter::new().routes(routes!(read))
 }
 
-#[derive(Debug, Deserialize)]
+/// The times `since` and `until` take (what [`is_iso_time`] accepts).
+pub const ISO_TIME_PATTERN: &str =
+    "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$";
+
+#[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct StatsQuery {
+    /// Jobs created at or after this UTC time (2026-11-22 or 2026-11-22T08:00:00Z).
+    #[param(pattern = ISO_TIME_PATTERN)]
     since: Option<String>,
+    /// Jobs created before this UTC time.
+    #[param(pattern = ISO_TIME_PATTERN)]
     until: Option<String>,
+    /// `day` (default) or `controller`.
+    #[param(inline, value_type = Option<StatsGroup>)]
     by: Option<String>,
 }
 
+/// How the groups are formed.
+#[derive(ToSchema)]
+#[allow(dead_code)] // Described, not built: the query carries the name as text.
+#[schema(rename_all = "snake_case")]
+enum StatsGroup {
+    Day,
+    Controller,
+}
+
+#[derive(Serialize, ToSchema)]
+pub struct Stats {
+    total: JobStats,
+    groups: Vec<JobStats>,
+}
+
+/// Jobs, success rate, average steps and failure reasons over a time range, overall and by
+/// day or by controller (viewer).
+#[utoipa::path(get, path = "/api/stats", tag = "stats", params(StatsQuery),
+    responses((status = 200, description = "The figures", body = Stats)))]
 async fn read(
     State(context): State<Context>,
     auth: Auth,
     Query(query): Query<StatsQuery>,
-) -> ApiResult<Json<Value>> {
+) -> ApiResult<Json<Stats>> {
     auth.require(Role::Viewer)?;
     let by = match query.by.as_deref() {
         None | Some("day") => GroupBy::Day,
@@ -47,7 +76,7 @@ async fn read(
         by,
     )
     .await?;
-    Ok(Json(json!({"total": total, "groups": groups})))
+    Ok(Json(Stats { total, groups }))
 }
 
 /// Refuses (400) a `since` or `until` that is not an ISO time [`is_iso_time`] takes.

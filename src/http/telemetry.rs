@@ -8,17 +8,17 @@ use super::error::ApiResult;
 use super::{Context, TelemetryMessage};
 use crate::metrics::Metrics;
 use crate::storage::tokens::Role;
-use axum::Router;
 use axum::extract::State;
 use axum::response::sse::{Event, KeepAlive, Sse};
-use axum::routing::get;
 use futures_util::{Stream, StreamExt};
 use std::convert::Infallible;
 use tokio::sync::broadcast::error::RecvError;
 use tokio::sync::{broadcast, watch};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
-pub fn router() -> Router<Context> {
-    Router::new().route("/api/telemetry", get(subscribe))
+pub fn router() -> OpenApiRouter<Context> {
+    OpenApiRouter::new().routes(routes!(subscribe))
 }
 
 /// Counts the subscriber while its stream lives.
@@ -34,6 +34,13 @@ impl Drop for Subscription {
     }
 }
 
+/// Live events (viewer) as Server-Sent Events: `step` (one control step, as stored), `job` (a
+/// job started or ended), `cell` (e-stop latched or reset), `lagged` (`{"skipped": n}`: this
+/// subscriber fell behind and skipped n events). The token may also come as `?access_token=`.
+#[utoipa::path(get, path = "/api/telemetry", tag = "telemetry",
+    security(("bearer" = []), ("access_token" = [])),
+    responses((status = 200, description = "The event stream, until the service stops",
+        body = String, content_type = "text/event-stream")))]
 async fn subscribe(
     State(context): State<Context>,
     StreamCaller(auth): StreamCaller,

@@ -5,28 +5,29 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json, Path, off_the_runtime};
+use super::error::{ApiError, ApiResult, Items, Json, Path, off_the_runtime};
 use crate::learning::demos::{self, DemoEpisode};
 use crate::learning::run::{self, CurvePoint, RunError, TrainingPart, TrainingSettings};
 use crate::sim::EnvOptions;
 use crate::storage::demonstrations::{self, NewDemonstration};
 use crate::storage::tokens::Role;
 use crate::storage::{Db, audit, training};
-use axum::Router;
 use axum::extract::State;
 use axum::http::StatusCode;
-use axum::routing::{get, post};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-pub fn router() -> Router<Context> {
-    Router::new()
-        .route("/api/training", post(start).get(list))
-        .route("/api/training/{id}", get(read))
-        .route("/api/training/{id}/cancel", post(cancel))
+pub fn router() -> OpenApiRouter<Context> {
+    OpenApiRouter::new()
+        .routes(routes!(start, list))
+        .routes(routes!(read))
+        .routes(routes!(cancel))
 }
 
 /// The run in progress, if any.
@@ -36,17 +37,24 @@ pub struct ActiveRun {
     pub cancel: Arc<AtomicBool>,
 }
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct StartBody {
+    /// Overrides `settings.part`.
     part: Option<TrainingPart>,
+    /// Overrides `settings.seed`.
     seed: Option<u64>,
-    /// TD3 episodes.
+    /// TD3 episodes (overrides `settings.td3_episodes`).
+    #[schema(minimum = 1, maximum = 1_000_000)]
     episodes: Option<usize>,
-    /// Stored demonstrations to learn from; none: record `record` expert episodes in the twin.
+    /// Stored demonstrations to learn from, each once; none: record `record` episodes of the
+    /// demonstrator in the twin.
+    #[schema(max_items = 1000, unique_items = true)]
     demonstrations: Option<Vec<i64>>,
+    /// Episodes to record when no demonstrations are named (default 400).
+    #[schema(minimum = 10, maximum = 100_000)]
     record: Option<usize>,
-    /// Every other setting (`learning::run::TrainingSettings`).
+    /// Every other setting; what is left out keeps its default (`celld train all`'s).
     settings: Option<TrainingSettings>,
 }
 
@@ -55,6 +63,10 @@ const MAX_RECORDED_EPISODES: usize = 100_000;
 /// Stored demonstrations one run may name.
 const MAX_NAMED_DEMONSTRATIONS: usize = 1000;
 
+/// Starts a training run (admin): demonstrations in, a candidate policy out, on a
+/// low-priority thread beside the cell; one at a time (409 while one runs).
+#[utoipa::path(post, path = "/api/training", tag = "training", request_body = StartBody,
+    responses((status = 202, description = "Started", body = training::TrainingRun)))]
 async fn start(
     State(context): State<Context>,
     auth: Auth,
@@ -350,11 +362,22 @@ async fn store_progress(db: &Db, id: i64, live: &Mutex<Live>) {
     }
 }
 
-async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Value>> {
+/// Every training run, newest first (viewer).
+#[utoipa::path(get, path = "/api/training", tag = "training",
+    responses((status = 200, description = "The runs", body = Items<training::TrainingRun>)))]
+async fn list(
+    State(context): State<Context>,
+    auth: Auth,
+) -> ApiResult<Json<Items<training::TrainingRun>>> {
     auth.require(Role::Viewer)?;
-    Ok(Json(json!({"items": training::list(&context.db).await?})))
+    Ok(Json(Items {
+        items: training::list(&context.db).await?,
+    }))
 }
 
+/// One training run with its live stage, progress and learning curve (viewer).
+#[utoipa::path(get, path = "/api/training/{id}", tag = "training", params(("id" = i64, Path)),
+    responses((status = 200, description = "The run", body = training::TrainingRun)))]
 async fn read(
     State(context): State<Context>,
     auth: Auth,
@@ -367,11 +390,22 @@ async fn read(
         .ok_or_else(|| ApiError::not_found(format!("no training run with id {id}")))
 }
 
+#[derive(Serialize, ToSchema)]
+pub struct Cancelling {
+    id: i64,
+    /// `cancelling`: the run stops at its next check and is then `cancelled`.
+    status: &'static str,
+}
+
+/// Cancels the running training run (admin).
+#[utoipa::path(post, path = "/api/training/{id}/cancel", tag = "training",
+    params(("id" = i64, Path)),
+    responses((status = 202, description = "Cancelling", body = Cancelling)))]
 async fn cancel(
     State(context): State<Context>,
     auth: Auth,
     Path(id): Path<i64>,
-) -> ApiResult<(StatusCode, Json<Value>)> {
+) -> ApiResult<(StatusCode, Json<Cancelling>)> {
     let caller = auth.require(Role::Admin)?;
     let run = training::get(&context.db, id)
         .await?
@@ -395,7 +429,10 @@ async fn cancel(
     .await?;
     Ok((
         StatusCode::ACCEPTED,
-        Json(json!({"id": id, "status": "cancelling"})),
+        Json(Cancelling {
+            id,
+            status: "cancelling",
+        }),
     ))
 }
 

@@ -15,7 +15,7 @@ pub async fn record(db: &Db, actor: &str, action: &str, detail: Value) -> Result
     Ok(())
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct AuditEntry {
     pub id: i64,
     pub at: String,

@@ -19,13 +19,13 @@ pub struct NewJob {
     pub created_by: String,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct Initial {
     pub pos_mm: f64,
     pub ori_deg: f64,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct FinalErrors {
     pub lateral_mm: f64,
     pub depth_error_mm: f64,
@@ -34,7 +34,7 @@ pub struct FinalErrors {
 }
 
 /// A job as stored and served.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct Job {
     pub id: i64,
     pub status: String,
@@ -222,7 +222,7 @@ pub enum GroupBy {
 }
 
 /// One group's figures.
-#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, PartialEq, Default, Serialize, utoipa::ToSchema)]
 pub struct JobStats {
     pub key: String,
     pub jobs: u64,

@@ -67,7 +67,7 @@ fn actor_name(actor: &crate::policy::Actor) -> &'static str {
 }
 
 /// A stored step as served: the same fields as the live [`StepRecord`].
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct StoredStep {
     pub step: i64,
     pub t_s: f64,
