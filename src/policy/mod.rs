@@ -10,6 +10,7 @@ pub mod file;
 pub mod flat;
 pub mod hierarchical;
 pub mod learned;
+pub mod record;
 pub mod run;
 pub mod spiral;
 pub mod visual_servo;
