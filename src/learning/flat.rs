@@ -1,4 +1,4 @@
-//! The flat TD3 baseline's training (issue 3, item 5): TD3 (`super::td3`, Table 1's defaults) on
+//! The flat TD3 baseline's training: TD3 (`super::td3`, Table 1's defaults) on
 //! one actor that gives the whole 6-DoF move (`policy::flat`), from freshly initialised weights
 //! (no behaviour cloning) and without the hierarchy, in the twin.
 //!

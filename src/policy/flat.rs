@@ -1,4 +1,4 @@
-//! The flat TD3 baseline (issue 3, item 5): one actor that gives the whole 6-DoF move, with no
+//! The flat TD3 baseline: one actor that gives the whole 6-DoF move, with no
 //! LSTM selector and no behaviour cloning: the paper's "TD3" comparison and its third Fig. 7
 //! curve ("a single 6-DoF policy"). `celld train flat` trains it (`learning::flat`); the bundled
 //! one is the controller `td3`.

@@ -64,8 +64,7 @@ pub fn init_cpu_threads() {
 /// for a new move. At the entrance, a few hundredths of a millimetre off sideways, the new move
 /// is the refused one again up to the camera's noise (sideways and down at once), and 20
 /// refusals in a row fail the episode. Holding the depth after a refusal for contact lets the
-/// sideways part through; the next move goes in once the shaft is centred (docs/learning.md,
-/// session 11).
+/// sideways part through; the next move goes in once the shaft is centred (docs/learning.md).
 pub fn holds_depth_after(last_veto: Option<&VetoReason>) -> bool {
     last_veto.is_some_and(VetoReason::is_about_contact)
 }
