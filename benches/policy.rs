@@ -1,5 +1,5 @@
-//! How long the hierarchical policy takes to decide (issue 3's goal: a batch-1 decision's p99
-//! ≤ 50 µs), on the states it really meets: the policy first drives the twin for EPISODES
+//! How long the hierarchical policy takes to decide (the goal: a batch-1 decision's p99 ≤
+//! 50 µs), on the states it really meets: the policy first drives the twin for EPISODES
 //! episodes, then its decisions on the states of its fresh frames are timed one by one, each
 //! episode from a zero LSTM state, through
 //! - `HierarchicalPolicy::step`: the plain f32 path of every `Controller::act` (batch 1);
@@ -8,7 +8,7 @@
 //!
 //! `cargo bench --bench policy -- [EPISODES] [BATCH] [POLICY_FILE]` (default: 200 episodes,
 //! 64 rows, the bundled `hierarchical` policy). `celld` and this bench set `RAYON_NUM_THREADS`
-//! to the core count when it is unset (`init_cpu_threads`; ../shared/notes/crates.md).
+//! to the core count when it is unset (`init_cpu_threads`).
 
 mod support;
 

@@ -2,7 +2,8 @@
 //! SQLite, evaluations, training) runs on the other CPUs, so a burst of requests can take
 //! neither the control step's core nor its caches. Threads inherit their creator's CPU set, so
 //! the process restricts itself before it starts any thread and the control thread then moves
-//! to its own CPU.
+//! to its own CPU. The threads' priorities (nice values) are set here too: the control and
+//! ingestion threads ahead of the rest, background evaluations and training behind it.
 
 pub use crate::config::service::ControlCpu;
 
@@ -99,6 +100,38 @@ pub fn pin_current_thread(cpus: &[usize]) -> std::io::Result<()> {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = cpus;
+    Ok(())
+}
+
+/// Asks the OS to run the control thread ahead of the HTTP workers and the storage writer
+/// (nice −10), so a burst of requests cannot delay a step. Needs CAP_SYS_NICE (the systemd unit
+/// grants it); without it the thread runs at normal priority and says so.
+pub(crate) fn raise_priority() {
+    if let Err(error) = set_thread_nice(-10) {
+        tracing::warn!(%error, "the control thread runs at normal priority (no CAP_SYS_NICE)");
+    }
+}
+
+/// Runs the calling thread behind everything else (nice 10): background evaluations and
+/// training, which must not take time from a running job.
+pub fn lower_priority() {
+    if let Err(error) = set_thread_nice(10) {
+        tracing::warn!(%error, "could not lower a background thread's priority");
+    }
+}
+
+/// Sets the calling thread's nice value (Linux; elsewhere a no-op).
+fn set_thread_nice(nice: i32) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: setpriority only reads its integer arguments; on Linux, PRIO_PROCESS with
+        // who = 0 applies to the calling thread alone.
+        if unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, nice) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
     Ok(())
 }
 

@@ -30,7 +30,7 @@ impl Ingestion {
         std::thread::Builder::new()
             .name("celld-ingest".into())
             .spawn(move || {
-                super::task::raise_priority();
+                super::cpu::raise_priority();
                 never_preempt_on_wakeup();
                 if let Some(cpu) = cpu
                     && let Err(error) = super::cpu::pin_current_thread(&[cpu])

@@ -6,6 +6,8 @@
 //! e-stop) goes to one sink, in order; the cell's status is published on a watch channel.
 
 use super::backend::CellBackend;
+/// Kept at this path for the HTTP handlers that run background work behind the control thread.
+pub use super::cpu::lower_priority;
 use super::job::{JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord};
 use crate::config::cell::CellConfig;
 use serde::Serialize;
@@ -140,7 +142,7 @@ pub fn spawn(
     let thread = std::thread::Builder::new()
         .name("celld-control".into())
         .spawn(move || {
-            raise_priority();
+            super::cpu::raise_priority();
             if let Some(cpu) = control.settings.cpu
                 && let Err(error) = super::cpu::pin_current_thread(&[cpu])
             {
@@ -156,38 +158,6 @@ pub fn spawn(
         },
         thread,
     )
-}
-
-/// Asks the OS to run the control thread ahead of the HTTP workers and the storage writer
-/// (nice −10), so a burst of requests cannot delay a step. Needs CAP_SYS_NICE (the systemd unit
-/// grants it); without it the thread runs at normal priority and says so.
-pub(crate) fn raise_priority() {
-    if let Err(error) = set_thread_nice(-10) {
-        tracing::warn!(%error, "the control thread runs at normal priority (no CAP_SYS_NICE)");
-    }
-}
-
-/// Runs the calling thread behind everything else (nice 10): background evaluations and
-/// training, which must not take time from a running job.
-pub fn lower_priority() {
-    if let Err(error) = set_thread_nice(10) {
-        tracing::warn!(%error, "could not lower a background thread's priority");
-    }
-}
-
-/// Sets the calling thread's nice value (Linux; elsewhere a no-op).
-fn set_thread_nice(nice: i32) -> std::io::Result<()> {
-    #[cfg(target_os = "linux")]
-    {
-        // SAFETY: setpriority only reads its integer arguments; on Linux, PRIO_PROCESS with
-        // who = 0 applies to the calling thread alone.
-        if unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, nice) } != 0 {
-            return Err(std::io::Error::last_os_error());
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = nice;
-    Ok(())
 }
 
 struct ControlLoop {

@@ -5,6 +5,7 @@
 //! z pointing out of the bore; {M} sits on the shaft axis at the shoulder, z pointing from the tip
 //! back to the shoulder, so that {M} = {F} when the parts are docked.
 
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -111,6 +112,54 @@ pub struct RobotConfig {
     pub speed_deg_s: f64,
     /// Poses whose normalised Jacobian determinant falls below this are refused as near-singular.
     pub singularity_threshold: f64,
+}
+
+impl RobotConfig {
+    /// Base joint centres `a_i` in the base frame {O}, mm.
+    ///
+    /// Base joint `2k` / `2k+1` sits at `base_pair_centres_deg[k] ∓ pair_half_angle_deg`. For the
+    /// reference cell the base joints lie at -15, 15, 105, 135, 225, 255 deg.
+    pub fn base_joints_mm(&self) -> [Vector3<f64>; 6] {
+        let half = self.pair_half_angle_deg;
+        std::array::from_fn(|i| {
+            let centre = self.base_pair_centres_deg[i / 2];
+            let sign = if i % 2 == 0 { -1.0 } else { 1.0 };
+            on_circle(self.base_radius_mm, centre + sign * half)
+        })
+    }
+
+    /// Platform joint centres `b_i` in the platform frame {P}, mm.
+    ///
+    /// Leg `2k+1` goes to the near joint of platform pair `k` (`platform_pair_centres_deg[k] -
+    /// half`), leg `2k` to the near joint of the previous platform pair (`[k-1 mod 3] + half`).
+    /// For the reference cell the platform joints lie at -45, 45, 75, 165, 195, 285 deg.
+    pub fn platform_joints_mm(&self) -> [Vector3<f64>; 6] {
+        let half = self.pair_half_angle_deg;
+        std::array::from_fn(|i| {
+            let k = i / 2;
+            let angle = if i % 2 == 0 {
+                self.platform_pair_centres_deg[(k + 2) % 3] + half
+            } else {
+                self.platform_pair_centres_deg[k] - half
+            };
+            on_circle(self.platform_radius_mm, angle)
+        })
+    }
+
+    /// Leg lengths at the home pose ({P} `home_height_mm` above {O}, unrotated), mm: the
+    /// inverse kinematics `L_i = |r + b_i - a_i|` with no rotation, which is all the cell file's
+    /// check of the stroke needs (`kinematics::StewartGeometry` has the general case).
+    pub fn home_leg_lengths_mm(&self) -> [f64; 6] {
+        let r = Vector3::new(0.0, 0.0, self.home_height_mm);
+        let (a, b) = (self.base_joints_mm(), self.platform_joints_mm());
+        std::array::from_fn(|i| (r + b[i] - a[i]).norm())
+    }
+}
+
+/// A point on a circle of `radius_mm` in the z = 0 plane at `angle_deg` from the x axis.
+fn on_circle(radius_mm: f64, angle_deg: f64) -> Vector3<f64> {
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    Vector3::new(radius_mm * c, radius_mm * s, 0.0)
 }
 
 /// The binocular camera and the coded points on the two fixtures.
@@ -447,8 +496,7 @@ impl CellConfig {
                 "must exceed robot.leg_min_mm",
             ));
         }
-        let home_legs =
-            crate::kinematics::StewartGeometry::from_config(&self.robot).home_leg_lengths_mm();
+        let home_legs = self.robot.home_leg_lengths_mm();
         for (leg, length) in home_legs.iter().enumerate() {
             if *length < self.robot.leg_min_mm || *length > self.robot.leg_max_mm {
                 let key = if *length < self.robot.leg_min_mm {

@@ -57,39 +57,13 @@ pub struct FkSolution {
     pub residual_mm: f64,
 }
 
-/// A point on a circle of `radius_mm` in the z = 0 plane at `angle_deg` from the x axis.
-fn on_circle(radius_mm: f64, angle_deg: f64) -> Vector3<f64> {
-    let (s, c) = angle_deg.to_radians().sin_cos();
-    Vector3::new(radius_mm * c, radius_mm * s, 0.0)
-}
-
 impl StewartGeometry {
-    /// The nominal robot of a cell file.
-    ///
-    /// Base joint `2k` / `2k+1` sits at `base_pair_centres_deg[k] ∓ pair_half_angle_deg`. Leg
-    /// `2k+1` goes to the near joint of platform pair `k` (`platform_pair_centres_deg[k] - half`),
-    /// leg `2k` to the near joint of the previous platform pair (`[k-1 mod 3] + half`). For the
-    /// reference cell the base joints lie at -15, 15, 105, 135, 225, 255 deg and the platform
-    /// joints at -45, 45, 75, 165, 195, 285 deg.
+    /// The nominal robot of a cell file: its joint centres as the cell file places them
+    /// ([`RobotConfig::base_joints_mm`], [`RobotConfig::platform_joints_mm`]).
     pub fn from_config(robot: &RobotConfig) -> Self {
-        let half = robot.pair_half_angle_deg;
-        let base_joints_mm = std::array::from_fn(|i| {
-            let centre = robot.base_pair_centres_deg[i / 2];
-            let sign = if i % 2 == 0 { -1.0 } else { 1.0 };
-            on_circle(robot.base_radius_mm, centre + sign * half)
-        });
-        let platform_joints_mm = std::array::from_fn(|i| {
-            let k = i / 2;
-            let angle = if i % 2 == 0 {
-                robot.platform_pair_centres_deg[(k + 2) % 3] + half
-            } else {
-                robot.platform_pair_centres_deg[k] - half
-            };
-            on_circle(robot.platform_radius_mm, angle)
-        });
         StewartGeometry {
-            base_joints_mm,
-            platform_joints_mm,
+            base_joints_mm: robot.base_joints_mm(),
+            platform_joints_mm: robot.platform_joints_mm(),
             leg_min_mm: robot.leg_min_mm,
             leg_max_mm: robot.leg_max_mm,
             home_height_mm: robot.home_height_mm,

@@ -38,6 +38,15 @@ fn joint_layout_of_the_reference_cell() {
 }
 
 #[test]
+fn the_cell_files_stroke_check_sees_the_home_legs_of_the_kinematics() {
+    let robot = CellConfig::reference().robot;
+    assert_eq!(
+        robot.home_leg_lengths_mm(),
+        StewartGeometry::from_config(&robot).home_leg_lengths_mm()
+    );
+}
+
+#[test]
 fn home_leg_length_matches_hand_computation() {
     // Every leg spans 30 deg between base (r = 500) and platform (r = 300) joint:
     // d² = 500² + 300² - 2·500·300·cos 30° = 340000 - 150000·√3, L = sqrt(800² + d²).

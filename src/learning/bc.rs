@@ -9,7 +9,8 @@
 use super::dataset::{GoalScales, Normaliser, StepLabels, StepLimits};
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
-use crate::policy::hierarchical::ActorNet;
+use crate::policy::hierarchical::actor_config;
+use crate::policy::mlp::{Mlp, MlpConfig};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{Module, Optimizer, SGD, VarBuilder, VarMap};
 use rand::seq::SliceRandom;
@@ -23,14 +24,14 @@ pub struct BcConfig {
     pub epochs: usize,
     /// Epochs of the orientation actor. Its samples are a hundredth of the position actor's
     /// (which are repeated), so its epochs are cheap, and it needs many: its loss falls from
-    /// 0.008 at 200 epochs to 0.0006 at 3000 (docs/learning.md, session 6).
+    /// 0.008 at 200 epochs to 0.0006 at 3000 (docs/learning.md).
     pub orientation_epochs: usize,
     pub batch_size: usize,
     pub learning_rate: f64,
     /// The last `anneal_fraction` of each actor's epochs (rounded up) run at `learning_rate ×
     /// anneal_factor`. At a constant rate the weights end anywhere in SGD's noise around the
     /// optimum, and this policy is sensitive at the micrometre level: 3 epochs at 0.02 from the
-    /// bundled policy gave success 0.701, 3 at 0.002 gave 0.982 (docs/learning.md, session 12).
+    /// bundled policy gave success 0.701, 3 at 0.002 gave 0.982 (docs/learning.md).
     pub anneal_fraction: f64,
     pub anneal_factor: f64,
     pub seed: u64,
@@ -42,13 +43,13 @@ pub struct BcConfig {
     /// in both actors' losses for samples with the tip in the bore (P_z ≥ `bore_from_pz_mm`).
     /// There the sideways corrections are hundredths of a millimetre, and unweighted the
     /// actor gets about half of each one wrong; at 30 its error there is a third as large
-    /// (docs/learning.md, session 15).
+    /// (docs/learning.md).
     pub bore_lateral_weight: f64,
     /// P_z (mm) at the entrance of the bore: the tip is in the bore at or above it.
     pub bore_from_pz_mm: f64,
     /// Each position step at or past the standoff (P_z ≥ `insertion_from_pz_mm`) appears this
     /// many times in the position actor's samples: insertion needs micrometre precision that
-    /// an unweighted loss spends on the approach (docs/learning.md, session 4: success 0.050
+    /// an unweighted loss spends on the approach (docs/learning.md: success 0.050
     /// with 1, 0.326 with 20).
     pub insertion_repeat: usize,
     /// P_z (mm) from which a position step counts as insertion: 1.5 mm above the entrance.
@@ -112,6 +113,20 @@ pub fn init_linear(
     Ok(())
 }
 
+/// Adds the weights of an MLP (`{prefix}.0`, `.2`, `.4`), layer by layer in order, each with
+/// [`init_linear`].
+pub fn init_mlp(
+    varmap: &VarMap,
+    prefix: &str,
+    config: &MlpConfig,
+    rng: &mut impl Rng,
+) -> candle_core::Result<()> {
+    for (name, inputs, outputs) in config.layers() {
+        init_linear(varmap, &format!("{prefix}.{name}"), inputs, outputs, rng)?;
+    }
+    Ok(())
+}
+
 /// Adds the weights of one actor (`{prefix}.0`, `.2`, `.4`, docs/design.md §6) of width `width`.
 pub fn init_actor(
     varmap: &VarMap,
@@ -119,9 +134,7 @@ pub fn init_actor(
     width: usize,
     rng: &mut impl Rng,
 ) -> candle_core::Result<()> {
-    init_linear(varmap, &format!("{prefix}.0"), 12, width, rng)?;
-    init_linear(varmap, &format!("{prefix}.2"), width, width, rng)?;
-    init_linear(varmap, &format!("{prefix}.4"), width, 3, rng)
+    init_mlp(varmap, prefix, &actor_config(width), rng)
 }
 
 /// The variables of `varmap` whose names start with `prefix`, in name order.
@@ -208,13 +221,13 @@ impl LossWeights {
 }
 
 /// The paper's BC loss, (1/2N) Σ ‖a − aᵉ‖², of an actor over samples.
-pub fn bc_loss(actor: &ActorNet, samples: &[([f32; 12], [f32; 3])]) -> candle_core::Result<f64> {
+pub fn bc_loss(actor: &Mlp, samples: &[([f32; 12], [f32; 3])]) -> candle_core::Result<f64> {
     weighted_loss(actor, samples, LossWeights::uniform([1.0; 3]))
 }
 
 /// The BC loss with weights per output component.
 pub fn weighted_loss(
-    actor: &ActorNet,
+    actor: &Mlp,
     samples: &[([f32; 12], [f32; 3])],
     weights: LossWeights,
 ) -> candle_core::Result<f64> {
@@ -246,7 +259,7 @@ fn batch(
 
 /// The weighted loss of a minibatch; `components` is `weights.components` as a (1, 3) tensor.
 fn loss(
-    actor: &ActorNet,
+    actor: &Mlp,
     x: &Tensor,
     y: &Tensor,
     weights: &LossWeights,
@@ -284,7 +297,7 @@ pub fn train_actor(
         candle_core::bail!("no demonstrated steps for actor `{prefix}`");
     }
     let vb = VarBuilder::from_varmap(varmap, DType::F32, &Device::Cpu);
-    let actor = ActorNet::load(vb.pp(prefix), width)?;
+    let actor = Mlp::load(vb.pp(prefix), &actor_config(width))?;
     let mut optimizer = SGD::new(
         vars_under(varmap, &format!("{prefix}.")),
         config.learning_rate,
@@ -393,7 +406,7 @@ mod tests {
         let varmap = VarMap::new();
         init_actor(&varmap, "pos", 8, &mut ChaCha8Rng::seed_from_u64(4)).unwrap();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let actor = ActorNet::load(vb.pp("pos"), 8).unwrap();
+        let actor = Mlp::load(vb.pp("pos"), &actor_config(8)).unwrap();
         // Normalised P_z (column 8) against the entrance at -12: three samples in the bore
         // (one exactly at the entrance), two above it.
         let sample = |pz: f32, i: f32| {
@@ -438,7 +451,11 @@ mod tests {
         // the mean over their minibatches, measured while the weights moved).
         let full_loss = |varmap: &VarMap| {
             let vb = VarBuilder::from_varmap(varmap, DType::F32, &Device::Cpu);
-            bc_loss(&ActorNet::load(vb.pp("pos"), 32).unwrap(), &samples).unwrap()
+            bc_loss(
+                &Mlp::load(vb.pp("pos"), &actor_config(32)).unwrap(),
+                &samples,
+            )
+            .unwrap()
         };
         let run = || {
             let varmap = VarMap::new();

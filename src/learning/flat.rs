@@ -1,4 +1,4 @@
-//! The flat TD3 baseline's training (issue 3, item 5): TD3 (`super::td3`, Table 1's defaults) on
+//! The flat TD3 baseline's training: TD3 (`super::td3`, Table 1's defaults) on
 //! one actor that gives the whole 6-DoF move (`policy::flat`), from freshly initialised weights
 //! (no behaviour cloning) and without the hierarchy, in the twin.
 //!
@@ -27,8 +27,9 @@ use crate::config::cell::CellConfig;
 use crate::geometry::Move;
 use crate::policy::ControllerFactory;
 use crate::policy::eval::{self, episode_seed};
-use crate::policy::file::PolicyFileError;
+use crate::policy::file::{PolicyFileError, PolicyKind};
 use crate::policy::flat::{ACTION_DIM, FlatPolicy, FlatPolicyFile};
+use crate::policy::mlp::LAYER_NAMES;
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
 use candle_core::{Device, Tensor};
 use candle_nn::VarMap;
@@ -212,13 +213,13 @@ impl FlatTraining {
         let mut tensors = Vec::with_capacity(8);
         {
             let data = actor.data().lock().expect("var map lock");
-            for layer in ["0", "2", "4"] {
+            for layer in LAYER_NAMES {
                 for part in ["weight", "bias"] {
                     let name = format!("actor.{layer}.{part}");
                     let Some(var) = data.get(&name) else {
                         return Err(PolicyFileError::MissingTensor {
                             name,
-                            kind: crate::policy::file::PolicyKind::Flat,
+                            kind: PolicyKind::Flat,
                         });
                     };
                     let tensor = var.as_tensor();

@@ -28,7 +28,7 @@ use std::collections::HashMap;
 
 /// The default trust region around the BC actors (tanh units, 6 µm of a full 3 mm step). Plain
 /// TD3 wrecks the BC policy within 20 episodes; regions of 0.001 to 0.01 keep it over 500
-/// episodes, and none of them raised its success measurably (docs/learning.md, session 13).
+/// episodes, and none of them raised its success measurably (docs/learning.md).
 pub const TRUST_REGION: f64 = 0.002;
 
 /// Refinement settings. TD3's own defaults are Table 1's; the exploration noise (not in Table

@@ -35,7 +35,14 @@ pub const MAX_TD3_EPISODES: usize = 1_000_000;
 /// Most validation episodes.
 pub const MAX_EVAL_EPISODES: usize = 100_000;
 
-/// A run's settings (the defaults are `celld train all`'s).
+/// Episodes per batch of the LSTM selector's training (not a setting of the HTTP API; `celld
+/// train --lstm-batch` defaults to it).
+pub const LSTM_BATCH_SIZE: usize = 8;
+/// Learning rate (Adam) of the LSTM selector's training (not a setting of the HTTP API; `celld
+/// train --lstm-lr` defaults to it).
+pub const LSTM_LEARNING_RATE: f64 = 5e-3;
+
+/// A run's settings (the defaults are `celld train all`'s, which takes them from here).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrainingSettings {
@@ -225,8 +232,8 @@ pub fn run(
     let selector = SelectorConfig {
         hidden_size: settings.lstm_hidden,
         epochs: settings.lstm_epochs,
-        batch_size: 8,
-        learning_rate: 5e-3,
+        batch_size: LSTM_BATCH_SIZE,
+        learning_rate: LSTM_LEARNING_RATE,
         seed: settings.seed,
     };
     let agreement = pipeline::train_lstm(

@@ -11,9 +11,10 @@
 //! critic's gradient, learned from a policy that almost always succeeds, points every update the
 //! same wrong way.
 
-use super::bc::{init_linear, vars_under};
+use super::bc::{init_mlp, vars_under};
+use crate::policy::mlp::{Mlp, MlpConfig};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Linear, Module, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{AdamW, Module, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -63,51 +64,6 @@ impl Default for Td3Config {
             trust_region: None,
         }
     }
-}
-
-/// Linear-ReLU-Linear-ReLU-Linear, optionally with a tanh on the output (layers `0`, `2`, `4`).
-struct Mlp {
-    layers: [Linear; 3],
-    tanh: bool,
-}
-
-impl Mlp {
-    fn load(
-        vb: VarBuilder,
-        inputs: usize,
-        hidden: usize,
-        outputs: usize,
-        tanh: bool,
-    ) -> candle_core::Result<Self> {
-        Ok(Mlp {
-            layers: [
-                candle_nn::linear(inputs, hidden, vb.pp("0"))?,
-                candle_nn::linear(hidden, hidden, vb.pp("2"))?,
-                candle_nn::linear(hidden, outputs, vb.pp("4"))?,
-            ],
-            tanh,
-        })
-    }
-}
-
-impl Module for Mlp {
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let x = self.layers[0].forward(x)?.relu()?;
-        let x = self.layers[1].forward(&x)?.relu()?;
-        let y = self.layers[2].forward(&x)?;
-        if self.tanh { y.tanh() } else { Ok(y) }
-    }
-}
-
-fn init_mlp(
-    varmap: &VarMap,
-    prefix: &str,
-    sizes: [usize; 4],
-    rng: &mut impl Rng,
-) -> candle_core::Result<()> {
-    init_linear(varmap, &format!("{prefix}.0"), sizes[0], sizes[1], rng)?;
-    init_linear(varmap, &format!("{prefix}.2"), sizes[1], sizes[2], rng)?;
-    init_linear(varmap, &format!("{prefix}.4"), sizes[2], sizes[3], rng)
 }
 
 /// A copy of every variable of `from` into a new map (for target networks and kept policies).
@@ -229,18 +185,16 @@ impl Td3 {
             }
             None => {
                 let vars = VarMap::new();
-                init_mlp(&vars, "actor", [state_dim, h, h, action_dim], &mut rng)?;
+                let fresh = MlpConfig::actor(state_dim, h, action_dim);
+                init_mlp(&vars, "actor", &fresh, &mut rng)?;
                 (vars, h)
             }
         };
+        let actor_config = MlpConfig::actor(state_dim, actor_width, action_dim);
+        let critic_config = MlpConfig::critic(state_dim + action_dim, h);
         let critic_vars = VarMap::new();
         for prefix in ["critic1", "critic2"] {
-            init_mlp(
-                &critic_vars,
-                prefix,
-                [state_dim + action_dim, h, h, 1],
-                &mut rng,
-            )?;
+            init_mlp(&critic_vars, prefix, &critic_config, &mut rng)?;
         }
         let actor_target_vars = clone_varmap(&actor_vars)?;
         let critic_target_vars = clone_varmap(&critic_vars)?;
@@ -248,34 +202,14 @@ impl Td3 {
         let vb = |vars: &VarMap| VarBuilder::from_varmap(vars, DType::F32, &device);
         let anchor = match config.trust_region {
             Some(_) => Some(Anchor {
-                actor: Mlp::load(
-                    vb(&clone_varmap(&actor_vars)?).pp("actor"),
-                    state_dim,
-                    actor_width,
-                    action_dim,
-                    true,
-                )?,
+                actor: Mlp::load(vb(&clone_varmap(&actor_vars)?).pp("actor"), &actor_config)?,
                 weights: actor_weights(&actor_vars)?,
             }),
             None => None,
         };
-        let actor = Mlp::load(
-            vb(&actor_vars).pp("actor"),
-            state_dim,
-            actor_width,
-            action_dim,
-            true,
-        )?;
-        let actor_target = Mlp::load(
-            vb(&actor_target_vars).pp("actor"),
-            state_dim,
-            actor_width,
-            action_dim,
-            true,
-        )?;
-        let critic = |vars: &VarMap, prefix: &str| {
-            Mlp::load(vb(vars).pp(prefix), state_dim + action_dim, h, 1, false)
-        };
+        let actor = Mlp::load(vb(&actor_vars).pp("actor"), &actor_config)?;
+        let actor_target = Mlp::load(vb(&actor_target_vars).pp("actor"), &actor_config)?;
+        let critic = |vars: &VarMap, prefix: &str| Mlp::load(vb(vars).pp(prefix), &critic_config);
         let critics = [
             critic(&critic_vars, "critic1")?,
             critic(&critic_vars, "critic2")?,

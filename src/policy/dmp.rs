@@ -36,11 +36,11 @@
 //! its observed pose to the next target, orientation and position in one 6-D move, each component
 //! clamped to the step limits; after the last target it keeps commanding the docked pose.
 
+use super::record::{DemoEpisode, record_expert};
 use super::{Controller, Decision, clamp_components};
 use crate::config::cell::CellConfig;
 use crate::geometry::Move;
 use crate::geometry::pose::{Pose, pose_from_mm_deg};
-use crate::learning::demos::{DemoEpisode, record_expert};
 use crate::sim::{EnvOptions, Observation};
 use nalgebra::{Quaternion, Translation3, UnitQuaternion, Vector3};
 
@@ -551,8 +551,8 @@ pub fn default_dmp(cell: &CellConfig) -> DaDmp {
 mod tests {
     use super::*;
     use crate::camera::{FusionTuning, StateFilter};
-    use crate::learning::demos::DemoStep;
     use crate::policy::Actor;
+    use crate::policy::record::DemoStep;
 
     /// Minimum-jerk profile from 0 to 1 over u ∈ [0, 1] (clamped outside).
     fn mj(u: f64) -> f64 {

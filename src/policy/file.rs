@@ -58,6 +58,21 @@ pub const TENSOR_NAMES: [&str; 20] = [
     "obs_std",
 ];
 
+/// `__metadata__["format"]` of a flat policy file (the flat TD3 baseline, `super::flat`).
+pub const FLAT_FORMAT: &str = "assembly-cell/flat-policy";
+
+/// Every tensor of a flat policy file, in the order the file is checked and written.
+pub const FLAT_TENSOR_NAMES: [&str; 8] = [
+    "actor.0.weight",
+    "actor.0.bias",
+    "actor.2.weight",
+    "actor.2.bias",
+    "actor.4.weight",
+    "actor.4.bias",
+    "obs_mean",
+    "obs_std",
+];
+
 /// Metadata keys every policy file carries.
 pub const METADATA_KEYS: [&str; 4] = [
     "format",
@@ -71,7 +86,7 @@ pub const METADATA_KEYS: [&str; 4] = [
 pub enum PolicyKind {
     /// docs/design.md §6: the LSTM selector and two 3-value actors ([`FORMAT`]).
     Hierarchical,
-    /// The flat TD3 baseline: one 6-value actor ([`super::flat::FORMAT`]).
+    /// The flat TD3 baseline: one 6-value actor ([`FLAT_FORMAT`]).
     Flat,
 }
 
@@ -80,7 +95,7 @@ impl PolicyKind {
     pub fn format(self) -> &'static str {
         match self {
             PolicyKind::Hierarchical => FORMAT,
-            PolicyKind::Flat => super::flat::FORMAT,
+            PolicyKind::Flat => FLAT_FORMAT,
         }
     }
 
@@ -88,7 +103,7 @@ impl PolicyKind {
     pub fn tensor_names(self) -> &'static [&'static str] {
         match self {
             PolicyKind::Hierarchical => &TENSOR_NAMES,
-            PolicyKind::Flat => &super::flat::TENSOR_NAMES,
+            PolicyKind::Flat => &FLAT_TENSOR_NAMES,
         }
     }
 
@@ -97,9 +112,7 @@ impl PolicyKind {
     /// refused) as a hierarchical policy file, with that loader's messages.
     pub fn declared_by(bytes: &[u8]) -> PolicyKind {
         match parse(bytes) {
-            Ok((meta, _))
-                if meta.get("format").map(String::as_str) == Some(super::flat::FORMAT) =>
-            {
+            Ok((meta, _)) if meta.get("format").map(String::as_str) == Some(FLAT_FORMAT) => {
                 PolicyKind::Flat
             }
             _ => PolicyKind::Hierarchical,

@@ -1,4 +1,4 @@
-//! The flat TD3 baseline (issue 3, item 5): one actor that gives the whole 6-DoF move, with no
+//! The flat TD3 baseline: one actor that gives the whole 6-DoF move, with no
 //! LSTM selector and no behaviour cloning: the paper's "TD3" comparison and its third Fig. 7
 //! curve ("a single 6-DoF policy"). `celld train flat` trains it (`learning::flat`); the bundled
 //! one is the controller `td3`.
@@ -27,29 +27,25 @@
 use super::file::{
     self, Checked, PolicyFileError, PolicyKind, PolicyMetadata, PolicyTensor, STATE_DIM,
 };
-use super::hierarchical::Dense;
+use super::mlp::{MlpConfig, PlainMlp};
 use super::{Controller, Decision};
 use crate::geometry::Move;
 use crate::sim::Observation;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-/// `__metadata__["format"]` of a flat policy file.
-pub const FORMAT: &str = "assembly-cell/flat-policy";
+/// The flat file's format and tensors are declared with the container's (`super::file`), which
+/// tells the two kinds of policy file apart.
+pub use super::file::{FLAT_FORMAT as FORMAT, FLAT_TENSOR_NAMES as TENSOR_NAMES};
+
 /// Outputs of the actor: the whole move.
 pub const ACTION_DIM: usize = 6;
 
-/// Every tensor of a flat policy file, in the order the file is checked and written.
-pub const TENSOR_NAMES: [&str; 8] = [
-    "actor.0.weight",
-    "actor.0.bias",
-    "actor.2.weight",
-    "actor.2.bias",
-    "actor.4.weight",
-    "actor.4.bias",
-    "obs_mean",
-    "obs_std",
-];
+/// The actor's configuration for a hidden width `width`: the 12-value state in, the 6-value
+/// move in [−1, 1] out (`actor.0`, `.2`, `.4`).
+pub fn actor_config(width: usize) -> MlpConfig {
+    MlpConfig::actor(STATE_DIM, width, ACTION_DIM)
+}
 
 /// A checked flat policy file: every tensor of [`TENSOR_NAMES`] with consistent shapes and
 /// finite values, and the metadata (format, version, step limits).
@@ -210,10 +206,7 @@ fn check_shapes(shapes: &BTreeMap<&str, &[usize]>) -> Result<usize, PolicyFileEr
 #[derive(Debug, Clone)]
 pub struct FlatPolicy {
     name: String,
-    l0: Dense,
-    l2: Dense,
-    l4: Dense,
-    width: usize,
+    actor: PlainMlp,
     obs_mean: [f64; 12],
     obs_std: [f64; 12],
     step_limit_mm: f64,
@@ -227,21 +220,18 @@ impl FlatPolicy {
     /// The policy of a checked flat policy file (named "td3").
     pub fn from_file(file: &FlatPolicyFile) -> Self {
         let d = file.width();
-        let layer = |prefix: &str, inputs: usize| {
-            let w = &file.tensors[&format!("{prefix}.weight")].data;
-            let b = file.tensors[&format!("{prefix}.bias")].data.clone();
-            Dense::new(w, b, inputs)
+        let weights = |layer: &str, _, _| {
+            let tensor = |part: &str| file.tensors[&format!("actor.{layer}.{part}")].data.clone();
+            Ok::<_, std::convert::Infallible>((tensor("weight"), tensor("bias")))
         };
+        let Ok(actor) = PlainMlp::new(&actor_config(d), weights);
         let array = |name: &str| -> [f64; 12] {
             let v = &file.tensors[name].data;
             std::array::from_fn(|i| f64::from(v[i]))
         };
         FlatPolicy {
             name: "td3".to_string(),
-            l0: layer("actor.0", STATE_DIM),
-            l2: layer("actor.2", d),
-            l4: layer("actor.4", d),
-            width: d,
+            actor,
             obs_mean: array("obs_mean"),
             obs_std: array("obs_std"),
             step_limit_mm: file.step_limit_mm(),
@@ -270,7 +260,7 @@ impl FlatPolicy {
 
     /// D: the actor's hidden width.
     pub fn width(&self) -> usize {
-        self.width
+        self.actor.config().hidden
     }
 
     /// The step limits (mm, deg) the actor's outputs are scaled by.
@@ -285,13 +275,9 @@ impl FlatPolicy {
 
     /// The actor's tanh outputs for a normalised input: 6 values in [−1, 1].
     pub fn actor(&mut self, x: &[f32; 12]) -> [f32; 6] {
-        self.l0.forward(x, &mut self.s1);
-        self.s1.iter_mut().for_each(|v| *v = v.max(0.0));
-        self.l2.forward(&self.s1, &mut self.s2);
-        self.s2.iter_mut().for_each(|v| *v = v.max(0.0));
         let mut a = [0f32; ACTION_DIM];
-        self.l4.forward(&self.s2, &mut a);
-        a.map(f32::tanh)
+        self.actor.forward(x, &mut self.s1, &mut self.s2, &mut a);
+        a
     }
 
     /// The move `[Δx, Δy, Δz, θx, θy, θz]` (mm, deg) of the actor's outputs `a`.

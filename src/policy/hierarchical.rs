@@ -1,6 +1,6 @@
 //! The learned hierarchical policy (paper §3.1, docs/design.md §6): an LSTM over the state sequence
 //! whose head gives ω1, ω2 (softmax: position vs orientation actor) and ω3 (step size), and two
-//! actors (Linear-ReLU-Linear-ReLU-Linear-Tanh) that each give 3 values in [-1, 1].
+//! actors (Linear-ReLU-Linear-ReLU-Linear-Tanh, [`super::mlp`]) that each give 3 values in [-1, 1].
 //!
 //! The forward pass, fixed so that every implementation gives the same move:
 //!
@@ -28,6 +28,7 @@
 //! ([`holds_depth_after`]). `celld policy run` prints the forward pass alone.
 
 use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
+use super::mlp::{Mlp, MlpConfig};
 use super::{Actor, Controller, Decision};
 use crate::collision::supervisor::VetoReason;
 use crate::geometry::Move;
@@ -39,7 +40,6 @@ use serde::Serialize;
 use std::sync::Once;
 
 mod plain;
-pub(crate) use plain::Dense;
 use plain::{PlainNet, Scratch};
 
 /// Sets `RAYON_NUM_THREADS` (to the number of available cores) when it is unset. Without it,
@@ -64,8 +64,7 @@ pub fn init_cpu_threads() {
 /// for a new move. At the entrance, a few hundredths of a millimetre off sideways, the new move
 /// is the refused one again up to the camera's noise (sideways and down at once), and 20
 /// refusals in a row fail the episode. Holding the depth after a refusal for contact lets the
-/// sideways part through; the next move goes in once the shaft is centred (docs/learning.md,
-/// session 11).
+/// sideways part through; the next move goes in once the shaft is centred (docs/learning.md).
 pub fn holds_depth_after(last_veto: Option<&VetoReason>) -> bool {
     last_veto.is_some_and(VetoReason::is_about_contact)
 }
@@ -182,30 +181,10 @@ fn state_error(state: &[f64; 12]) -> Option<candle_core::Error> {
 // ---------------------------------------------------------------------------------------------
 // candle implementation
 
-/// One actor: Linear-ReLU-Linear-ReLU-Linear-Tanh, PyTorch `nn.Sequential` names `0`, `2`, `4`.
-#[derive(Debug, Clone)]
-pub struct ActorNet {
-    l0: Linear,
-    l2: Linear,
-    l4: Linear,
-}
-
-impl ActorNet {
-    pub fn load(vb: VarBuilder, width: usize) -> candle_core::Result<Self> {
-        Ok(ActorNet {
-            l0: candle_nn::linear(STATE_DIM, width, vb.pp("0"))?,
-            l2: candle_nn::linear(width, width, vb.pp("2"))?,
-            l4: candle_nn::linear(width, ACTOR_DIM, vb.pp("4"))?,
-        })
-    }
-}
-
-impl Module for ActorNet {
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let x = self.l0.forward(x)?.relu()?;
-        let x = self.l2.forward(&x)?.relu()?;
-        self.l4.forward(&x)?.tanh()
-    }
+/// The configuration of each actor of width `width`: the 12-value state in, 3 values in [−1, 1]
+/// out (PyTorch `nn.Sequential` names `0`, `2`, `4`).
+pub fn actor_config(width: usize) -> MlpConfig {
+    MlpConfig::actor(STATE_DIM, width, ACTOR_DIM)
 }
 
 /// The whole policy network in candle (f32), loaded by PyTorch `state_dict` names.
@@ -213,8 +192,8 @@ impl Module for ActorNet {
 pub struct HierarchicalNet {
     lstm: LSTM,
     head: Linear,
-    pos: ActorNet,
-    ori: ActorNet,
+    pos: Mlp,
+    ori: Mlp,
     obs_mean: [f64; 12],
     obs_std: [f64; 12],
     config: PolicyConfig,
@@ -240,8 +219,8 @@ impl HierarchicalNet {
         let high = vb.pp("high");
         let lstm = candle_nn::lstm(STATE_DIM, h, LSTMConfig::default(), high.pp("lstm"))?;
         let head = candle_nn::linear(h, HEAD_DIM, high.pp("head"))?;
-        let pos = ActorNet::load(vb.pp("pos"), d)?;
-        let ori = ActorNet::load(vb.pp("ori"), d)?;
+        let pos = Mlp::load(vb.pp("pos"), &actor_config(d))?;
+        let ori = Mlp::load(vb.pp("ori"), &actor_config(d))?;
         let to_array = |t: Tensor| -> candle_core::Result<[f64; 12]> {
             let v = t.to_dtype(DType::F64)?.to_vec1::<f64>()?;
             Ok(std::array::from_fn(|i| v[i]))

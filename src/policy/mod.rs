@@ -10,6 +10,8 @@ pub mod file;
 pub mod flat;
 pub mod hierarchical;
 pub mod learned;
+pub mod mlp;
+pub mod record;
 pub mod run;
 pub mod spiral;
 pub mod visual_servo;

@@ -3,7 +3,6 @@
 use super::{Db, DbError};
 use serde::Serialize;
 use serde_json::Value;
-use sqlx::Row;
 
 pub async fn record(db: &Db, actor: &str, action: &str, detail: Value) -> Result<(), DbError> {
     sqlx::query("INSERT INTO audit (actor, action, detail) VALUES (?, ?, ?)")
@@ -24,21 +23,36 @@ pub struct AuditEntry {
     pub detail: Value,
 }
 
+/// A row of `audit` as stored (`detail` is JSON text).
+#[derive(sqlx::FromRow)]
+struct AuditRow {
+    id: i64,
+    at: String,
+    actor: String,
+    action: String,
+    detail: String,
+}
+
+impl From<AuditRow> for AuditEntry {
+    fn from(row: AuditRow) -> Self {
+        AuditEntry {
+            id: row.id,
+            at: row.at,
+            actor: row.actor,
+            action: row.action,
+            detail: serde_json::from_str(&row.detail).unwrap_or(Value::Null),
+        }
+    }
+}
+
 /// Newest first.
 pub async fn list(db: &Db, limit: i64, offset: i64) -> Result<Vec<AuditEntry>, DbError> {
-    let rows = sqlx::query("SELECT * FROM audit ORDER BY id DESC LIMIT ? OFFSET ?")
-        .bind(limit)
-        .bind(offset)
-        .fetch_all(&db.reader)
-        .await?;
-    Ok(rows
-        .iter()
-        .map(|row| AuditEntry {
-            id: row.get("id"),
-            at: row.get("at"),
-            actor: row.get("actor"),
-            action: row.get("action"),
-            detail: serde_json::from_str(row.get("detail")).unwrap_or(Value::Null),
-        })
-        .collect())
+    let rows: Vec<AuditRow> = sqlx::query_as(
+        "SELECT id, at, actor, action, detail FROM audit ORDER BY id DESC LIMIT ? OFFSET ?",
+    )
+    .bind(limit)
+    .bind(offset)
+    .fetch_all(&db.reader)
+    .await?;
+    Ok(rows.into_iter().map(AuditEntry::from).collect())
 }

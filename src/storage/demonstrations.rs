@@ -3,11 +3,10 @@
 use super::{Db, DbError};
 use crate::learning::demos::{self, DemoEpisode};
 use serde::Serialize;
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
-/// A demonstration as listed (the steps are exported separately).
-#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+/// A demonstration as listed (the steps are exported separately); read as a row of
+/// [`COLUMNS`].
+#[derive(Debug, Clone, PartialEq, Serialize, sqlx::FromRow, utoipa::ToSchema)]
 pub struct Demonstration {
     pub id: i64,
     pub name: String,
@@ -18,20 +17,6 @@ pub struct Demonstration {
     pub steps: i64,
     pub created_by: Option<String>,
     pub created_at: String,
-}
-
-fn from_row(row: &SqliteRow) -> Demonstration {
-    Demonstration {
-        id: row.get("id"),
-        name: row.get("name"),
-        source: row.get("source"),
-        cell_hash: row.get("cell_hash"),
-        job_id: row.get("job_id"),
-        episodes: row.get("episodes"),
-        steps: row.get("steps"),
-        created_by: row.get("created_by"),
-        created_at: row.get("created_at"),
-    }
 }
 
 const COLUMNS: &str =
@@ -76,23 +61,21 @@ pub async fn insert<'e>(
 }
 
 pub async fn get(db: &Db, id: i64) -> Result<Option<Demonstration>, DbError> {
-    let row = sqlx::query(&format!(
+    sqlx::query_as(&format!(
         "SELECT {COLUMNS} FROM demonstrations WHERE id = ?"
     ))
     .bind(id)
     .fetch_optional(&db.reader)
-    .await?;
-    Ok(row.as_ref().map(from_row))
+    .await
 }
 
 /// Newest first.
 pub async fn list(db: &Db) -> Result<Vec<Demonstration>, DbError> {
-    let rows = sqlx::query(&format!(
+    sqlx::query_as(&format!(
         "SELECT {COLUMNS} FROM demonstrations ORDER BY id DESC"
     ))
     .fetch_all(&db.reader)
-    .await?;
-    Ok(rows.iter().map(from_row).collect())
+    .await
 }
 
 pub async fn body(db: &Db, id: i64) -> Result<Option<String>, DbError> {

@@ -3,8 +3,6 @@
 use super::{Db, DbError, NOW};
 use crate::cell::{JobEnd, JobStatus};
 use serde::Serialize;
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 use std::collections::BTreeMap;
 
 /// A new job as the HTTP layer asks for it.
@@ -53,33 +51,70 @@ pub struct Job {
     pub final_errors: Option<FinalErrors>,
 }
 
-fn job_from(row: &SqliteRow) -> Job {
-    let lateral: Option<f64> = row.get("lateral_mm");
-    Job {
-        id: row.get("id"),
-        status: row.get("status"),
-        controller: row.get("controller"),
-        policy_id: row.get("policy_id"),
-        // Stored as the same 64 bits in SQLite's signed integer.
-        seed: row.get::<i64, _>("seed") as u64,
-        initial: Initial {
-            pos_mm: row.get("initial_pos_mm"),
-            ori_deg: row.get("initial_ori_deg"),
-        },
-        demonstration: row.get("demonstration"),
-        created_by: row.get("created_by"),
-        created_at: row.get("created_at"),
-        started_at: row.get("started_at"),
-        finished_at: row.get("finished_at"),
-        steps: row.get("steps"),
-        failure_reason: row.get("failure_reason"),
-        reward: row.get("reward"),
-        final_errors: lateral.map(|lateral_mm| FinalErrors {
-            lateral_mm,
-            depth_error_mm: row.get("depth_error_mm"),
-            tilt_deg: row.get("tilt_deg"),
-            hole_arc_mm: row.get("hole_arc_mm"),
-        }),
+/// A row of `jobs` as stored.
+#[derive(sqlx::FromRow)]
+struct JobRow {
+    id: i64,
+    status: String,
+    controller: String,
+    policy_id: Option<i64>,
+    seed: i64,
+    initial_pos_mm: f64,
+    initial_ori_deg: f64,
+    demonstration: bool,
+    created_by: Option<String>,
+    created_at: String,
+    started_at: Option<String>,
+    finished_at: Option<String>,
+    steps: i64,
+    failure_reason: Option<String>,
+    reward: Option<f64>,
+    lateral_mm: Option<f64>,
+    depth_error_mm: Option<f64>,
+    tilt_deg: Option<f64>,
+    hole_arc_mm: Option<f64>,
+}
+
+impl From<JobRow> for Job {
+    fn from(row: JobRow) -> Self {
+        // The final errors are written together: one there means all are.
+        let final_errors = match (
+            row.lateral_mm,
+            row.depth_error_mm,
+            row.tilt_deg,
+            row.hole_arc_mm,
+        ) {
+            (Some(lateral_mm), Some(depth_error_mm), Some(tilt_deg), Some(hole_arc_mm)) => {
+                Some(FinalErrors {
+                    lateral_mm,
+                    depth_error_mm,
+                    tilt_deg,
+                    hole_arc_mm,
+                })
+            }
+            _ => None,
+        };
+        Job {
+            id: row.id,
+            status: row.status,
+            controller: row.controller,
+            policy_id: row.policy_id,
+            // Stored as the same 64 bits in SQLite's signed integer.
+            seed: row.seed as u64,
+            initial: Initial {
+                pos_mm: row.initial_pos_mm,
+                ori_deg: row.initial_ori_deg,
+            },
+            demonstration: row.demonstration,
+            created_by: row.created_by,
+            created_at: row.created_at,
+            started_at: row.started_at,
+            finished_at: row.finished_at,
+            steps: row.steps,
+            failure_reason: row.failure_reason,
+            reward: row.reward,
+            final_errors,
+        }
     }
 }
 
@@ -106,11 +141,11 @@ pub async fn get(db: &Db, id: i64) -> Result<Option<Job>, DbError> {
 }
 
 async fn get_from(pool: &sqlx::SqlitePool, id: i64) -> Result<Option<Job>, DbError> {
-    let row = sqlx::query("SELECT * FROM jobs WHERE id = ?")
+    let row: Option<JobRow> = sqlx::query_as("SELECT * FROM jobs WHERE id = ?")
         .bind(id)
         .fetch_optional(pool)
         .await?;
-    Ok(row.as_ref().map(job_from))
+    Ok(row.map(Job::from))
 }
 
 /// Filters of `GET /api/jobs`.
@@ -133,7 +168,7 @@ pub async fn list(db: &Db, filter: &JobFilter) -> Result<(Vec<Job>, i64), DbErro
         AND (?3 IS NULL OR policy_id = ?3) AND (?4 IS NULL OR created_at >= ?4)
         AND (?5 IS NULL OR created_at < ?5)";
     let status = filter.status.map(|s| s.as_str());
-    let rows = sqlx::query(&format!(
+    let rows: Vec<JobRow> = sqlx::query_as(&format!(
         "SELECT * FROM jobs WHERE {condition} ORDER BY id DESC LIMIT ?6 OFFSET ?7"
     ))
     .bind(status)
@@ -153,7 +188,7 @@ pub async fn list(db: &Db, filter: &JobFilter) -> Result<(Vec<Job>, i64), DbErro
         .bind(&filter.until)
         .fetch_one(&db.reader)
         .await?;
-    Ok((rows.iter().map(job_from).collect(), total))
+    Ok((rows.into_iter().map(Job::from).collect(), total))
 }
 
 /// Marks a queued job running (the writer's side of `JobStarted`).
@@ -254,6 +289,16 @@ impl JobStats {
     }
 }
 
+/// What [`stats`] reads of each job.
+#[derive(sqlx::FromRow)]
+struct StatsRow {
+    status: String,
+    steps: i64,
+    failure_reason: Option<String>,
+    controller: String,
+    day: String,
+}
+
 /// Jobs created in `[since, until)` (ISO 8601 text, either end open), overall and by group.
 pub async fn stats(
     db: &Db,
@@ -261,7 +306,7 @@ pub async fn stats(
     until: Option<&str>,
     by: GroupBy,
 ) -> Result<(JobStats, Vec<JobStats>), DbError> {
-    let rows = sqlx::query(
+    let rows: Vec<StatsRow> = sqlx::query_as(
         "SELECT status, steps, failure_reason, controller, substr(created_at, 1, 10) AS day
          FROM jobs WHERE (?1 IS NULL OR created_at >= ?1) AND (?2 IS NULL OR created_at < ?2)
          ORDER BY id",
@@ -275,16 +320,12 @@ pub async fn stats(
         ..JobStats::default()
     };
     let mut groups: BTreeMap<String, JobStats> = BTreeMap::new();
-    for row in &rows {
-        let key: String = match by {
-            GroupBy::Day => row.get("day"),
-            GroupBy::Controller => row.get("controller"),
+    for row in rows {
+        let key = match by {
+            GroupBy::Day => row.day,
+            GroupBy::Controller => row.controller,
         };
-        let (status, steps, reason): (String, i64, Option<String>) = (
-            row.get("status"),
-            row.get("steps"),
-            row.get("failure_reason"),
-        );
+        let (status, steps, reason) = (row.status, row.steps, row.failure_reason);
         total.add(&status, steps, reason.clone());
         groups
             .entry(key.clone())

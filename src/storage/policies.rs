@@ -4,8 +4,6 @@
 use super::{Db, DbError, NOW, json_column};
 use serde::Serialize;
 use serde_json::Value;
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
 /// A registered policy as served (the file itself is served separately).
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
@@ -52,40 +50,75 @@ pub struct NewPolicy<'a> {
     pub uploaded_by: &'a str,
 }
 
-fn evaluation_from(row: &SqliteRow) -> Evaluation {
-    Evaluation {
-        id: row.get("id"),
-        policy_id: row.get("policy_id"),
-        status: row.get("status"),
-        episodes: row.get("episodes"),
-        seed: row.get::<i64, _>("seed") as u64,
-        cell_hash: row.get("cell_hash"),
-        success_rate: row.get("success_rate"),
-        avg_steps: row.get("avg_steps"),
-        failures: json_column(row.get("failures")),
-        error: row.get("error"),
-        requested_by: row.get("requested_by"),
-        started_at: row.get("started_at"),
-        finished_at: row.get("finished_at"),
+/// A row of `policy_evaluations` as stored.
+#[derive(sqlx::FromRow)]
+struct EvaluationRow {
+    id: i64,
+    policy_id: i64,
+    status: String,
+    episodes: i64,
+    seed: i64,
+    cell_hash: String,
+    success_rate: Option<f64>,
+    avg_steps: Option<f64>,
+    failures: Option<String>,
+    error: Option<String>,
+    requested_by: String,
+    started_at: String,
+    finished_at: Option<String>,
+}
+
+impl From<EvaluationRow> for Evaluation {
+    fn from(row: EvaluationRow) -> Self {
+        Evaluation {
+            id: row.id,
+            policy_id: row.policy_id,
+            status: row.status,
+            episodes: row.episodes,
+            // Stored as the same 64 bits in SQLite's signed integer.
+            seed: row.seed as u64,
+            cell_hash: row.cell_hash,
+            success_rate: row.success_rate,
+            avg_steps: row.avg_steps,
+            failures: json_column(row.failures),
+            error: row.error,
+            requested_by: row.requested_by,
+            started_at: row.started_at,
+            finished_at: row.finished_at,
+        }
     }
 }
 
 const POLICY_COLUMNS: &str = "id, name, sha256, length(file) AS size_bytes, status, metadata, shapes, uploaded_by, created_at, training_run_id";
 
-async fn with_evaluation(db: &Db, row: &SqliteRow) -> Result<Policy, DbError> {
-    let id: i64 = row.get("id");
+/// A row of [`POLICY_COLUMNS`].
+#[derive(sqlx::FromRow)]
+struct PolicyRow {
+    id: i64,
+    name: String,
+    sha256: String,
+    size_bytes: i64,
+    status: String,
+    metadata: Option<String>,
+    shapes: Option<String>,
+    uploaded_by: Option<String>,
+    created_at: String,
+    training_run_id: Option<i64>,
+}
+
+async fn with_evaluation(db: &Db, row: PolicyRow) -> Result<Policy, DbError> {
     Ok(Policy {
-        id,
-        name: row.get("name"),
-        sha256: row.get("sha256"),
-        size_bytes: row.get("size_bytes"),
-        status: row.get("status"),
-        metadata: json_column(row.get("metadata")),
-        shapes: json_column(row.get("shapes")),
-        uploaded_by: row.get("uploaded_by"),
-        created_at: row.get("created_at"),
-        training_run_id: row.get("training_run_id"),
-        evaluation: latest_evaluation(db, id).await?,
+        evaluation: latest_evaluation(db, row.id).await?,
+        id: row.id,
+        name: row.name,
+        sha256: row.sha256,
+        size_bytes: row.size_bytes,
+        status: row.status,
+        metadata: json_column(row.metadata),
+        shapes: json_column(row.shapes),
+        uploaded_by: row.uploaded_by,
+        created_at: row.created_at,
+        training_run_id: row.training_run_id,
     })
 }
 
@@ -117,27 +150,27 @@ pub async fn insert_or_find(db: &Db, new: &NewPolicy<'_>) -> Result<(Policy, boo
 }
 
 pub async fn get(db: &Db, id: i64) -> Result<Option<Policy>, DbError> {
-    let row = sqlx::query(&format!(
+    let row: Option<PolicyRow> = sqlx::query_as(&format!(
         "SELECT {POLICY_COLUMNS} FROM policies WHERE id = ?"
     ))
     .bind(id)
     .fetch_optional(&db.reader)
     .await?;
     match row {
-        Some(row) => Ok(Some(with_evaluation(db, &row).await?)),
+        Some(row) => Ok(Some(with_evaluation(db, row).await?)),
         None => Ok(None),
     }
 }
 
 /// Newest first.
 pub async fn list(db: &Db) -> Result<Vec<Policy>, DbError> {
-    let rows = sqlx::query(&format!(
+    let rows: Vec<PolicyRow> = sqlx::query_as(&format!(
         "SELECT {POLICY_COLUMNS} FROM policies ORDER BY id DESC"
     ))
     .fetch_all(&db.reader)
     .await?;
     let mut policies = Vec::with_capacity(rows.len());
-    for row in &rows {
+    for row in rows {
         policies.push(with_evaluation(db, row).await?);
     }
     Ok(policies)
@@ -152,10 +185,9 @@ pub async fn file(db: &Db, id: i64) -> Result<Option<Vec<u8>>, DbError> {
 
 /// The active policy's id and file, if one is active.
 pub async fn active(db: &Db) -> Result<Option<(i64, Vec<u8>)>, DbError> {
-    let row = sqlx::query("SELECT id, file FROM policies WHERE status = 'active'")
+    sqlx::query_as("SELECT id, file FROM policies WHERE status = 'active'")
         .fetch_optional(&db.reader)
-        .await?;
-    Ok(row.map(|row| (row.get("id"), row.get("file"))))
+        .await
 }
 
 /// Makes `id` the active policy and retires the one before it, in one transaction. Returns the
@@ -200,7 +232,7 @@ pub async fn start_evaluation(
     cell_hash: &str,
     requested_by: &str,
 ) -> Result<Evaluation, DbError> {
-    let row = sqlx::query(
+    let row: EvaluationRow = sqlx::query_as(
         "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, requested_by)
          VALUES (?, 'running', ?, ?, ?, ?) RETURNING *",
     )
@@ -211,7 +243,7 @@ pub async fn start_evaluation(
     .bind(requested_by)
     .fetch_one(&db.writer)
     .await?;
-    Ok(evaluation_from(&row))
+    Ok(Evaluation::from(row))
 }
 
 /// Stores an evaluation's result (`Ok`: success rate, avg steps, failures) or its error.
@@ -246,13 +278,13 @@ pub async fn finish_evaluation(
 }
 
 pub async fn latest_evaluation(db: &Db, policy_id: i64) -> Result<Option<Evaluation>, DbError> {
-    let row = sqlx::query(
+    let row: Option<EvaluationRow> = sqlx::query_as(
         "SELECT * FROM policy_evaluations WHERE policy_id = ? ORDER BY id DESC LIMIT 1",
     )
     .bind(policy_id)
     .fetch_optional(&db.reader)
     .await?;
-    Ok(row.as_ref().map(evaluation_from))
+    Ok(row.map(Evaluation::from))
 }
 
 /// At start: every evaluation a previous run left `running` becomes `failed`, so that none
@@ -274,7 +306,7 @@ pub async fn latest_evaluation_on(
     policy_id: i64,
     cell_hash: &str,
 ) -> Result<Option<Evaluation>, DbError> {
-    let row = sqlx::query(
+    let row: Option<EvaluationRow> = sqlx::query_as(
         "SELECT * FROM policy_evaluations WHERE policy_id = ? AND cell_hash = ? AND status = 'done'
          ORDER BY id DESC LIMIT 1",
     )
@@ -282,7 +314,7 @@ pub async fn latest_evaluation_on(
     .bind(cell_hash)
     .fetch_optional(&db.reader)
     .await?;
-    Ok(row.as_ref().map(evaluation_from))
+    Ok(row.map(Evaluation::from))
 }
 
 #[cfg(test)]

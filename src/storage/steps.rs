@@ -5,7 +5,7 @@ use crate::cell::StepRecord;
 use crate::sim::RewardTerms;
 use serde::Serialize;
 use serde_json::Value;
-use sqlx::{QueryBuilder, Row, Sqlite};
+use sqlx::{QueryBuilder, Sqlite};
 
 /// Rows per INSERT statement (17 values each, well under SQLite's 32766 parameters).
 pub const ROWS_PER_STATEMENT: usize = 100;
@@ -82,36 +82,60 @@ pub struct StoredStep {
     pub compute_us: f64,
 }
 
+/// A row of `steps` as stored (vectors as JSON text).
+#[derive(sqlx::FromRow)]
+struct StepRow {
+    step: i64,
+    t_s: f64,
+    state: String,
+    action: String,
+    actor: Option<String>,
+    scale: Option<f64>,
+    legs_mm: String,
+    verdict: String,
+    veto_reason: Option<String>,
+    reward_global: f64,
+    reward_position: f64,
+    reward_orientation: f64,
+    reward_error: f64,
+    reward_step: f64,
+    reward_total: f64,
+    compute_us: f64,
+}
+
+impl From<StepRow> for StoredStep {
+    fn from(row: StepRow) -> Self {
+        let parse = |text: &str| serde_json::from_str(text).unwrap_or(Value::Null);
+        StoredStep {
+            step: row.step,
+            t_s: row.t_s,
+            state: parse(&row.state),
+            action: parse(&row.action),
+            actor: row.actor,
+            scale: row.scale,
+            legs_mm: parse(&row.legs_mm),
+            verdict: row.verdict,
+            veto_reason: row.veto_reason,
+            reward: RewardTerms {
+                global: row.reward_global,
+                position: row.reward_position,
+                orientation: row.reward_orientation,
+                error: row.reward_error,
+                step: row.reward_step,
+                total: row.reward_total,
+            },
+            compute_us: row.compute_us,
+        }
+    }
+}
+
 /// Every step of a job, in order.
 pub async fn list(db: &Db, job_id: i64) -> Result<Vec<StoredStep>, DbError> {
-    let rows = sqlx::query("SELECT * FROM steps WHERE job_id = ? ORDER BY step")
+    let rows: Vec<StepRow> = sqlx::query_as("SELECT * FROM steps WHERE job_id = ? ORDER BY step")
         .bind(job_id)
         .fetch_all(&db.reader)
         .await?;
-    let parse = |text: String| serde_json::from_str(&text).unwrap_or(Value::Null);
-    Ok(rows
-        .iter()
-        .map(|row| StoredStep {
-            step: row.get("step"),
-            t_s: row.get("t_s"),
-            state: parse(row.get("state")),
-            action: parse(row.get("action")),
-            actor: row.get("actor"),
-            scale: row.get("scale"),
-            legs_mm: parse(row.get("legs_mm")),
-            verdict: row.get("verdict"),
-            veto_reason: row.get("veto_reason"),
-            reward: RewardTerms {
-                global: row.get("reward_global"),
-                position: row.get("reward_position"),
-                orientation: row.get("reward_orientation"),
-                error: row.get("reward_error"),
-                step: row.get("reward_step"),
-                total: row.get("reward_total"),
-            },
-            compute_us: row.get("compute_us"),
-        })
-        .collect())
+    Ok(rows.into_iter().map(StoredStep::from).collect())
 }
 
 /// The CSV form of [`list`]: one header line, vectors spread over numbered columns.

@@ -4,7 +4,6 @@ use super::{Db, DbError};
 use rand::RngCore;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use sqlx::Row;
 
 /// What a token may do; each role includes the ones before it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize, utoipa::ToSchema)]
@@ -92,15 +91,16 @@ pub async fn create(
 
 /// The caller whose secret has this [`hash`], if any.
 pub async fn find_by_hash(db: &Db, token_hash: &str) -> Result<Option<Caller>, DbError> {
-    let row = sqlx::query("SELECT id, name, role FROM tokens WHERE token_hash = ?")
-        .bind(token_hash)
-        .fetch_optional(&db.reader)
-        .await?;
-    Ok(row.and_then(|row| {
+    let row: Option<(i64, String, String)> =
+        sqlx::query_as("SELECT id, name, role FROM tokens WHERE token_hash = ?")
+            .bind(token_hash)
+            .fetch_optional(&db.reader)
+            .await?;
+    Ok(row.and_then(|(token_id, name, role)| {
         Some(Caller {
-            token_id: row.get("id"),
-            name: row.get("name"),
-            role: Role::parse(row.get("role"))?,
+            token_id,
+            name,
+            role: Role::parse(&role)?,
         })
     }))
 }

@@ -3,8 +3,6 @@
 use super::{Db, DbError, NOW, json_column};
 use serde::Serialize;
 use serde_json::Value;
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct TrainingRun {
@@ -23,21 +21,41 @@ pub struct TrainingRun {
     pub finished_at: Option<String>,
 }
 
-fn from_row(row: &SqliteRow) -> TrainingRun {
-    TrainingRun {
-        id: row.get("id"),
-        status: row.get("status"),
-        settings: json_column(row.get("settings")),
-        demonstration_ids: json_column(row.get("demonstration_ids")),
-        stage: row.get("stage"),
-        progress: row.get("progress"),
-        curve: json_column(row.get("curve")),
-        figures: json_column(row.get("figures")),
-        policy_id: row.get("policy_id"),
-        error: row.get("error"),
-        created_by: row.get("created_by"),
-        started_at: row.get("started_at"),
-        finished_at: row.get("finished_at"),
+/// A row of `training_runs` as stored (the JSON columns as text).
+#[derive(sqlx::FromRow)]
+struct TrainingRunRow {
+    id: i64,
+    status: String,
+    settings: Option<String>,
+    demonstration_ids: Option<String>,
+    stage: Option<String>,
+    progress: f64,
+    curve: Option<String>,
+    figures: Option<String>,
+    policy_id: Option<i64>,
+    error: Option<String>,
+    created_by: String,
+    started_at: String,
+    finished_at: Option<String>,
+}
+
+impl From<TrainingRunRow> for TrainingRun {
+    fn from(row: TrainingRunRow) -> Self {
+        TrainingRun {
+            id: row.id,
+            status: row.status,
+            settings: json_column(row.settings),
+            demonstration_ids: json_column(row.demonstration_ids),
+            stage: row.stage,
+            progress: row.progress,
+            curve: json_column(row.curve),
+            figures: json_column(row.figures),
+            policy_id: row.policy_id,
+            error: row.error,
+            created_by: row.created_by,
+            started_at: row.started_at,
+            finished_at: row.finished_at,
+        }
     }
 }
 
@@ -47,7 +65,7 @@ pub async fn start(
     demonstration_ids: &[i64],
     created_by: &str,
 ) -> Result<TrainingRun, DbError> {
-    let row = sqlx::query(
+    let row: TrainingRunRow = sqlx::query_as(
         "INSERT INTO training_runs (status, settings, demonstration_ids, stage, created_by)
          VALUES ('running', ?, ?, 'demonstrations', ?) RETURNING *",
     )
@@ -56,7 +74,7 @@ pub async fn start(
     .bind(created_by)
     .fetch_one(&db.writer)
     .await?;
-    Ok(from_row(&row))
+    Ok(TrainingRun::from(row))
 }
 
 /// Records the demonstrations a run uses once it has them (a run may record its own).
@@ -123,23 +141,23 @@ pub async fn finish(
 }
 
 pub async fn get(db: &Db, id: i64) -> Result<Option<TrainingRun>, DbError> {
-    let row = sqlx::query("SELECT * FROM training_runs WHERE id = ?")
+    let row: Option<TrainingRunRow> = sqlx::query_as("SELECT * FROM training_runs WHERE id = ?")
         .bind(id)
         .fetch_optional(&db.reader)
         .await?;
-    Ok(row.as_ref().map(from_row))
+    Ok(row.map(TrainingRun::from))
 }
 
 /// Newest first, without their curves (read one run for that).
 pub async fn list(db: &Db) -> Result<Vec<TrainingRun>, DbError> {
-    let rows = sqlx::query("SELECT * FROM training_runs ORDER BY id DESC")
+    let rows: Vec<TrainingRunRow> = sqlx::query_as("SELECT * FROM training_runs ORDER BY id DESC")
         .fetch_all(&db.reader)
         .await?;
     Ok(rows
-        .iter()
+        .into_iter()
         .map(|row| TrainingRun {
             curve: Value::Null,
-            ..from_row(row)
+            ..TrainingRun::from(row)
         })
         .collect())
 }

@@ -27,6 +27,7 @@ use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos;
 use assembly_cell::learning::refine::RefineConfig;
+use assembly_cell::learning::run::{self, TrainingSettings};
 use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::file::PolicyFile;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
@@ -45,98 +46,84 @@ mod refine;
 pub enum TrainCommand {
     /// Behaviour cloning of the two actors on expert demonstrations (SGD).
     Bc(TrainArgs),
-    /// The LSTM selector on the expert's choices of actor and step size (Adam); also writes the
-    /// BC policy (no TD3) as bc-policy.safetensors.
+    /// The LSTM selector (Adam); also writes the BC policy as bc-policy.safetensors.
     Lstm(TrainArgs),
     /// TD3 refinement of the actors in the twin, from the BC actors.
     Td3(TrainArgs),
-    /// Every stage: demonstrations, then bc and lstm at once (the selector needs only the
-    /// normaliser; the files are those of the stages run one by one), then td3.
+    /// Every stage: demonstrations, bc and lstm at once, then td3.
     All(TrainArgs),
-    /// The flat TD3 baseline (`td3`): one 6-DoF actor trained by TD3 from fresh weights, without
-    /// behaviour cloning and without the hierarchy. Uses the demonstrations' states only, for
-    /// the input normaliser. Writes td3-flat-policy.safetensors and td3-flat_curve.csv/.json.
+    /// The flat TD3 baseline: one 6-DoF actor from fresh weights, no BC, no hierarchy.
     Flat(TrainArgs),
 }
 
+// The settings of a run. Defaults that the HTTP API's training also has come from
+// `TrainingSettings::default()` (and `run::LSTM_BATCH_SIZE`, `run::LSTM_LEARNING_RATE`), so
+// `celld train all` and `POST /api/training` train alike; the others from the stage's own
+// configuration (`BcConfig`, `RefineConfig`, `Td3Config`, `GoalScales`). Why each default is
+// what it is: docs/learning.md. (Plain comments: a doc comment here would become the
+// subcommands' help.)
 #[derive(Args, Clone)]
 pub struct TrainArgs {
     /// Run directory (created if missing).
     #[arg(long)]
     out: PathBuf,
-    /// Continue the run in --out: stages whose output is there are skipped, TD3 continues from
-    /// its checkpoint. Without it, a stage refuses to overwrite its output.
+    /// Continue the run in --out (skip finished stages, resume TD3).
     #[arg(long)]
     resume: bool,
-    #[arg(long, default_value_t = 2026)]
+    #[arg(long, default_value_t = TrainingSettings::default().seed)]
     seed: u64,
     /// Cell file (default: the bundled reference cell).
     #[arg(long)]
     cell: Option<PathBuf>,
-    /// Expert episodes to record in the twin (800: success 0.935 against 0.764 with 400, at
-    /// the same epochs; docs/learning.md, session 6).
-    #[arg(long, default_value_t = 800)]
+    /// Expert episodes to record in the twin.
+    #[arg(long, default_value_t = DEMONSTRATIONS)]
     demos: usize,
-    /// The scripted expert that records them: `expert-state-only` (decides on what the policy
-    /// sees), `expert-careful` (the same, with short insertion steps over the first 35 mm) or
-    /// `expert` (also uses the state filter's σ and drift).
-    #[arg(long, default_value = demos::DEFAULT_DEMONSTRATOR)]
+    /// The scripted expert that records them.
+    #[arg(long, default_value_t = TrainingSettings::default().demonstrator)]
     demonstrator: String,
-    /// σ (mm) of sideways noise added to the demonstrator's position moves as they are
-    /// executed; the recorded label stays the move it meant (DART). 0: none (0.01 made the
-    /// policy far worse, 0.525 against 0.958; docs/learning.md, session 9).
+    /// σ (mm) of sideways noise on the demonstrator's executed moves (DART; 0: none).
     #[arg(long, default_value_t = 0.0)]
     demo_lateral_noise_mm: f64,
     /// Read the demonstrations from this JSON Lines file instead of recording them.
     #[arg(long)]
     demos_file: Option<PathBuf>,
-    /// DAgger: a policy file that drives --dagger-episodes more episodes in the twin while the
-    /// demonstrator labels every state it visits; they are added to the demonstrations.
-    /// Repeat it for further rounds (each earlier round's policy, then the latest).
+    /// DAgger: a policy that drives more episodes for the demonstrator to label (repeatable).
     #[arg(long)]
     dagger_policy: Vec<PathBuf>,
-    /// Fine-tune this policy instead of training from fresh weights: behaviour cloning starts
-    /// from its actors and keeps its input normaliser, the selector starts from its LSTM. Its
-    /// sizes must match --actor-width and --lstm-hidden. Use a lower --bc-lr (0.002) than from
-    /// scratch: docs/learning.md, session 12.
+    /// Fine-tune this policy instead of starting from fresh weights.
     #[arg(long)]
     init_policy: Option<PathBuf>,
     /// Episodes each --dagger-policy drives.
-    #[arg(long, default_value_t = 800)]
+    #[arg(long, default_value_t = DEMONSTRATIONS)]
     dagger_episodes: usize,
     /// Hidden width of each actor (D).
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = TrainingSettings::default().actor_width)]
     actor_width: usize,
-    /// BC epochs of the position actor (200: at 60 the actors were undertrained, success 0.374
-    /// against 0.665; docs/learning.md, session 6).
-    #[arg(long, default_value_t = BcConfig::default().epochs)]
+    /// BC epochs of the position actor.
+    #[arg(long, default_value_t = TrainingSettings::default().bc_epochs)]
     bc_epochs: usize,
-    /// BC epochs of the orientation actor (its epochs are a hundredth of the position actor's
-    /// work).
-    #[arg(long, default_value_t = BcConfig::default().orientation_epochs)]
+    /// BC epochs of the orientation actor.
+    #[arg(long, default_value_t = TrainingSettings::default().bc_orientation_epochs)]
     bc_orientation_epochs: usize,
-    /// BC batch size (Table 1: 32).
+    /// BC batch size.
     #[arg(long, default_value_t = BcConfig::default().batch_size)]
     bc_batch: usize,
     /// BC learning rate (SGD).
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, default_value_t = TrainingSettings::default().bc_learning_rate)]
     bc_lr: f64,
-    /// The last fraction of each actor's BC epochs (rounded up) runs at --bc-lr ×
-    /// --bc-anneal-factor: at a constant rate the weights end anywhere in SGD's noise (0: off).
+    /// Fraction of the BC epochs, at the end, run at the annealed rate (0: off).
     #[arg(long, default_value_t = BcConfig::default().anneal_fraction)]
     bc_anneal_fraction: f64,
+    /// Factor of --bc-lr in the annealed epochs.
     #[arg(long, default_value_t = BcConfig::default().anneal_factor)]
     bc_anneal_factor: f64,
-    /// Weight of the lateral (x, y) components in the position actor's BC loss.
-    #[arg(long, default_value_t = 1.0)]
+    /// Weight of x, y in the position actor's BC loss.
+    #[arg(long, default_value_t = BcConfig::default().lateral_weight)]
     bc_lateral_weight: f64,
-    /// A further weight of the x, y components in both actors' BC losses for states with the
-    /// tip in the bore, where the sideways corrections are hundredths of a millimetre (30 in
-    /// docs/learning.md, session 15; 1: none).
-    #[arg(long, default_value_t = BcConfig::default().bore_lateral_weight)]
+    /// Further weight of x, y in the BC losses with the tip in the bore (1: none).
+    #[arg(long, default_value_t = TrainingSettings::default().bc_bore_lateral_weight)]
     bc_bore_lateral_weight: f64,
-    /// How many times each insertion step (from 1.5 mm above the entrance) appears in the
-    /// position actor's BC samples.
+    /// Repeats of each insertion step in the position actor's BC samples.
     #[arg(long, default_value_t = BcConfig::default().insertion_repeat)]
     bc_insertion_repeat: usize,
     /// σ (mm) of P_x, P_y in the goal-centred input normaliser.
@@ -149,51 +136,52 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = GoalScales::default().tilt_deg)]
     norm_tilt_std_deg: f64,
     /// LSTM hidden size (H).
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = TrainingSettings::default().lstm_hidden)]
     lstm_hidden: usize,
-    #[arg(long, default_value_t = 60)]
+    /// LSTM epochs.
+    #[arg(long, default_value_t = TrainingSettings::default().lstm_epochs)]
     lstm_epochs: usize,
     /// LSTM learning rate (Adam).
-    #[arg(long, default_value_t = 5e-3)]
+    #[arg(long, default_value_t = run::LSTM_LEARNING_RATE)]
     lstm_lr: f64,
     /// Episodes per LSTM batch.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = run::LSTM_BATCH_SIZE)]
     lstm_batch: usize,
     /// TD3 episodes (`train td3` and `train flat`).
-    #[arg(long, default_value_t = 500)]
+    #[arg(long, default_value_t = TrainingSettings::default().td3_episodes)]
     td3_episodes: usize,
-    /// TD3 actor learning rate (Adam; Table 1: 3e-4).
-    #[arg(long, default_value_t = Td3Config::default().actor_learning_rate)]
+    /// TD3 actor learning rate (Adam).
+    #[arg(long, default_value_t = RefineConfig::default().td3.actor_learning_rate)]
     td3_actor_lr: f64,
-    /// σ of TD3's Gaussian exploration noise on the actors' tanh outputs [default: 0.002 for
-    /// the BC actors (at 0.01 the BC policy fails one training episode in three), 0.1 for
-    /// `train flat` and --no-bc-init].
+    /// σ of TD3's exploration noise [default: 0.002 from BC actors, else 0.1].
     #[arg(long)]
     td3_noise: Option<f64>,
-    /// Trust region of the TD3 stage around the BC actors: after each update no actor output
-    /// (tanh units; 0.001 is 3 µm of a full 3 mm step) may be further than this from the BC
-    /// actor's on replayed states. 0: plain TD3 (it wrecks the BC policy within 20 episodes).
-    /// Not used with --no-bc-init.
+    /// Trust region (tanh units) around the BC actors' outputs (0: plain TD3).
     #[arg(long, default_value_t = RefineConfig::default().td3.trust_region.unwrap_or(0.0))]
     td3_trust_region: f64,
-    /// TD3 episodes at the start in which only the critics learn (the actors are frozen; with
-    /// at least --td3-episodes of them the actors are never updated).
+    /// TD3 episodes at the start in which only the critics learn.
     #[arg(long, default_value_t = RefineConfig::default().critic_warmup_episodes)]
     td3_critic_warmup: usize,
     /// Start TD3 from freshly initialised actors instead of the BC actors.
     #[arg(long)]
     no_bc_init: bool,
     /// Validate (and keep the best policy) every this many TD3 episodes.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = TrainingSettings::default().eval_every)]
     eval_every: usize,
-    #[arg(long, default_value_t = 200)]
+    /// Episodes of each validation.
+    #[arg(long, default_value_t = TrainingSettings::default().eval_episodes)]
     eval_episodes: usize,
+    /// Write a TD3 checkpoint every this many episodes.
     #[arg(long, default_value_t = 50)]
     checkpoint_every: usize,
-    /// Hidden width of the flat baseline's actor and critics (`train flat`; TD3's own 256).
+    /// Hidden width of the flat baseline's actor and critics (`train flat`).
     #[arg(long, default_value_t = Td3Config::default().hidden)]
     flat_hidden: usize,
 }
+
+/// Expert episodes `celld train` records (and each DAgger round drives) by default. The HTTP
+/// API records its own default number (see docs/learning.md).
+const DEMONSTRATIONS: usize = 800;
 
 const DEMOS: &str = "demos.jsonl";
 /// Sets DAgger's episode seeds apart from the demonstrations' (both derive from --seed).

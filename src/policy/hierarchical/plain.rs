@@ -2,95 +2,13 @@
 //! candle's per-op overhead dominates a batch-1 step, and the loops evaluate only the actor
 //! that acts (`cargo bench --bench policy`).
 
-use super::{PolicyConfig, PolicyOutput, compose, normalise, select, sigmoid, state_error};
+use super::{
+    PolicyConfig, PolicyOutput, actor_config, compose, normalise, select, sigmoid, state_error,
+};
 use crate::policy::Actor;
 use crate::policy::file::{ACTOR_DIM, HEAD_DIM, STATE_DIM};
+use crate::policy::mlp::{Dense, PlainMlp};
 use candle_nn::VarBuilder;
-
-/// A dense layer y = W x + b. W is kept transposed, [in, out] (PyTorch stores [out, in]), so the
-/// product runs as a sum of scaled columns, which the compiler vectorises without reordering any
-/// reduction.
-#[derive(Debug, Clone)]
-pub(crate) struct Dense {
-    outputs: usize,
-    /// W transposed: column j of W (the weights of input j) at `wt[j * outputs..]`.
-    wt: Vec<f32>,
-    b: Vec<f32>,
-}
-
-impl Dense {
-    /// From PyTorch's row-major [out, in] weights.
-    pub(crate) fn new(w: &[f32], b: Vec<f32>, inputs: usize) -> Self {
-        let outputs = b.len();
-        assert_eq!(w.len(), inputs * outputs, "weights of a dense layer");
-        let mut wt = vec![0.0; w.len()];
-        for (o, row) in w.chunks_exact(inputs).enumerate() {
-            for (i, v) in row.iter().enumerate() {
-                wt[i * outputs + o] = *v;
-            }
-        }
-        Dense { outputs, wt, b }
-    }
-
-    fn from_linear(vb: &VarBuilder, inputs: usize, outputs: usize) -> candle_core::Result<Self> {
-        let w: Vec<f32> = vb
-            .get((outputs, inputs), "weight")?
-            .flatten_all()?
-            .to_vec1()?;
-        Ok(Dense::new(&w, vb.get(outputs, "bias")?.to_vec1()?, inputs))
-    }
-
-    /// y = W x + b.
-    pub(crate) fn forward(&self, x: &[f32], y: &mut [f32]) {
-        let n = self.outputs;
-        let y = &mut y[..n];
-        y.copy_from_slice(&self.b);
-        // Four columns at a time: a quarter of the loads and stores of y.
-        let mut cols = self.wt.chunks_exact(4 * n);
-        let mut xs = x.chunks_exact(4);
-        for (c, xq) in cols.by_ref().zip(xs.by_ref()) {
-            let (c0, rest) = c.split_at(n);
-            let (c1, rest) = rest.split_at(n);
-            let (c2, c3) = rest.split_at(n);
-            let (x0, x1, x2, x3) = (xq[0], xq[1], xq[2], xq[3]);
-            for i in 0..n {
-                y[i] += (c0[i] * x0 + c1[i] * x1) + (c2[i] * x2 + c3[i] * x3);
-            }
-        }
-        for (c, &xj) in cols.remainder().chunks_exact(n).zip(xs.remainder()) {
-            for (yi, wi) in y.iter_mut().zip(c) {
-                *yi += wi * xj;
-            }
-        }
-    }
-}
-
-#[derive(Debug, Clone)]
-struct PlainActor {
-    l0: Dense,
-    l2: Dense,
-    l4: Dense,
-}
-
-impl PlainActor {
-    fn load(vb: &VarBuilder, width: usize) -> candle_core::Result<Self> {
-        Ok(PlainActor {
-            l0: Dense::from_linear(&vb.pp("0"), STATE_DIM, width)?,
-            l2: Dense::from_linear(&vb.pp("2"), width, width)?,
-            l4: Dense::from_linear(&vb.pp("4"), width, ACTOR_DIM)?,
-        })
-    }
-
-    fn forward(&self, x: &[f32], s1: &mut [f32], s2: &mut [f32]) -> [f32; 3] {
-        self.l0.forward(x, s1);
-        s1.iter_mut().for_each(|v| *v = v.max(0.0));
-        self.l2.forward(s1, s2);
-        s2.iter_mut().for_each(|v| *v = v.max(0.0));
-        let mut a = [0f32; 3];
-        self.l4.forward(s2, &mut a);
-        a.map(f32::tanh)
-    }
-}
 
 /// The network as plain f32 loops, one episode (row) at a time.
 #[derive(Debug, Clone)]
@@ -100,8 +18,8 @@ pub(super) struct PlainNet {
     /// [W_ih | W_hh]: [4H, 12 + H], so one matrix-vector product gives the gates.
     w_gates: Dense,
     head: Dense,
-    pos: PlainActor,
-    ori: PlainActor,
+    pos: PlainMlp,
+    ori: PlainMlp,
     obs_mean: [f64; 12],
     obs_std: [f64; 12],
     config: PolicyConfig,
@@ -143,8 +61,8 @@ impl PlainNet {
             width: d,
             w_gates: Dense::new(&w, b, STATE_DIM + h),
             head: Dense::from_linear(&vb.pp("high").pp("head"), h, HEAD_DIM)?,
-            pos: PlainActor::load(&vb.pp("pos"), d)?,
-            ori: PlainActor::load(&vb.pp("ori"), d)?,
+            pos: PlainMlp::load(&vb.pp("pos"), &actor_config(d))?,
+            ori: PlainMlp::load(&vb.pp("ori"), &actor_config(d))?,
             obs_mean: to_array("obs_mean")?,
             obs_std: to_array("obs_std")?,
             config: *config,
@@ -194,10 +112,12 @@ impl PlainNet {
         self.head.forward(h_out, &mut omega);
         let (actor, scale) = select(omega);
         let x = &s.xh[..STATE_DIM];
-        let a = match actor {
-            Actor::Position => self.pos.forward(x, &mut s.s1, &mut s.s2),
-            Actor::Orientation => self.ori.forward(x, &mut s.s1, &mut s.s2),
+        let actor_net = match actor {
+            Actor::Position => &self.pos,
+            Actor::Orientation => &self.ori,
         };
+        let mut a = [0f32; ACTOR_DIM];
+        actor_net.forward(x, &mut s.s1, &mut s.s2, &mut a);
         Ok(compose(&self.config, omega, actor, scale, a))
     }
 }
