@@ -42,6 +42,9 @@ pub struct ReportArgs {
     /// (repeatable).
     #[arg(long = "curve")]
     curves: Vec<String>,
+    /// The script that ran this command (e.g. scripts/report.sh), named in the report's header.
+    #[arg(long = "made-by", value_name = "SCRIPT")]
+    made_by: Option<String>,
 }
 
 /// One table cell: a controller under one condition.
@@ -202,10 +205,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         )?);
     }
     bar.finish_and_clear();
-    let command = std::env::args()
-        .map(|arg| shell_quoted(&arg))
-        .collect::<Vec<_>>()
-        .join(" ");
+    let command = command_line(std::env::args().skip(1));
     let markdown = render(
         &args,
         &command,
@@ -220,6 +220,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         args.out.join("report.json"),
         serde_json::to_vec_pretty(&json!({
             "command": command,
+            "made_by": args.made_by,
             "episodes": args.episodes,
             "seed": args.seed,
             "robustness": robustness,
@@ -306,6 +307,25 @@ fn steps(summary: &EvalSummary) -> String {
         .map_or("-".to_string(), |s| format!("{s:.1}"))
 }
 
+/// The command as the report names it: `celld` and the arguments after the program's own path
+/// (which may be a build directory), without `--made-by` (named apart), each quoted as a shell
+/// reads it back. Paths are printed as given, so relative ones stay relative.
+fn command_line(args: impl Iterator<Item = String>) -> String {
+    let mut words = vec!["celld".to_string()];
+    let mut args = args.peekable();
+    while let Some(arg) = args.next() {
+        if arg == "--made-by" {
+            args.next();
+            continue;
+        }
+        if arg.starts_with("--made-by=") {
+            continue;
+        }
+        words.push(shell_quoted(&arg));
+    }
+    words.join(" ")
+}
+
 /// `arg` as a shell reads it back: in single quotes when it holds anything but plain word
 /// characters (a `--curve` label with spaces), so the command in the report can be run again.
 fn shell_quoted(arg: &str) -> String {
@@ -328,10 +348,14 @@ fn render(
 ) -> String {
     let mut md = String::new();
     let _ = writeln!(md, "# The paper's tables on our twin\n");
+    let made_by = match &args.made_by {
+        Some(script) => format!("Made by `{script}`, which runs `{command}`"),
+        None => format!("Made by `{command}`"),
+    };
     let _ = writeln!(
         md,
-        "Made by `{command}`: {} episodes per cell, evaluation seed {}. Success is judged on the \
-         twin's true pose; avg steps count successful episodes only.\n",
+        "{made_by}: {} episodes per cell, evaluation seed {}. Success is judged on the twin's \
+         true pose; avg steps count successful episodes only.\n",
         args.episodes, args.seed
     );
     let find = |label: &str, condition: &str| {
@@ -425,7 +449,7 @@ fn render(
 
 #[cfg(test)]
 mod tests {
-    use super::shell_quoted;
+    use super::{command_line, shell_quoted};
 
     #[test]
     fn a_quoted_argument_reads_back_the_same_through_a_shell() {
@@ -444,5 +468,22 @@ mod tests {
             assert_eq!(String::from_utf8(out.stdout).unwrap(), arg);
         }
         assert_eq!(shell_quoted("--episodes"), "--episodes");
+    }
+
+    #[test]
+    fn the_command_is_named_celld_without_the_script_it_was_made_by() {
+        let args = [
+            "report",
+            "--made-by",
+            "scripts/report.sh",
+            "--curve",
+            "BC+TD3 (hierarchical)=runs/report/T27/td3_curve.json",
+            "--made-by=x",
+        ]
+        .map(String::from);
+        assert_eq!(
+            command_line(args.into_iter()),
+            "celld report --curve 'BC+TD3 (hierarchical)=runs/report/T27/td3_curve.json'"
+        );
     }
 }

@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# Makes the three bundled policies again, byte for byte:
+#   policies/default.safetensors  the hierarchical policy (controller `hierarchical`)
+#   policies/bc.safetensors       plain behaviour cloning (controller `bc`)
+#   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
+#
+# Every flag and seed below is the one the committed files were made with; the runs that set
+# RAYON_NUM_THREADS=1 did so then too. The run directories go to runs/bundled/ (ignored by git);
+# a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
+#
+# It takes about 40 minutes of CPU (docs/learning.md § The bundled policies has each run's time).
+# Run it from anywhere inside the repository:  scripts/bundled-policies.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+step() {
+    local name=$1
+    shift
+    echo "== $name: $*"
+    local started=$SECONDS
+    "$@"
+    echo "== $name: done in $((SECONDS - started)) s"
+}
+
+echo "== building celld (release)"
+cargo build --release
+CELLD=./target/release/celld
+RUNS=runs/bundled
+mkdir -p "$RUNS"
+total=$SECONDS
+
+# hierarchical 1: behaviour cloning on 800 demonstrations of expert-careful, the sideways errors
+# in the bore weighted 30 in the BC loss; the TD3 stage runs one episode
+step hierarchical-1 "$CELLD" train all --out "$RUNS/W30" --seed 2026 --demonstrator expert-careful \
+    --bc-bore-lateral-weight 30 --td3-episodes 1
+
+# hierarchical 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
+step hierarchical-2 "$CELLD" train all --out "$RUNS/W30r1" --seed 2026 --demonstrator expert-careful \
+    --bc-bore-lateral-weight 30 --dagger-policy "$RUNS/W30/policy.safetensors" \
+    --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
+
+# hierarchical 3: fine-tuning: start from the last policy, add 800 episodes of it, BC at 0.002
+# for 6 epochs (the last 3 at 0.0005), the selector at 5e-4
+FT=(--bc-lr 0.002 --bc-epochs 6 --bc-anneal-fraction 0.5 --bc-anneal-factor 0.25
+    --bc-orientation-epochs 100 --lstm-lr 5e-4 --lstm-epochs 10 --td3-episodes 1)
+step hierarchical-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30ft" --seed 2027 \
+    --demonstrator expert-careful "${FT[@]}" --bc-bore-lateral-weight 30 \
+    --init-policy "$RUNS/W30r1/policy.safetensors" --dagger-policy "$RUNS/W30r1/policy.safetensors"
+cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
+
+# bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default
+# demonstrator), BC at a constant rate; its BC policy is the `bc` baseline
+step bc env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/bcrun" --seed 2026 --bc-anneal-fraction 0
+cp "$RUNS/bcrun/bc-policy.safetensors" policies/bc.safetensors
+
+# td3: the flat TD3 baseline (one 6-DoF actor, no BC, no hierarchy)
+step td3 env RAYON_NUM_THREADS=1 "$CELLD" train flat --out "$RUNS/flat" --seed 2026 --demonstrator expert
+cp "$RUNS/flat/td3-flat-policy.safetensors" policies/td3.safetensors
+
+echo "== all done in $((SECONDS - total)) s; git status policies/ shows whether any file changed"
+sha256sum policies/default.safetensors policies/bc.safetensors policies/td3.safetensors
