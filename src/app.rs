@@ -169,7 +169,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             admin_token_path(&settings.db).display()
         ),
     }
-    println!("celld: API http://{address}/api/openapi.json");
+    println!("celld: API http://{address}/api/docs (described at /api/openapi.json)");
     if estop_latched {
         println!("celld: the e-stop is latched from before; POST /api/cell/reset to clear it");
     }

@@ -13,6 +13,7 @@ pub mod config;
 pub mod files;
 pub mod geometry;
 pub mod http;
+pub mod integer;
 pub mod kinematics;
 pub mod learning;
 pub mod metrics;

@@ -68,5 +68,9 @@ fn readme_docs_code_benches_and_dashboard_carry_no_development_history() {
             report.push(format!("{shown}:{line}: `{phrase}`"));
         }
     }
-    assert!(report.is_empty(), "history in the product:\n{}", report.join("\n"));
+    assert!(
+        report.is_empty(),
+        "history in the product:\n{}",
+        report.join("\n")
+    );
 }

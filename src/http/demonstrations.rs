@@ -17,7 +17,7 @@ use axum::response::IntoResponse;
 use serde::Deserialize;
 use serde_json::json;
 use utoipa::IntoParams;
-use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::router::{OpenApiRouter, UtoipaMethodRouterExt};
 use utoipa_axum::routes;
 
 pub fn router(max_import_bytes: usize) -> OpenApiRouter<Context> {
@@ -37,7 +37,8 @@ pub struct ImportQuery {
 /// Imports demonstrations (admin): JSON Lines, one step a line, as `celld train --demos-file`
 /// reads and the export writes. A bad line refuses the whole body (422 names the line).
 #[utoipa::path(post, path = "/api/demonstrations", tag = "demonstrations", params(ImportQuery),
-    request_body(content = String, content_type = "application/x-ndjson"),
+    request_body(content = String, content_type = "text/plain",
+        description = "JSON Lines (any content type is read as such)"),
     responses((status = 201, description = "Stored", body = Demonstration)))]
 async fn import(
     State(context): State<Context>,
@@ -91,10 +92,7 @@ async fn import(
 /// Every stored demonstration (viewer).
 #[utoipa::path(get, path = "/api/demonstrations", tag = "demonstrations",
     responses((status = 200, description = "The demonstrations", body = Items<Demonstration>)))]
-async fn list(
-    State(context): State<Context>,
-    auth: Auth,
-) -> ApiResult<Json<Items<Demonstration>>> {
+async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Items<Demonstration>>> {
     auth.require(Role::Viewer)?;
     Ok(Json(Items {
         items: demonstrations::list(&context.db).await?,

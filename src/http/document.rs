@@ -116,8 +116,6 @@ pub fn browser() -> Router<Context> {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
-
     #[test]
     fn every_operation_has_an_error_answer_and_every_reference_resolves() {
         let text = crate::http::openapi_json();
@@ -137,7 +135,10 @@ mod tests {
         assert_eq!(operations, 30);
         for reference in text.split("\"$ref\":\"#/components/schemas/").skip(1) {
             let name = &reference[..reference.find('"').unwrap()];
-            assert!(schemas[name].is_object(), "{name} is referenced, not defined");
+            assert!(
+                schemas[name].is_object(),
+                "{name} is referenced, not defined"
+            );
         }
     }
 }

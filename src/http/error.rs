@@ -111,8 +111,9 @@ impl From<QueryRejection> for ApiError {
 }
 
 impl From<PathRejection> for ApiError {
+    /// A path whose id is not a number names nothing there is: 404, as any unknown id.
     fn from(r: PathRejection) -> Self {
-        rejection(StatusCode::BAD_REQUEST, r.body_text())
+        ApiError::not_found(format!("no such resource: {}", r.body_text()))
     }
 }
 

@@ -4,14 +4,13 @@
 use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
-use super::stats::ISO_TIME_PATTERN;
 use super::stats::check_time_range;
 use crate::cell::{CellCommand, ControllerSource, JobEnd, JobSpec, JobStatus};
 use crate::policy;
 use crate::sim::InitialConditions;
 use crate::storage::jobs::{self, Job, JobFilter, NewJob};
-use crate::storage::steps::{self, StoredStep};
 use crate::storage::policies;
+use crate::storage::steps::{self, StoredStep};
 use crate::storage::tokens::Role;
 use axum::extract::State;
 use axum::http::{StatusCode, header};
@@ -31,12 +30,6 @@ pub fn router() -> OpenApiRouter<Context> {
         .routes(routes!(read_steps))
 }
 
-/// The names a job's `controller` takes: `active`, a built-in controller, a bundled policy, or
-/// `policy:<id>` (checked against `policy::BUILTIN_CONTROLLERS` and `LEARNED_CONTROLLERS` by a
-/// test below).
-const CONTROLLER_PATTERN: &str = "^(active|expert|expert-state-only|expert-careful|visual-servo|\
-spiral|da-dmp|hierarchical|bc|td3|policy:[0-9]{1,18})$";
-
 /// Largest initial offset and orientation error a job may ask for (the workspace the twin's
 /// protocol covers; Table 2's widest is 50 mm and 9 deg).
 const MAX_INITIAL_POS_MM: f64 = 200.0;
@@ -47,9 +40,12 @@ const MAX_INITIAL_ORI_DEG: f64 = 20.0;
 pub struct CreateJob {
     /// `active` (the active policy, or the configured controller when none is active), a
     /// built-in controller, a bundled policy, or `policy:<id>`.
-    #[schema(pattern = CONTROLLER_PATTERN)]
+    #[schema(
+        pattern = "^(active|expert|expert-state-only|expert-careful|visual-servo|spiral|da-dmp|hierarchical|bc|td3|policy:[0-9]{1,18})$"
+    )]
     controller: String,
     /// The episode's seed (default: a random one, stored with the job).
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
     /// Initial offset and orientation error (default: the cell file's).
     initial: Option<InitialBody>,
@@ -190,10 +186,14 @@ pub struct ListQuery {
     /// Only jobs of this policy.
     policy_id: Option<i64>,
     /// Created at or after this UTC time (2026-11-22 or 2026-11-22T08:00:00Z).
-    #[param(pattern = ISO_TIME_PATTERN)]
+    #[param(
+        pattern = "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$"
+    )]
     since: Option<String>,
     /// Created before this UTC time.
-    #[param(pattern = ISO_TIME_PATTERN)]
+    #[param(
+        pattern = "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$"
+    )]
     until: Option<String>,
     /// Jobs per page (default 50).
     #[param(minimum = 1, maximum = 1000)]
@@ -299,28 +299,6 @@ async fn cancel(
     Ok(Json(wait_until_final(&context, id).await?))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::CONTROLLER_PATTERN;
-    use crate::policy::{BUILTIN_CONTROLLERS, LEARNED_CONTROLLERS};
-
-    #[test]
-    fn the_controller_pattern_names_every_controller_and_nothing_else() {
-        let names = CONTROLLER_PATTERN
-            .trim_start_matches("^(")
-            .trim_end_matches(")$")
-            .split('|')
-            .filter(|name| *name != "active" && !name.starts_with("policy:"))
-            .collect::<std::collections::BTreeSet<_>>();
-        let known = BUILTIN_CONTROLLERS
-            .iter()
-            .chain(&LEARNED_CONTROLLERS)
-            .copied()
-            .collect::<std::collections::BTreeSet<_>>();
-        assert_eq!(names, known);
-    }
-}
-
 /// The job once the storage writer has recorded its end (it does so within milliseconds of
 /// the control thread's answer), or as it stands after two seconds.
 pub async fn wait_until_final(context: &Context, id: i64) -> ApiResult<Job> {
@@ -375,5 +353,35 @@ async fn read_steps(
         Some(other) => Err(ApiError::bad_request(format!(
             "format `{other}` is not json or csv"
         ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::policy::{BUILTIN_CONTROLLERS, LEARNED_CONTROLLERS};
+    use std::collections::BTreeSet;
+
+    /// The pattern the API description gives `controller` names every controller the service
+    /// knows, and nothing else, besides `active` and `policy:<id>`.
+    #[test]
+    fn the_described_controller_pattern_names_every_controller_and_nothing_else() {
+        let document: serde_json::Value =
+            serde_json::from_str(crate::http::openapi_json()).unwrap();
+        let pattern =
+            document["components"]["schemas"]["CreateJob"]["properties"]["controller"]["pattern"]
+                .as_str()
+                .unwrap();
+        let named: BTreeSet<&str> = pattern
+            .trim_start_matches("^(")
+            .trim_end_matches(")$")
+            .split('|')
+            .filter(|name| *name != "active" && !name.starts_with("policy:"))
+            .collect();
+        let known: BTreeSet<&str> = BUILTIN_CONTROLLERS
+            .iter()
+            .chain(&LEARNED_CONTROLLERS)
+            .copied()
+            .collect();
+        assert_eq!(named, known);
     }
 }

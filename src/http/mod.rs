@@ -5,9 +5,9 @@
 
 pub mod auth;
 pub mod cell;
-pub mod document;
 pub mod dashboard;
 pub mod demonstrations;
+pub mod document;
 pub mod error;
 pub mod jobs;
 pub mod meta;
@@ -24,12 +24,12 @@ use crate::storage::Db;
 use crate::storage::tokens::Caller;
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
-use utoipa_axum::router::OpenApiRouter;
 use error::ApiError;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use tokio::sync::{broadcast, watch};
+use utoipa_axum::router::OpenApiRouter;
 
 /// One telemetry event, serialised once for every subscriber.
 #[derive(Debug, Clone)]
@@ -88,9 +88,7 @@ pub fn openapi() -> utoipa::openapi::OpenApi {
 /// [`openapi`] as JSON, made once.
 pub fn openapi_json() -> &'static str {
     static JSON: std::sync::OnceLock<String> = std::sync::OnceLock::new();
-    JSON.get_or_init(|| {
-        serde_json::to_string(&openapi()).expect("the OpenAPI document serialises")
-    })
+    JSON.get_or_init(|| serde_json::to_string(&openapi()).expect("the OpenAPI document serialises"))
 }
 
 /// The whole API.

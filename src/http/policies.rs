@@ -19,7 +19,7 @@ use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use utoipa::{IntoParams, ToSchema};
-use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::router::{OpenApiRouter, UtoipaMethodRouterExt};
 use utoipa_axum::routes;
 
 pub fn router(max_upload_bytes: usize) -> OpenApiRouter<Context> {
@@ -180,8 +180,10 @@ fn optional_body<T: serde::de::DeserializeOwned + Default>(bytes: &[u8]) -> ApiR
 pub struct EvaluateBody {
     /// Episodes (default: the service's `policies.evaluation_episodes`).
     #[schema(minimum = 1, maximum = 100_000)]
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     episodes: Option<u32>,
     /// The evaluation's seed (default 1).
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
 }
 

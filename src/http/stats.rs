@@ -16,18 +16,18 @@ pub fn router() -> OpenApiRouter<Context> {
     OpenApiRouter::new().routes(routes!(read))
 }
 
-/// The times `since` and `until` take (what [`is_iso_time`] accepts).
-pub const ISO_TIME_PATTERN: &str =
-    "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$";
-
 #[derive(Debug, Deserialize, IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct StatsQuery {
     /// Jobs created at or after this UTC time (2026-11-22 or 2026-11-22T08:00:00Z).
-    #[param(pattern = ISO_TIME_PATTERN)]
+    #[param(
+        pattern = "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$"
+    )]
     since: Option<String>,
     /// Jobs created before this UTC time.
-    #[param(pattern = ISO_TIME_PATTERN)]
+    #[param(
+        pattern = "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$"
+    )]
     until: Option<String>,
     /// `day` (default) or `controller`.
     #[param(inline, value_type = Option<StatsGroup>)]

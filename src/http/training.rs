@@ -16,12 +16,12 @@ use axum::extract::State;
 use axum::http::StatusCode;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
-use utoipa::ToSchema;
-use utoipa_axum::router::OpenApiRouter;
-use utoipa_axum::routes;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
 pub fn router() -> OpenApiRouter<Context> {
     OpenApiRouter::new()
@@ -43,19 +43,36 @@ pub struct StartBody {
     /// Overrides `settings.part`.
     part: Option<TrainingPart>,
     /// Overrides `settings.seed`.
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
     /// TD3 episodes (overrides `settings.td3_episodes`).
     #[schema(minimum = 1, maximum = 1_000_000)]
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     episodes: Option<usize>,
     /// Stored demonstrations to learn from, each once; none: record `record` episodes of the
     /// demonstrator in the twin.
-    #[schema(max_items = 1000, unique_items = true)]
+    #[schema(schema_with = distinct_ids)]
+    #[serde(default, deserialize_with = "crate::integer::optional_integers")]
     demonstrations: Option<Vec<i64>>,
     /// Episodes to record when no demonstrations are named (default 400).
     #[schema(minimum = 10, maximum = 100_000)]
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     record: Option<usize>,
     /// Every other setting; what is left out keeps its default (`celld train all`'s).
     settings: Option<TrainingSettings>,
+}
+
+/// `demonstrations`' schema: `null`, or at most [`MAX_NAMED_DEMONSTRATIONS`] ids, none twice.
+fn distinct_ids() -> utoipa::openapi::schema::Array {
+    use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, SchemaType, Type};
+    ArrayBuilder::new()
+        .schema_type(SchemaType::from_iter([Type::Array, Type::Null]))
+        .items(ObjectBuilder::new().schema_type(Type::Integer).format(Some(
+            utoipa::openapi::SchemaFormat::KnownFormat(utoipa::openapi::KnownFormat::Int64),
+        )))
+        .max_items(Some(MAX_NAMED_DEMONSTRATIONS))
+        .unique_items(true)
+        .build()
 }
 
 const DEFAULT_RECORDED_EPISODES: usize = 400;
@@ -73,6 +90,10 @@ async fn start(
     Json(body): Json<StartBody>,
 ) -> ApiResult<(StatusCode, Json<training::TrainingRun>)> {
     let caller = auth.require(Role::Admin)?;
+    // The settings as given are checked too: an override below must not hide a bad value.
+    if let Some(given) = &body.settings {
+        given.check().map_err(ApiError::unprocessable)?;
+    }
     let mut settings = body.settings.unwrap_or_default();
     if let Some(part) = body.part {
         settings.part = part;

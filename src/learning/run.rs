@@ -17,7 +17,7 @@ use serde_json::{Value, json};
 use std::collections::BTreeMap;
 
 /// How much of the pipeline a run does.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum TrainingPart {
     /// Behaviour cloning and the selector: the `bc` policy, no TD3.
@@ -43,28 +43,50 @@ pub const LSTM_BATCH_SIZE: usize = 8;
 pub const LSTM_LEARNING_RATE: f64 = 5e-3;
 
 /// A run's settings (the defaults are `celld train all`'s, which takes them from here).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+///
+/// The bounds in the `schema` attributes are the ones [`TrainingSettings::check`] holds to;
+/// the HTTP API's description is made from them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrainingSettings {
     pub part: TrainingPart,
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub seed: u64,
+    #[schema(minimum = 1, maximum = 1024)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub actor_width: usize,
     /// Epochs of the position actor.
+    #[schema(minimum = 1, maximum = 100_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub bc_epochs: usize,
     /// Epochs of the orientation actor (see [`BcConfig::orientation_epochs`]).
+    #[schema(minimum = 1, maximum = 100_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub bc_orientation_epochs: usize,
+    #[schema(exclusive_minimum = 0.0)]
     pub bc_learning_rate: f64,
     /// Weight of the sideways errors of samples in the bore in the BC loss (see
     /// [`BcConfig::bore_lateral_weight`]; the bundled policy was made with 30).
+    #[schema(exclusive_minimum = 0.0)]
     pub bc_bore_lateral_weight: f64,
     /// The demonstrator recorded when the run is given no stored demonstrations (one of
     /// [`super::demos::DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
+    #[schema(pattern = "^(expert-state-only|expert-careful|expert)$")]
     pub demonstrator: String,
+    #[schema(minimum = 1, maximum = 1024)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub lstm_hidden: usize,
+    #[schema(minimum = 1, maximum = 100_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub lstm_epochs: usize,
+    #[schema(minimum = 1, maximum = 1_000_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub td3_episodes: usize,
     /// Validate (and keep the best policy) every this many TD3 episodes; 0: at the end only.
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub eval_every: usize,
+    #[schema(minimum = 1, maximum = 100_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
     pub eval_episodes: usize,
 }
 
@@ -110,9 +132,9 @@ impl TrainingSettings {
                 return Err(format!("{field} = {value} is outside 1..={max}"));
             }
         }
-        if self.part == TrainingPart::All && !(1..=MAX_TD3_EPISODES).contains(&self.td3_episodes) {
+        if !(1..=MAX_TD3_EPISODES).contains(&self.td3_episodes) {
             return Err(format!(
-                "td3_episodes = {} is outside 1..={MAX_TD3_EPISODES} (or part \"bc\")",
+                "td3_episodes = {} is outside 1..={MAX_TD3_EPISODES}",
                 self.td3_episodes
             ));
         }
@@ -138,7 +160,7 @@ impl TrainingSettings {
 }
 
 /// One point of a learning curve: BC and LSTM losses by epoch, TD3 returns by episode.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct CurvePoint {
     /// `bc_position`, `bc_orientation`, `lstm` or `td3`.
     pub stage: &'static str,

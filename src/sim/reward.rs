@@ -16,7 +16,7 @@ use nalgebra::Vector3;
 use serde::Serialize;
 
 /// Each term of one step's reward, already weighted, and their sum.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, utoipa::ToSchema)]
 pub struct RewardTerms {
     pub global: f64,
     pub position: f64,
