@@ -14,11 +14,12 @@ use crate::cell::task::{self, CellEvent, LoopSettings};
 use crate::cell::{CellCommand, JobStatus, SafetyLimits, TwinBackend};
 use crate::config::cell::CellConfig;
 use crate::config::service::ServiceConfig;
-use crate::http::{self, Context, TelemetryMessage};
+use crate::http;
 use crate::metrics::Metrics;
 use crate::policy;
 use crate::storage::tokens::{self, Role};
 use crate::storage::{Db, audit, jobs, policies, recorder, training};
+use crate::workflows::{self, Context, TelemetryMessage};
 use anyhow::{Context as _, Result, bail};
 use serde_json::json;
 use std::io::Write;
@@ -132,9 +133,9 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         .with_context(|| format!("cannot listen on {}", settings.listen))?;
     let address = listener.local_addr()?;
     let mut server_shutdown = shutdown.clone();
-    http::policies::register_bundled(&context)
+    workflows::policies::register_bundled(&context)
         .await
-        .map_err(|e| anyhow::anyhow!("registering the bundled policy: {}", e.message))?;
+        .context("registering the bundled policy")?;
     let server = tokio::spawn(
         axum::serve(listener, http::router(context))
             .with_graceful_shutdown(async move {

@@ -2,7 +2,8 @@
 //!
 //! Pure libraries (no async runtime, no storage): [`geometry`], [`kinematics`], [`collision`],
 //! [`camera`], [`robot`] (the robot trait and its supervisor), [`sim`], [`policy`], [`learning`]. The service: [`cell`] (hardware seam, job
-//! core, control thread), [`storage`] (SQLite), [`http`] (axum), [`metrics`], wired by [`app`].
+//! core, control thread), [`storage`] (SQLite), [`workflows`] (what the service does, no HTTP),
+//! [`http`] (axum, translating requests), [`metrics`], wired by [`app`].
 //! See docs/design.md §3 and docs/.
 
 pub mod app;
@@ -21,3 +22,4 @@ pub mod policy;
 pub mod robot;
 pub mod sim;
 pub mod storage;
+pub mod workflows;

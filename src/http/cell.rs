@@ -2,13 +2,12 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Json};
-use crate::cell::{CellCommand, CellStatus};
+use super::error::{ApiResult, Json};
+use crate::cell::CellStatus;
 use crate::storage::tokens::Role;
-use crate::storage::{self, audit};
+use crate::workflows;
 use axum::extract::State;
 use serde::Serialize;
-use serde_json::json;
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -61,29 +60,7 @@ async fn read(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cell
     responses((status = 200, description = "Stopped and latched", body = CellView)))]
 async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
     let caller = auth.require(Role::Operator)?;
-    let running = context.cell.status().current_job;
-    context
-        .cell
-        .ask(|reply| CellCommand::EStop { reply })
-        .await?;
-    store_latch(&context).await.map_err(|e| ApiError {
-        message: format!(
-            "motion is stopped and the e-stop latched, but the latch could not be stored and \
-             would not survive a restart: {}",
-            e.message
-        ),
-        ..e
-    })?;
-    audit::record(
-        &context.db,
-        &caller.name,
-        "cell.estop",
-        json!({"job": running}),
-    )
-    .await?;
-    if let Some(id) = running {
-        super::jobs::wait_until_final(&context, id).await?;
-    }
+    workflows::cell::estop(&context, &caller.name).await?;
     Ok(Json(view(&context)))
 }
 
@@ -93,22 +70,6 @@ async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
     responses((status = 200, description = "Unlatched", body = CellView)))]
 async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
     let caller = auth.require(Role::Operator)?;
-    context
-        .cell
-        .ask(|reply| CellCommand::Reset { reply })
-        .await?;
-    store_latch(&context).await?;
-    audit::record(&context.db, &caller.name, "cell.reset", json!({})).await?;
+    workflows::cell::reset(&context, &caller.name).await?;
     Ok(Json(view(&context)))
-}
-
-/// Stores the control thread's latch as it is now. The control thread is asked first, so a
-/// stop never waits on storage; the writes are serialised and each stores the latest state,
-/// so an e-stop and a reset racing each other cannot leave the stored latch behind the
-/// control thread's (which a restart would then believe).
-async fn store_latch(context: &Context) -> ApiResult<()> {
-    let _one_writer = context.latch_writes.lock().await;
-    let latched = context.cell.status().estop_latched;
-    storage::set_cell_flag(&context.db.writer, "estop", latched).await?;
-    Ok(())
 }

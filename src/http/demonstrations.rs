@@ -4,11 +4,11 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Items, Json, Path, Query, off_the_runtime};
-use crate::learning::demos::{self, DemoError};
+use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
 use crate::storage::audit;
-use crate::storage::demonstrations::{self, Demonstration, NewDemonstration};
+use crate::storage::demonstrations::{self, Demonstration};
 use crate::storage::tokens::Role;
+use crate::workflows;
 use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
 use axum::extract::{DefaultBodyLimit, State};
@@ -49,43 +49,8 @@ async fn import(
     let caller = auth.require(Role::Admin)?;
     let body = body?;
     let name = query.name.as_deref().map(str::trim).unwrap_or("imported");
-    if name.is_empty() || name.chars().count() > 100 {
-        return Err(ApiError::bad_request("name must be 1 to 100 characters"));
-    }
-    let episodes = off_the_runtime(move || {
-        demos::read_jsonl(&body[..]).map_err(|e| match e {
-            DemoError::BadLine { .. } => ApiError::unprocessable(format!("nothing imported: {e}")),
-            DemoError::Io(_) => ApiError::bad_request(format!("nothing imported: {e}")),
-        })
-    })
-    .await?;
-    if episodes.is_empty() {
-        return Err(ApiError::unprocessable(
-            "nothing imported: the body has no steps",
-        ));
-    }
-    let id = demonstrations::insert(
-        &context.db.writer,
-        &NewDemonstration {
-            name,
-            source: "imported",
-            cell_hash: &context.cell_config.config_hash(),
-            job_id: None,
-            created_by: &caller.name,
-        },
-        &episodes,
-    )
-    .await?;
-    audit::record(
-        &context.db,
-        &caller.name,
-        "demonstration.import",
-        json!({"demonstration_id": id, "name": name}),
-    )
-    .await?;
-    let stored = demonstrations::get(&context.db, id)
-        .await?
-        .ok_or_else(|| ApiError::not_found(format!("no demonstration with id {id}")))?;
+    let stored =
+        workflows::demonstrations::import(&context, name, body.to_vec(), &caller.name).await?;
     Ok((StatusCode::CREATED, Json(stored)))
 }
 

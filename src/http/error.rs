@@ -81,6 +81,24 @@ impl From<crate::cell::task::CellStopped> for ApiError {
     }
 }
 
+impl From<crate::workflows::Error> for ApiError {
+    fn from(error: crate::workflows::Error) -> Self {
+        use crate::workflows::Error;
+        let message = error.to_string();
+        match error {
+            Error::BadRequest(_) => Self::bad_request(message),
+            Error::Invalid { code, .. } => {
+                Self::new(StatusCode::UNPROCESSABLE_ENTITY, code, message)
+            }
+            Error::NotFound(_) => Self::not_found(message),
+            Error::Conflict(_) => Self::conflict(message),
+            Error::Unavailable(_) => Self::unavailable(message),
+            Error::Storage(_) => Self::new(StatusCode::INTERNAL_SERVER_ERROR, "storage", message),
+            Error::Internal(_) => Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", message),
+        }
+    }
+}
+
 fn rejection(status: StatusCode, text: String) -> ApiError {
     let code = match status {
         StatusCode::PAYLOAD_TOO_LARGE => "too_large",
@@ -144,19 +162,4 @@ pub type ApiResult<T> = Result<T, ApiError>;
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct Items<T> {
     pub items: Vec<T>,
-}
-
-/// Runs CPU-bound work of a request (parsing an uploaded file of up to the body limit) on
-/// tokio's blocking pool. The async workers may be a single thread when `control.cpu` keeps
-/// the service off the control CPU, and an e-stop request must not wait behind a parse.
-pub async fn off_the_runtime<T: Send + 'static>(
-    work: impl FnOnce() -> ApiResult<T> + Send + 'static,
-) -> ApiResult<T> {
-    tokio::task::spawn_blocking(work).await.map_err(|e| {
-        ApiError::new(
-            StatusCode::INTERNAL_SERVER_ERROR,
-            "internal",
-            format!("the request's work stopped: {e}"),
-        )
-    })?
 }

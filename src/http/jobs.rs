@@ -5,19 +5,15 @@ use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
 use super::stats::check_time_range;
-use crate::cell::{CellCommand, ControllerSource, JobEnd, JobSpec, JobStatus};
-use crate::policy;
-use crate::sim::InitialConditions;
-use crate::storage::jobs::{self, Job, JobFilter, NewJob};
-use crate::storage::policies;
+use crate::cell::JobStatus;
+use crate::storage::jobs::{self, Job, JobFilter};
 use crate::storage::steps::{self, StoredStep};
 use crate::storage::tokens::Role;
+use crate::workflows::{self, jobs::JobRequest};
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use rand::Rng;
 use serde::{Deserialize, Serialize};
-use std::time::Duration;
 use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -29,11 +25,6 @@ pub fn router() -> OpenApiRouter<Context> {
         .routes(routes!(cancel))
         .routes(routes!(read_steps))
 }
-
-/// Largest initial offset and orientation error a job may ask for (the workspace the twin's
-/// protocol covers; Table 2's widest is 50 mm and 9 deg).
-const MAX_INITIAL_POS_MM: f64 = 200.0;
-const MAX_INITIAL_ORI_DEG: f64 = 20.0;
 
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -64,9 +55,6 @@ pub struct InitialBody {
     ori_deg: f64,
 }
 
-/// Jobs waiting at most: each holds its controller (a policy's weights) in memory until it runs.
-const MAX_QUEUED_JOBS: usize = 100;
-
 /// Queues a job on the cell (operator).
 #[utoipa::path(post, path = "/api/jobs", tag = "jobs", request_body = CreateJob,
     responses((status = 201, description = "Queued", body = Job)))]
@@ -76,103 +64,14 @@ async fn create(
     Json(body): Json<CreateJob>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let caller = auth.require(Role::Operator)?;
-    if !context.accepting_jobs() {
-        return Err(ApiError::unavailable("the service is shutting down"));
-    }
-    if context.cell.status().estop_latched {
-        return Err(ApiError::conflict(
-            "the e-stop is latched: reset the cell (POST /api/cell/reset) first",
-        ));
-    }
-    let queued = context.cell.status().queue.len();
-    if queued >= MAX_QUEUED_JOBS {
-        return Err(ApiError::conflict(format!(
-            "{queued} jobs are waiting already (at most {MAX_QUEUED_JOBS}): wait or cancel some"
-        )));
-    }
-    let (name, source, policy_id) = resolve_controller(&context, &body.controller).await?;
-    let defaults = InitialConditions::from_cell(&context.cell_config);
-    let initial = match body.initial {
-        None => defaults,
-        Some(InitialBody { pos_mm, ori_deg }) => {
-            check_range("initial.pos_mm", pos_mm, MAX_INITIAL_POS_MM)?;
-            check_range("initial.ori_deg", ori_deg, MAX_INITIAL_ORI_DEG)?;
-            InitialConditions {
-                offset_mm: pos_mm,
-                orientation_deg: ori_deg,
-            }
-        }
+    let request = JobRequest {
+        controller: body.controller,
+        seed: body.seed,
+        initial: body.initial.map(|i| (i.pos_mm, i.ori_deg)),
+        demonstration: body.demonstration.unwrap_or(false),
     };
-    let seed = body.seed.unwrap_or_else(|| rand::rng().random());
-    let job = jobs::insert(
-        &context.db,
-        &NewJob {
-            controller: name,
-            policy_id,
-            seed,
-            initial_pos_mm: initial.offset_mm,
-            initial_ori_deg: initial.orientation_deg,
-            demonstration: body.demonstration.unwrap_or(false),
-            created_by: caller.name.clone(),
-        },
-    )
-    .await?;
-    let sent = context.cell.send(CellCommand::Enqueue(JobSpec {
-        id: job.id,
-        controller: source,
-        seed,
-        initial,
-        demonstration: job.demonstration,
-    }));
-    if let Err(stopped) = sent {
-        // No thread will ever run it: close it now rather than leave it `queued`.
-        let end = JobEnd::unstarted(JobStatus::Failed, "control_stopped");
-        jobs::mark_ended(&context.db.writer, job.id, &end).await?;
-        return Err(stopped.into());
-    }
+    let job = workflows::jobs::create(&context, request, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))
-}
-
-fn check_range(field: &str, value: f64, max: f64) -> ApiResult<()> {
-    if value.is_finite() && (0.0..=max).contains(&value) {
-        Ok(())
-    } else {
-        Err(ApiError::unprocessable(format!(
-            "{field} = {value} is outside 0..={max}"
-        )))
-    }
-}
-
-/// The controller a job names, as the name stored with the job, the source the control
-/// thread builds it from, and the policy id when it is a registered policy.
-async fn resolve_controller(
-    context: &Context,
-    requested: &str,
-) -> ApiResult<(String, ControllerSource, Option<i64>)> {
-    let name = if requested == "active" {
-        match policies::active(&context.db).await? {
-            Some((id, bytes)) => {
-                return Ok((
-                    format!("policy:{id}"),
-                    ControllerSource::Policy { id, bytes },
-                    Some(id),
-                ));
-            }
-            None => context.settings.control.active_controller.clone(),
-        }
-    } else {
-        requested.to_string()
-    };
-    if let Some(id) = name.strip_prefix("policy:") {
-        let id: i64 = id.parse().map_err(|_| {
-            ApiError::unprocessable(format!("controller `{name}`: `policy:` takes a policy id"))
-        })?;
-        let bytes = policies::file(&context.db, id).await?;
-        let bytes = bytes.ok_or_else(|| ApiError::not_found(format!("no policy with id {id}")))?;
-        return Ok((name, ControllerSource::Policy { id, bytes }, Some(id)));
-    }
-    policy::check_known(&name).map_err(|e| ApiError::unprocessable(e.to_string()))?;
-    Ok((name.clone(), ControllerSource::Builtin(name), None))
 }
 
 #[derive(Debug, Deserialize, IntoParams)]
@@ -285,31 +184,7 @@ async fn cancel(
     Path(id): Path<i64>,
 ) -> ApiResult<Json<Job>> {
     auth.require(Role::Operator)?;
-    let job = find(&context, id).await?;
-    let found = context
-        .cell
-        .ask(|reply| CellCommand::Cancel { job_id: id, reply })
-        .await?;
-    if !found {
-        return Err(ApiError::conflict(format!(
-            "job {id} is {} and can no longer be cancelled",
-            job.status
-        )));
-    }
-    Ok(Json(wait_until_final(&context, id).await?))
-}
-
-/// The job once the storage writer has recorded its end (it does so within milliseconds of
-/// the control thread's answer), or as it stands after two seconds.
-pub async fn wait_until_final(context: &Context, id: i64) -> ApiResult<Job> {
-    for _ in 0..200 {
-        let job = find(context, id).await?;
-        if JobStatus::parse(&job.status).is_some_and(|s| s.is_final()) {
-            return Ok(job);
-        }
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
-    find(context, id).await
+    Ok(Json(workflows::jobs::cancel(&context, id).await?))
 }
 
 #[derive(Debug, Deserialize, IntoParams)]

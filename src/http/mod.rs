@@ -1,5 +1,6 @@
-//! The REST surface (axum): each resource owns its `router()`; [`Context`] is the one shared
-//! state; [`error::ApiError`] is the one error. The OpenAPI description is derived from the
+//! The REST surface (axum): each resource owns its `router()` and only translates requests
+//! into the `workflows` that do the work; [`Context`] is the one shared state;
+//! [`error::ApiError`] is the one error. The OpenAPI description is derived from the
 //! handlers' annotations and the types they take and return ([`openapi`]), so it cannot drift
 //! from them; it is served at `/api/openapi.json` and browsable at `/api/docs`.
 
@@ -16,55 +17,11 @@ pub mod stats;
 pub mod telemetry;
 pub mod training;
 
-use crate::cell::CellHandle;
-use crate::config::cell::CellConfig;
-use crate::config::service::ServiceConfig;
-use crate::metrics::Metrics;
-use crate::storage::Db;
-use crate::storage::tokens::Caller;
+pub use crate::workflows::{Context, TelemetryMessage};
 use axum::Router;
 use axum::extract::DefaultBodyLimit;
 use error::ApiError;
-use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
-use tokio::sync::{broadcast, watch};
 use utoipa_axum::router::OpenApiRouter;
-
-/// One telemetry event, serialised once for every subscriber.
-#[derive(Debug, Clone)]
-pub struct TelemetryMessage {
-    /// SSE event name: `step`, `job` or `cell`.
-    pub event: &'static str,
-    pub data: Arc<str>,
-}
-
-/// Everything a handler may need, cheap to clone.
-#[derive(Clone)]
-pub struct Context {
-    pub db: Db,
-    pub cell: CellHandle,
-    pub cell_config: Arc<CellConfig>,
-    pub settings: Arc<ServiceConfig>,
-    pub metrics: Metrics,
-    pub telemetry: broadcast::Sender<TelemetryMessage>,
-    /// False once shutdown began: no new jobs.
-    pub accepting: Arc<AtomicBool>,
-    /// Becomes true at shutdown, so open streams end.
-    pub shutdown: watch::Receiver<bool>,
-    /// Callers already looked up, by token hash (tokens are never changed once made).
-    pub known_callers: Arc<RwLock<HashMap<String, Caller>>>,
-    /// The training run in progress (one at a time).
-    pub training: Arc<Mutex<Option<training::ActiveRun>>>,
-    /// Held while the e-stop latch is stored (see `cell::store_latch`).
-    pub latch_writes: Arc<tokio::sync::Mutex<()>>,
-}
-
-impl Context {
-    pub fn accepting_jobs(&self) -> bool {
-        self.accepting.load(Ordering::SeqCst)
-    }
-}
 
 /// Every described route, with the OpenAPI description collected from their annotations.
 /// `max_upload_bytes` is the body limit of the two upload routes (policies, demonstrations).
@@ -108,6 +65,8 @@ pub fn router(context: Context) -> Router {
             )
         })
         .layer(DefaultBodyLimit::max(body_limit))
+        // One span per request (method, path, status, latency) at CELLD_LOG=debug.
+        .layer(tower_http::trace::TraceLayer::new_for_http())
         .layer(axum::middleware::from_fn_with_state(
             context.clone(),
             refuse_announced_oversize,

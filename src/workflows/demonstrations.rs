@@ -1,0 +1,55 @@
+//! Demonstrations imported from JSON Lines (a job with `"demonstration": true` records its own
+//! when it succeeds, through the storage writer).
+
+use super::{Context, Error, Result, off_the_runtime};
+use crate::learning::demos::{self, DemoError};
+use crate::storage::audit;
+use crate::storage::demonstrations::{self, Demonstration, NewDemonstration};
+use serde_json::json;
+
+/// Reads JSON Lines (all of it, or nothing is stored), stores the episodes under `name`.
+pub async fn import(
+    context: &Context,
+    name: &str,
+    body: Vec<u8>,
+    by: &str,
+) -> Result<Demonstration> {
+    if name.is_empty() || name.chars().count() > 100 {
+        return Err(Error::bad_request("name must be 1 to 100 characters"));
+    }
+    let episodes = off_the_runtime(move || {
+        demos::read_jsonl(&body[..]).map_err(|e| match e {
+            DemoError::BadLine { .. } => Error::unprocessable(format!("nothing imported: {e}")),
+            DemoError::Io(_) => Error::bad_request(format!("nothing imported: {e}")),
+        })
+    })
+    .await?;
+    if episodes.is_empty() {
+        return Err(Error::unprocessable(
+            "nothing imported: the body has no steps",
+        ));
+    }
+    let id = demonstrations::insert(
+        &context.db.writer,
+        &NewDemonstration {
+            name,
+            source: "imported",
+            cell_hash: &context.cell_config.config_hash(),
+            job_id: None,
+            created_by: by,
+        },
+        &episodes,
+    )
+    .await?;
+    audit::record(
+        &context.db,
+        by,
+        "demonstration.import",
+        json!({"demonstration_id": id, "name": name}),
+    )
+    .await?;
+    let stored = demonstrations::get(&context.db, id)
+        .await?
+        .ok_or_else(|| Error::not_found(format!("no demonstration with id {id}")))?;
+    Ok(stored)
+}

@@ -1,0 +1,166 @@
+//! Jobs: queued on the cell after the checks a job must pass, cancelled, waited for.
+
+use super::{Context, Error, Result};
+use crate::cell::{CellCommand, ControllerSource, JobEnd, JobSpec, JobStatus};
+use crate::policy;
+use crate::sim::InitialConditions;
+use crate::storage::jobs::{self, Job, NewJob};
+use crate::storage::policies;
+use rand::Rng;
+use std::time::Duration;
+
+/// Largest initial offset and orientation error a job may ask for (the workspace the twin's
+/// protocol covers; Table 2's widest is 50 mm and 9 deg).
+const MAX_INITIAL_POS_MM: f64 = 200.0;
+const MAX_INITIAL_ORI_DEG: f64 = 20.0;
+
+/// Jobs waiting at most: each holds its controller (a policy's weights) in memory until it runs.
+const MAX_QUEUED_JOBS: usize = 100;
+
+/// What an operator asks of a new job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobRequest {
+    /// `active`, a built-in controller, a bundled policy or `policy:<id>`.
+    pub controller: String,
+    /// None: a random seed, stored with the job.
+    pub seed: Option<u64>,
+    /// Initial offset (mm) and orientation error (deg); none: the cell file's.
+    pub initial: Option<(f64, f64)>,
+    pub demonstration: bool,
+}
+
+/// Checks a job, stores it and queues it on the control thread.
+pub async fn create(context: &Context, request: JobRequest, by: &str) -> Result<Job> {
+    if !context.accepting_jobs() {
+        return Err(Error::unavailable("the service is shutting down"));
+    }
+    if context.cell.status().estop_latched {
+        return Err(Error::conflict(
+            "the e-stop is latched: reset the cell (POST /api/cell/reset) first",
+        ));
+    }
+    let queued = context.cell.status().queue.len();
+    if queued >= MAX_QUEUED_JOBS {
+        return Err(Error::conflict(format!(
+            "{queued} jobs are waiting already (at most {MAX_QUEUED_JOBS}): wait or cancel some"
+        )));
+    }
+    let (name, source, policy_id) = resolve_controller(context, &request.controller).await?;
+    let defaults = InitialConditions::from_cell(&context.cell_config);
+    let initial = match request.initial {
+        None => defaults,
+        Some((pos_mm, ori_deg)) => {
+            check_range("initial.pos_mm", pos_mm, MAX_INITIAL_POS_MM)?;
+            check_range("initial.ori_deg", ori_deg, MAX_INITIAL_ORI_DEG)?;
+            InitialConditions {
+                offset_mm: pos_mm,
+                orientation_deg: ori_deg,
+            }
+        }
+    };
+    let seed = request.seed.unwrap_or_else(|| rand::rng().random());
+    let job = jobs::insert(
+        &context.db,
+        &NewJob {
+            controller: name,
+            policy_id,
+            seed,
+            initial_pos_mm: initial.offset_mm,
+            initial_ori_deg: initial.orientation_deg,
+            demonstration: request.demonstration,
+            created_by: by.to_string(),
+        },
+    )
+    .await?;
+    let sent = context.cell.send(CellCommand::Enqueue(JobSpec {
+        id: job.id,
+        controller: source,
+        seed,
+        initial,
+        demonstration: job.demonstration,
+    }));
+    if let Err(stopped) = sent {
+        // No thread will ever run it: close it now rather than leave it `queued`.
+        let end = JobEnd::unstarted(JobStatus::Failed, "control_stopped");
+        jobs::mark_ended(&context.db.writer, job.id, &end).await?;
+        return Err(stopped.into());
+    }
+    Ok(job)
+}
+
+/// Cancels a queued or running job; answers with the job once its end is stored.
+pub async fn cancel(context: &Context, id: i64) -> Result<Job> {
+    let job = find(context, id).await?;
+    let found = context
+        .cell
+        .ask(|reply| CellCommand::Cancel { job_id: id, reply })
+        .await?;
+    if !found {
+        return Err(Error::conflict(format!(
+            "job {id} is {} and can no longer be cancelled",
+            job.status
+        )));
+    }
+    wait_until_final(context, id).await
+}
+
+async fn find(context: &Context, id: i64) -> Result<Job> {
+    jobs::get(&context.db, id)
+        .await?
+        .ok_or_else(|| Error::not_found(format!("no job with id {id}")))
+}
+
+/// The job once the storage writer has recorded its end (it does so within milliseconds of
+/// the control thread's answer), or as it stands after two seconds.
+pub async fn wait_until_final(context: &Context, id: i64) -> Result<Job> {
+    for _ in 0..200 {
+        let job = find(context, id).await?;
+        if JobStatus::parse(&job.status).is_some_and(|s| s.is_final()) {
+            return Ok(job);
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    find(context, id).await
+}
+
+fn check_range(field: &str, value: f64, max: f64) -> Result<()> {
+    if value.is_finite() && (0.0..=max).contains(&value) {
+        Ok(())
+    } else {
+        Err(Error::unprocessable(format!(
+            "{field} = {value} is outside 0..={max}"
+        )))
+    }
+}
+
+/// The controller a job names, as the name stored with the job, the source the control
+/// thread builds it from, and the policy id when it is a registered policy.
+async fn resolve_controller(
+    context: &Context,
+    requested: &str,
+) -> Result<(String, ControllerSource, Option<i64>)> {
+    let name = if requested == "active" {
+        match policies::active(&context.db).await? {
+            Some((id, bytes)) => {
+                return Ok((
+                    format!("policy:{id}"),
+                    ControllerSource::Policy { id, bytes },
+                    Some(id),
+                ));
+            }
+            None => context.settings.control.active_controller.clone(),
+        }
+    } else {
+        requested.to_string()
+    };
+    if let Some(id) = name.strip_prefix("policy:") {
+        let id: i64 = id.parse().map_err(|_| {
+            Error::unprocessable(format!("controller `{name}`: `policy:` takes a policy id"))
+        })?;
+        let bytes = policies::file(&context.db, id).await?;
+        let bytes = bytes.ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
+        return Ok((name, ControllerSource::Policy { id, bytes }, Some(id)));
+    }
+    policy::check_known(&name).map_err(|e| Error::unprocessable(e.to_string()))?;
+    Ok((name.clone(), ControllerSource::Builtin(name), None))
+}
