@@ -226,7 +226,7 @@ fn load(
                     // scheduled time (which also counts this client waking late).
                     let scheduled = next;
                     let sent = Instant::now();
-                    let path = if n % 2 == 0 {
+                    let path = if n.is_multiple_of(2) {
                         "/api/cell"
                     } else {
                         "/api/jobs?limit=10"

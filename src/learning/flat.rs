@@ -369,7 +369,7 @@ impl FlatTraining {
         while self.episode < self.config.episodes {
             let record = self.train_episode()?;
             let every = self.config.eval_every;
-            let validation = if every > 0 && self.episode % every == 0 {
+            let validation = if every > 0 && self.episode.is_multiple_of(every) {
                 Some(self.validate()?)
             } else {
                 None

@@ -369,7 +369,7 @@ impl Td3 {
         }
         self.updates += 1;
         let mut actor_loss = None;
-        if self.updates % self.config.policy_delay.max(1) == 0 {
+        if self.updates.is_multiple_of(self.config.policy_delay.max(1)) {
             if !self.actor_frozen {
                 let sa = Tensor::cat(&[&s, &self.actor.forward(&s)?], 1)?;
                 let loss = self.critics[0].forward(&sa)?.mean_all()?.neg()?;

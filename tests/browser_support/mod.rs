@@ -367,12 +367,11 @@ impl Browser {
                 let mut saved = String::new();
                 if let Some(dir) = dir {
                     let path = dir.join(format!("timeout-{}.png", sanitise(what)));
-                    if let Ok(png) = self.screenshot_png() {
-                        if std::fs::create_dir_all(&dir).is_ok()
-                            && std::fs::write(&path, png).is_ok()
-                        {
-                            saved = format!(" (screenshot: {})", path.display());
-                        }
+                    if let Ok(png) = self.screenshot_png()
+                        && std::fs::create_dir_all(&dir).is_ok()
+                        && std::fs::write(&path, png).is_ok()
+                    {
+                        saved = format!(" (screenshot: {})", path.display());
                     }
                 }
                 panic!("timed out after {timeout:?} waiting until {what}{saved}");
