@@ -21,6 +21,25 @@ pub fn router() -> OpenApiRouter<Context> {
     OpenApiRouter::new().routes(routes!(subscribe))
 }
 
+/// One event of the stream, as an SSE client reads it.
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)] // Described, not built: the events are written by axum's `Sse`.
+struct StreamEvent {
+    event: EventKind,
+    /// The event's JSON, as text.
+    data: String,
+}
+
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)] // Described, not built.
+#[schema(rename_all = "snake_case")]
+enum EventKind {
+    Cell,
+    Step,
+    Job,
+    Lagged,
+}
+
 /// Counts the subscriber while its stream lives.
 struct Subscription {
     receiver: broadcast::Receiver<TelemetryMessage>,
@@ -34,24 +53,36 @@ impl Drop for Subscription {
     }
 }
 
-/// Live events (viewer) as Server-Sent Events: `step` (one control step, as stored), `job` (a
-/// job started or ended), `cell` (e-stop latched or reset), `lagged` (`{"skipped": n}`: this
+/// Live events (viewer) as Server-Sent Events: `cell` (`{"estop_latched": bool}`, first the
+/// latch as it is, then on each e-stop and reset), `step` (one control step, as stored), `job`
+/// (a job started or ended), `lagged` (`{"skipped": n}`: this
 /// subscriber fell behind and skipped n events). The token may also come as `?access_token=`.
 #[utoipa::path(get, path = "/api/telemetry", tag = "telemetry",
     security(("bearer" = []), ("access_token" = [])),
     responses((status = 200, description = "The event stream, until the service stops",
-        body = String, content_type = "text/event-stream")))]
+        body = StreamEvent, content_type = "text/event-stream")))]
 async fn subscribe(
     State(context): State<Context>,
     StreamCaller(auth): StreamCaller,
 ) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
     auth.require(Role::Viewer)?;
-    let stream = messages(
-        context.telemetry.subscribe(),
-        context.shutdown.clone(),
-        context.metrics.clone(),
-    )
-    .map(|message| Ok(Event::default().event(message.event).data(&*message.data)));
+    // The latch as it is now, first: a subscriber (a dashboard reconnecting, say) starts from
+    // the cell's state instead of waiting for the next change.
+    let now = TelemetryMessage {
+        event: "cell",
+        data: format!(
+            "{{\"estop_latched\":{}}}",
+            context.cell.status().estop_latched
+        )
+        .into(),
+    };
+    let stream = futures_util::stream::once(async { now })
+        .chain(messages(
+            context.telemetry.subscribe(),
+            context.shutdown.clone(),
+            context.metrics.clone(),
+        ))
+        .map(|message| Ok(Event::default().event(message.event).data(&*message.data)));
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
 
