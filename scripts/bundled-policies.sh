@@ -10,21 +10,7 @@
 #
 # It takes about 40 minutes of CPU (docs/learning.md § The bundled policies has each run's time).
 # Run it from anywhere inside the repository:  scripts/bundled-policies.sh
-set -euo pipefail
-cd "$(dirname "$0")/.."
-
-step() {
-    local name=$1
-    shift
-    echo "== $name: $*"
-    local started=$SECONDS
-    "$@"
-    echo "== $name: done in $((SECONDS - started)) s"
-}
-
-echo "== building celld (release)"
-cargo build --release
-CELLD=./target/release/celld
+source "$(dirname "$0")/common.sh"
 RUNS=runs/bundled
 mkdir -p "$RUNS"
 total=$SECONDS

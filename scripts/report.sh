@@ -15,21 +15,7 @@
 # (report.json's wall_s figures are timings and differ).
 #
 # Run it from anywhere inside the repository:  scripts/report.sh
-set -euo pipefail
-cd "$(dirname "$0")/.."
-
-step() {
-    local name=$1
-    shift
-    echo "== $name: $*"
-    local started=$SECONDS
-    "$@"
-    echo "== $name: done in $((SECONDS - started)) s"
-}
-
-echo "== building celld (release)"
-cargo build --release
-CELLD=./target/release/celld
+source "$(dirname "$0")/common.sh"
 RUNS=runs/report
 total=$SECONDS
 

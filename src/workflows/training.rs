@@ -68,7 +68,7 @@ pub async fn start(
         )));
     }
     // The demonstrations named, read and checked before the run starts.
-    let ids = request.demonstrations.clone();
+    let ids = request.demonstrations;
     if ids.len() > MAX_NAMED_DEMONSTRATIONS {
         return Err(Error::unprocessable(format!(
             "{} demonstrations named; at most {MAX_NAMED_DEMONSTRATIONS}",
