@@ -18,7 +18,7 @@ use crate::http;
 use crate::metrics::Metrics;
 use crate::policy;
 use crate::storage::tokens::{self, Role};
-use crate::storage::{Db, audit, jobs, policies, recorder, training};
+use crate::storage::{Db, jobs, policies, recorder, training};
 use crate::workflows::{self, Context, TelemetryMessage};
 use anyhow::{Context as _, Result, bail};
 use serde_json::json;
@@ -286,7 +286,14 @@ pub fn admin_token_path(db: &Path) -> PathBuf {
 /// Makes the first admin token, prints it once and writes it beside the database (mode 0600);
 /// returns the secret for the sign-in URL.
 async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
-    let token = tokens::create(db, Role::Admin, "admin", "celld serve (first start)").await?;
+    let token = workflows::tokens::create(
+        db,
+        Role::Admin,
+        "admin",
+        "celld serve (first start)",
+        "celld",
+    )
+    .await?;
     let path = admin_token_path(db_path);
     let mut options = std::fs::OpenOptions::new();
     options.write(true).create(true).truncate(true);
@@ -296,13 +303,6 @@ async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
         .open(&path)
         .with_context(|| format!("cannot write {}", path.display()))?;
     writeln!(file, "{}", token.token)?;
-    audit::record(
-        db,
-        "celld",
-        "token.create",
-        json!({"token_id": token.id, "name": "admin", "role": "admin"}),
-    )
-    .await?;
     println!(
         "celld: first start: admin token (shown once; also in {}):\n{}",
         path.display(),
@@ -316,19 +316,10 @@ pub async fn create_token(db_path: &Path, role: &str, name: &str) -> Result<()> 
     let Some(role) = Role::parse(role) else {
         bail!("role `{role}` is not viewer, operator or admin");
     };
-    let name = name.trim();
-    if name.is_empty() {
-        bail!("--name must not be empty");
-    }
     let db = Db::open(db_path).await?;
-    let token = tokens::create(&db, role, name, "celld token create").await?;
-    audit::record(
-        &db,
-        "cli",
-        "token.create",
-        json!({"token_id": token.id, "name": name, "role": role}),
-    )
-    .await?;
+    let token = workflows::tokens::create(&db, role, name, "celld token create", "cli")
+        .await
+        .context("--name")?;
     println!("{}", token.token);
     db.writer.close().await;
     db.reader.close().await;

@@ -5,7 +5,6 @@
 use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
-use crate::storage::audit;
 use crate::storage::demonstrations::{self, Demonstration};
 use crate::storage::tokens::Role;
 use crate::workflows;
@@ -15,7 +14,6 @@ use axum::extract::{DefaultBodyLimit, State};
 use axum::http::{StatusCode, header};
 use axum::response::IntoResponse;
 use serde::Deserialize;
-use serde_json::json;
 use utoipa::IntoParams;
 use utoipa_axum::router::{OpenApiRouter, UtoipaMethodRouterExt};
 use utoipa_axum::routes;
@@ -91,17 +89,6 @@ async fn remove(
     Path(id): Path<i64>,
 ) -> ApiResult<StatusCode> {
     let caller = auth.require(Role::Admin)?;
-    if !demonstrations::delete(&context.db, id).await? {
-        return Err(ApiError::not_found(format!(
-            "no demonstration with id {id}"
-        )));
-    }
-    audit::record(
-        &context.db,
-        &caller.name,
-        "demonstration.delete",
-        json!({"demonstration_id": id}),
-    )
-    .await?;
+    workflows::demonstrations::delete(&context, id, &caller.name).await?;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -3,14 +3,13 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Items, Json, Query};
+use super::error::{ApiResult, Items, Json, Query};
 use crate::storage::audit::{self, AuditEntry};
-use crate::storage::tokens::{self, NewToken, Role};
+use crate::storage::tokens::{NewToken, Role};
 use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::IntoResponse;
 use serde::{Deserialize, Serialize};
-use serde_json::json;
 use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -141,16 +140,12 @@ async fn create_token(
     Json(body): Json<CreateToken>,
 ) -> ApiResult<(StatusCode, Json<NewToken>)> {
     let caller = auth.require(Role::Admin)?;
-    let name = body.name.trim();
-    if name.is_empty() || name.chars().count() > 100 {
-        return Err(ApiError::unprocessable("name must be 1 to 100 characters"));
-    }
-    let token = tokens::create(&context.db, body.role, name, &caller.name).await?;
-    audit::record(
+    let token = crate::workflows::tokens::create(
         &context.db,
+        body.role,
+        &body.name,
         &caller.name,
-        "token.create",
-        json!({"token_id": token.id, "name": name, "role": body.role}),
+        &caller.name,
     )
     .await?;
     Ok((StatusCode::CREATED, Json(token)))

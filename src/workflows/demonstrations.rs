@@ -53,3 +53,18 @@ pub async fn import(
         .ok_or_else(|| Error::not_found(format!("no demonstration with id {id}")))?;
     Ok(stored)
 }
+
+/// Deletes a stored demonstration, audited.
+pub async fn delete(context: &Context, id: i64, by: &str) -> Result<()> {
+    if !demonstrations::delete(&context.db, id).await? {
+        return Err(Error::not_found(format!("no demonstration with id {id}")));
+    }
+    audit::record(
+        &context.db,
+        by,
+        "demonstration.delete",
+        json!({"demonstration_id": id}),
+    )
+    .await?;
+    Ok(())
+}

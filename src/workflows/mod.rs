@@ -1,7 +1,7 @@
 //! The service's workflows: what happens when an operator or an admin asks for something, and
 //! what runs in the background afterwards: jobs queued on the cell, the e-stop latch kept in
 //! storage, policies registered, evaluated and activated behind the gate, demonstrations
-//! imported, training runs driven to a candidate policy. They know storage, the control
+//! imported, training runs driven to a candidate policy, tokens made. They know storage, the control
 //! thread's handle and the pure libraries, and nothing of HTTP: `http` translates requests
 //! into these calls and [`Error`] into statuses; `app` starts the background ones.
 
@@ -9,6 +9,7 @@ pub mod cell;
 pub mod demonstrations;
 pub mod jobs;
 pub mod policies;
+pub mod tokens;
 pub mod training;
 
 use crate::cell::CellHandle;
