@@ -157,12 +157,6 @@ async fn list(
     Ok(Json(JobPage { items, total }))
 }
 
-async fn find(context: &Context, id: i64) -> ApiResult<Job> {
-    jobs::get(&context.db, id)
-        .await?
-        .ok_or_else(|| ApiError::not_found(format!("no job with id {id}")))
-}
-
 /// One job (viewer).
 #[utoipa::path(get, path = "/api/jobs/{id}", tag = "jobs", params(("id" = i64, Path)),
     responses((status = 200, description = "The job", body = Job)))]
@@ -172,7 +166,7 @@ async fn read(
     Path(id): Path<i64>,
 ) -> ApiResult<Json<Job>> {
     auth.require(Role::Viewer)?;
-    Ok(Json(find(&context, id).await?))
+    Ok(Json(workflows::jobs::find(&context, id).await?))
 }
 
 /// Cancels a queued or running job (operator); answers once its end is stored.
@@ -216,7 +210,7 @@ async fn read_steps(
     Query(query): Query<StepsQuery>,
 ) -> ApiResult<Response> {
     auth.require(Role::Viewer)?;
-    find(&context, id).await?;
+    workflows::jobs::find(&context, id).await?;
     let rows = steps::list(&context.db, id).await?;
     match query.format.as_deref() {
         None | Some("json") => Ok(Json(Items { items: rows }).into_response()),

@@ -74,12 +74,6 @@ async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Item
     }))
 }
 
-async fn find(context: &Context, id: i64) -> ApiResult<Policy> {
-    policies::get(&context.db, id)
-        .await?
-        .ok_or_else(|| ApiError::not_found(format!("no policy with id {id}")))
-}
-
 /// One policy (viewer).
 #[utoipa::path(get, path = "/api/policies/{id}", tag = "policies", params(("id" = i64, Path)),
     responses((status = 200, description = "The policy", body = Policy)))]
@@ -89,7 +83,7 @@ async fn read(
     Path(id): Path<i64>,
 ) -> ApiResult<Json<Policy>> {
     auth.require(Role::Viewer)?;
-    Ok(Json(find(&context, id).await?))
+    Ok(Json(workflows::policies::find(&context, id).await?))
 }
 
 /// The policy file as uploaded (viewer).
@@ -199,7 +193,7 @@ async fn activate(
     )
     .await?;
     Ok(Json(Activated {
-        policy: find(&context, id).await?,
+        policy: workflows::policies::find(&context, id).await?,
         retired: gate.retired,
         forced: gate.forced,
     }))

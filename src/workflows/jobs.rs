@@ -104,7 +104,8 @@ pub async fn cancel(context: &Context, id: i64) -> Result<Job> {
     wait_until_final(context, id).await
 }
 
-async fn find(context: &Context, id: i64) -> Result<Job> {
+/// The job with `id`, or [`Error::NotFound`].
+pub async fn find(context: &Context, id: i64) -> Result<Job> {
     jobs::get(&context.db, id)
         .await?
         .ok_or_else(|| Error::not_found(format!("no job with id {id}")))

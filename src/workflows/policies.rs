@@ -231,7 +231,8 @@ pub async fn activate(
     })
 }
 
-async fn find(context: &Context, id: i64) -> Result<Policy> {
+/// The policy with `id`, or [`Error::NotFound`].
+pub async fn find(context: &Context, id: i64) -> Result<Policy> {
     policies::get(&context.db, id)
         .await?
         .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))
