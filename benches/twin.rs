@@ -88,7 +88,7 @@ fn camera(c: &mut Criterion) {
     c.bench_function("capture_and_estimate", |b| {
         b.iter(|| {
             camera.capture_into(&w_m, &w_f, &mut rng, &mut frame);
-            estimator.estimate(&frame)
+            estimator.estimate(&frame, 1.0)
         })
     });
 }

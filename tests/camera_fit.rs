@@ -221,7 +221,7 @@ fn pipeline_without_noise_is_exact() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let mut frame = CameraFrame::default();
         camera.capture_into(&w_m, &w_f, &mut rng, &mut frame);
-        let m = estimator.estimate(&frame).unwrap();
+        let m = estimator.estimate(&frame, 1.0).unwrap();
         let state = m.state(pitch);
         let want = expected_state(&w_m, &f_m, pitch);
         for (i, (g, w)) in state.iter().zip(want).enumerate() {
@@ -242,7 +242,7 @@ fn linearised_sigma(
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let base = camera.capture(w_m, w_f, &mut rng);
     assert_eq!(base.points.len(), 12, "noise-free capture for the Jacobian");
-    let s0 = estimator.estimate(&base).unwrap().state(pitch);
+    let s0 = estimator.estimate(&base, 1.0).unwrap().state(pitch);
     let h = 1e-4;
     let mut var = [0.0; 6];
     for i in 0..base.points.len() {
@@ -250,7 +250,7 @@ fn linearised_sigma(
         for axis in 0..3 {
             let mut frame = base.clone();
             frame.points[i].position_mm[axis] += h;
-            let s = estimator.estimate(&frame).unwrap().state(pitch);
+            let s = estimator.estimate(&frame, 1.0).unwrap().state(pitch);
             for (k, v) in var.iter_mut().enumerate() {
                 let d = (s[6 + k] - s0[6 + k]) / h;
                 *v += d * d * sigma * sigma;
@@ -293,7 +293,7 @@ fn pipeline_with_noise_stays_within_five_sigma() {
         let mut rejected = 0;
         for i in 0..n {
             camera.capture_into(&w_m, &w_f, &mut rng, &mut frame);
-            let m = estimator.estimate(&frame).unwrap();
+            let m = estimator.estimate(&frame, 1.0).unwrap();
             rejected += m.fit_c1.rejected + m.fit_c2.rejected;
             let s = m.state(pitch);
             for k in 0..6 {

@@ -1,12 +1,13 @@
 //! From a capture to the relative pose of the segments and the 12-dim state.
 
 use super::sim::nominal_point_sigma_mm;
+use super::uncertainty::{FixtureCovariance, fit_covariance, relative_covariance};
 use super::{CameraError, CameraFrame, Fixture, wrap_deg};
 use crate::config::cell::CellConfig;
 use crate::geometry::fit::{FitError, FrameFit, MAX_FIT_POINTS, fit_frame};
 use crate::geometry::pose::{is_finite, rotation_vector_deg};
 use crate::geometry::{CellFrames, Pose};
-use nalgebra::Point3;
+use nalgebra::{Matrix6, Point3, Vector3};
 
 /// Smallest outlier rejection threshold, mm.
 const MIN_REJECTION_MM: f64 = 0.05;
@@ -20,7 +21,11 @@ pub struct StateEstimator {
     c1_m: Pose,
     /// {F} in {C2}.
     c2_f: Pose,
+    /// Rejection threshold at the data sheet's noise, mm.
     reject_above_mm: f64,
+    /// The data sheet's per-axis point σ: `noise_base_mm + noise_per_m_mm × range (m)`.
+    noise_base_mm: f64,
+    noise_per_m_mm: f64,
 }
 
 /// One state estimate.
@@ -37,6 +42,21 @@ pub struct Measurement {
     pub fit_c1: FrameFit,
     /// Fit of {C2} in {W}, likewise.
     pub fit_c2: FrameFit,
+    /// Covariance of the errors of `m_f` at the data sheet's noise (noise scale 1), ordered
+    /// `(δP mm, δO rad)` in {M} (see `uncertainty::relative_covariance`).
+    pub covariance: Matrix6<f64>,
+    /// Both fits' residuals, each squared and divided by its point's data-sheet variance, summed.
+    pub residual_squares: f64,
+    /// Degrees of freedom of those residuals (`3n − 6` per fixture).
+    pub residual_dof: usize,
+}
+
+/// One fixture's fit with what its uncertainty needs.
+struct FixtureFit {
+    fit: FrameFit,
+    covariance: FixtureCovariance,
+    residual_squares: f64,
+    residual_dof: usize,
 }
 
 impl StateEstimator {
@@ -50,36 +70,61 @@ impl StateEstimator {
             c1_m: frames.m_c1.inverse(),
             c2_f: frames.f_c2.inverse(),
             reject_above_mm: (cell.camera.outlier_rejection_sigmas * sigma).max(MIN_REJECTION_MM),
+            noise_base_mm: cell.camera.noise_base_mm,
+            noise_per_m_mm: cell.camera.noise_per_m_mm,
         }
     }
 
-    /// The residual above which a coded point is rejected, mm.
+    /// The residual above which a coded point is rejected at the data sheet's noise, mm.
     pub fn rejection_threshold_mm(&self) -> f64 {
         self.reject_above_mm
     }
 
-    /// Estimates the segment poses from one capture. Points with non-finite coordinates or
-    /// unknown ids are dropped; a fixture with fewer than 3 usable points, or whose points
-    /// are collinear, is an error.
-    pub fn estimate(&self, frame: &CameraFrame) -> Result<Measurement, CameraError> {
-        let fit_c1 = self.fit_fixture(frame, Fixture::C1)?;
-        let fit_c2 = self.fit_fixture(frame, Fixture::C2)?;
-        let w_m = fit_c1.pose * self.c1_m;
-        let w_f = fit_c2.pose * self.c2_f;
+    /// The data sheet's per-axis σ of a point at `position` in {W}, mm.
+    fn sheet_sigma_mm(&self, position: &Point3<f64>) -> f64 {
+        self.noise_base_mm + self.noise_per_m_mm * position.coords.norm() / 1000.0
+    }
+
+    /// Estimates the segment poses from one capture. `noise_scale` is how noisy the camera is
+    /// believed to be (× the data sheet): the outlier rejection threshold grows with it. Points
+    /// with non-finite coordinates or unknown ids are dropped; a fixture with fewer than 3
+    /// usable points, or whose points are collinear, is an error.
+    pub fn estimate(
+        &self,
+        frame: &CameraFrame,
+        noise_scale: f64,
+    ) -> Result<Measurement, CameraError> {
+        let reject_above_mm = self.reject_above_mm * noise_scale.max(1.0);
+        let c1 = self.fit_fixture(frame, Fixture::C1, reject_above_mm)?;
+        let c2 = self.fit_fixture(frame, Fixture::C2, reject_above_mm)?;
+        let w_m = c1.fit.pose * self.c1_m;
+        let w_f = c2.fit.pose * self.c2_f;
         let m_f = w_m.inverse() * w_f;
         if !(is_finite(&w_m) && is_finite(&w_f) && is_finite(&m_f)) {
+            return Err(CameraError::NonFinite);
+        }
+        let covariance = relative_covariance(&w_m, &m_f, &c1.covariance, &c2.covariance);
+        if covariance.iter().any(|v| !v.is_finite()) {
             return Err(CameraError::NonFinite);
         }
         Ok(Measurement {
             w_m,
             w_f,
             m_f,
-            fit_c1,
-            fit_c2,
+            fit_c1: c1.fit,
+            fit_c2: c2.fit,
+            covariance,
+            residual_squares: c1.residual_squares + c2.residual_squares,
+            residual_dof: c1.residual_dof + c2.residual_dof,
         })
     }
 
-    fn fit_fixture(&self, frame: &CameraFrame, fixture: Fixture) -> Result<FrameFit, CameraError> {
+    fn fit_fixture(
+        &self,
+        frame: &CameraFrame,
+        fixture: Fixture,
+        reject_above_mm: f64,
+    ) -> Result<FixtureFit, CameraError> {
         let layout = match fixture {
             Fixture::C1 => &self.c1_model,
             Fixture::C2 => &self.c2_model,
@@ -111,10 +156,35 @@ impl StateEstimator {
             measured[usable] = *p;
             usable += 1;
         }
-        let mut fit = fit_frame(&model[..usable], &measured[..usable], self.reject_above_mm)
+        let mut fit = fit_frame(&model[..usable], &measured[..usable], reject_above_mm)
             .map_err(|source| CameraError::Fixture { fixture, source })?;
+        // The fitted positions of the points used, their data-sheet σ and residuals.
+        let mut fitted = [Point3::origin(); MAX_FIT_POINTS];
+        let mut sigmas = [0.0; MAX_FIT_POINTS];
+        let mut count = 0;
+        let mut residual_squares = 0.0;
+        for i in (0..usable).filter(|i| fit.inliers & (1u64 << i) != 0) {
+            fitted[count] = fit.pose * model[i];
+            sigmas[count] = self.sheet_sigma_mm(&fitted[count]);
+            residual_squares += (measured[i] - fitted[count]).norm_squared() / sigmas[count].powi(2);
+            count += 1;
+        }
+        let centre = Point3::from(
+            fitted[..count].iter().map(|p| p.coords).sum::<Vector3<f64>>() / count as f64,
+        );
+        let covariance = fit_covariance(&fitted[..count], &sigmas[..count], &centre).ok_or(
+            CameraError::Fixture {
+                fixture,
+                source: FitError::Degenerate,
+            },
+        )?;
         fit.rejected += dropped;
-        Ok(fit)
+        Ok(FixtureFit {
+            fit,
+            covariance: FixtureCovariance { covariance, centre },
+            residual_squares,
+            residual_dof: 3 * count - 6,
+        })
     }
 }
 
@@ -167,6 +237,7 @@ mod tests {
             max_residual_mm: 0.0,
             used: 6,
             rejected: 0,
+            inliers: 0b11_1111,
         }
     }
 
@@ -184,6 +255,9 @@ mod tests {
             m_f,
             fit_c1: dummy_fit(w_m),
             fit_c2: dummy_fit(w_f),
+            covariance: Matrix6::identity(),
+            residual_squares: 0.0,
+            residual_dof: 24,
         };
         let s = m.state(45.0);
         let expected = [
@@ -219,7 +293,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let frame = camera.capture(&w_m, &w_f, &mut rng);
         assert_eq!(frame.points.len(), 12);
-        let m = estimator.estimate(&frame).unwrap();
+        let m = estimator.estimate(&frame, 1.0).unwrap();
         assert!((m.w_m.translation.vector - w_m.translation.vector).norm() < 1e-9);
         assert!((m.w_m.inverse() * w_m).rotation.angle() < 1e-12);
         assert!((m.w_f.inverse() * w_f).rotation.angle() < 1e-12);
@@ -235,7 +309,7 @@ mod tests {
         let mut frame = camera.capture(&w_m, &w_f, &mut rng);
         frame.points[1].position_mm.y = f64::NAN;
         frame.points[7].position_mm.z = f64::INFINITY;
-        let m = estimator.estimate(&frame).unwrap();
+        let m = estimator.estimate(&frame, 1.0).unwrap();
         assert_eq!((m.fit_c1.used, m.fit_c1.rejected), (5, 1));
         assert_eq!((m.fit_c2.used, m.fit_c2.rejected), (5, 1));
         assert!(m.state(45.0).iter().all(|v| v.is_finite()));
@@ -251,7 +325,7 @@ mod tests {
         {
             p.position_mm.x = f64::NAN;
         }
-        let err = estimator.estimate(&frame).unwrap_err();
+        let err = estimator.estimate(&frame, 1.0).unwrap_err();
         assert_eq!(
             err,
             CameraError::Fixture {
@@ -277,10 +351,10 @@ mod tests {
             id: 999,
             position_mm: Point3::origin(),
         });
-        let m = estimator.estimate(&frame).unwrap();
+        let m = estimator.estimate(&frame, 1.0).unwrap();
         assert_eq!((m.fit_c2.used, m.fit_c2.rejected), (6, 1));
         frame.points.retain(|p| p.fixture == Fixture::C1);
-        let err = estimator.estimate(&frame).unwrap_err();
+        let err = estimator.estimate(&frame, 1.0).unwrap_err();
         assert!(
             err.to_string()
                 .starts_with("fixture C2: only 0 coded points")

@@ -1,46 +1,55 @@
-//! State fusion: the cell's estimate of {F} in {M} from the camera's frames and the robot's own
-//! commanded moves. One frame alone is noisy (σ ≈ 0.023 mm per axis of P against a 0.05 mm
-//! radial clearance); the cell predicts each commanded move, blends each new frame in, and learns
-//! how the robot really moves sideways per mm commanded (its calibration error bends every move
-//! the same way). The state vector, the supervisor and every controller use this estimate.
+//! State fusion: the cell's estimate of {F} in {M}, with its uncertainty, from the camera's
+//! frames and the robot's own commanded moves (docs/estimation.md). One frame alone is noisy
+//! (σ ≈ 0.02 mm per axis of P at the data sheet's noise, against a 0.05 mm radial clearance);
+//! the cell predicts each commanded move, blends each new frame in by its own covariance, and
+//! learns how the robot really moves sideways per mm commanded (its calibration error bends
+//! every move the same way). The state vector, the supervisor and every controller use it.
 //!
 //! Position P: per lateral axis a four-state Kalman filter over the offset (mm) and the sideways
 //! drift per mm commanded along x, y and z of {M}; the axial component has a one-state filter.
-//! Orientation O: predicted, then blended with a fixed gain. A frame that disagrees with the
-//! estimate by more than the jump thresholds is held back, not blended: one gross frame (an
-//! outlier the point fit let through) must not throw away what the filter has learned. Only a
-//! second frame that agrees with the held one, or the first frame of an episode, resets the
-//! estimate to the measurement (keeping the learned drift).
+//! Orientation O: a one-state Kalman filter per axis of {M} over the rotation error (rad). Each
+//! frame comes with its covariance (the fits' covariance at the data sheet's noise × the noise
+//! the camera is seen to have, `uncertainty::NoiseScale`), so the filter's covariance follows
+//! the real noise.
+//!
+//! A frame whose innovation is beyond [`FusionTuning::gross_sigmas`] σ in any component is
+//! held back, not blended: one gross frame must not throw away what the filter has learned. A
+//! second frame that agrees with the held one is a confirmed jump: the estimate starts again
+//! from it and the caller is told ([`Fusion::Jumped`]), for the robot did not move that way.
 
-use crate::geometry::Move;
-use crate::geometry::pose::{self, Pose};
-use nalgebra::{Matrix2x3, Matrix4, RowVector3, Vector3, Vector4};
+use crate::geometry::pose::Pose;
+use crate::geometry::{Belief, Move, PoseSd};
+use nalgebra::{Matrix2x3, Matrix3, Matrix4, Matrix6, RowVector3, UnitQuaternion, Vector3, Vector4};
 
-/// Filter settings; the defaults suit the reference camera (σ ≈ 0.024 mm and 0.013 deg per frame).
+/// Filter settings. The move errors suit the reference robot (0.5 µm leg resolution and error,
+/// joint centres within 0.5 mm of nominal) with room for three times its calibration error.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FusionTuning {
-    /// σ of one measured P component (mm).
-    pub measurement_sd_mm: f64,
-    /// Weight of a new measured orientation.
-    pub orientation_gain: f64,
-    /// Relative error of an executed axial move (per mm moved).
+    /// Relative error of an executed move along the shaft's axis (σ per mm moved).
     pub move_error_per_mm: f64,
+    /// Position error of any executed move that no drift explains (σ per axis, mm): the legs'
+    /// resolution and random error.
+    pub move_error_floor_mm: f64,
     /// Prior σ of the sideways drift per mm commanded.
     pub drift_prior_sd: f64,
-    /// Disagreements beyond these reset the estimate to the measurement.
-    pub jump_mm: f64,
-    pub jump_deg: f64,
+    /// Rotation error of an executed move: σ (rad) per rad turned, per mm moved, and per move.
+    pub rotation_error_per_rad: f64,
+    pub rotation_error_per_mm: f64,
+    pub rotation_error_floor_rad: f64,
+    /// A frame whose innovation is beyond this many σ in any component is held back.
+    pub gross_sigmas: f64,
 }
 
 impl Default for FusionTuning {
     fn default() -> Self {
         FusionTuning {
-            measurement_sd_mm: 0.03,
-            orientation_gain: 0.35,
-            move_error_per_mm: 2e-3,
-            drift_prior_sd: 0.002,
-            jump_mm: 0.5,
-            jump_deg: 0.3,
+            move_error_per_mm: 3e-3,
+            move_error_floor_mm: 1e-3,
+            drift_prior_sd: 0.004,
+            rotation_error_per_rad: 5e-3,
+            rotation_error_per_mm: 1e-5,
+            rotation_error_floor_rad: 5e-6,
+            gross_sigmas: 6.0,
         }
     }
 }
@@ -60,8 +69,14 @@ pub struct StateFilter {
     m_f: Option<Pose>,
     lateral: [LateralFilter; 2],
     axial_variance: f64,
+    /// Variance of the rotation error about x, y and z of {M} (rad²).
+    rotation_variance: Vector3<f64>,
     /// The last frame that disagreed with the estimate, carried along by the moves since.
     held_back: Option<Pose>,
+    /// The camera's point noise as a multiple of its data sheet, as ingestion last learned it.
+    noise_scale: f64,
+    /// Normalised innovation squared of the last frame blended in (6 components).
+    last_nis: Option<f64>,
 }
 
 /// What [`StateFilter::update`] made of a frame.
@@ -69,16 +84,19 @@ pub struct StateFilter {
 pub enum Fusion {
     /// Blended into the estimate.
     Blended,
-    /// The estimate starts again from this frame: the first of an episode, or one that confirms
-    /// a held-back jump.
+    /// The estimate starts from this frame: the first of an episode.
     Reset,
-    /// Held back: it disagrees with the estimate by this much, and no earlier frame confirms it.
-    HeldBack { gap_mm: f64, gap_deg: f64 },
+    /// Held back: its innovation is this many σ (the largest component), and no earlier frame
+    /// confirms it.
+    HeldBack { sigmas: f64 },
+    /// A second frame confirmed a jump of this many σ that no commanded move explains; the
+    /// estimate starts again from it.
+    Jumped { sigmas: f64 },
 }
 
 impl StateFilter {
     pub fn new(tuning: FusionTuning) -> Self {
-        let mut tracker = StateFilter {
+        let mut filter = StateFilter {
             tuning,
             m_f: None,
             lateral: [LateralFilter {
@@ -86,15 +104,19 @@ impl StateFilter {
                 covariance: Matrix4::zeros(),
             }; 2],
             axial_variance: 0.0,
+            rotation_variance: Vector3::zeros(),
             held_back: None,
+            noise_scale: 1.0,
+            last_nis: None,
         };
-        tracker.reset();
-        tracker
+        filter.reset();
+        filter
     }
 
     pub fn reset(&mut self) {
         self.m_f = None;
         self.held_back = None;
+        self.last_nis = None;
         let drift_variance = self.tuning.drift_prior_sd.powi(2);
         for filter in &mut self.lateral {
             filter.state = Vector4::zeros();
@@ -118,6 +140,7 @@ impl StateFilter {
             *held = executed.as_pose().inverse() * *held;
         }
         let commanded = executed.translation_mm;
+        let floor = t.move_error_floor_mm.powi(2);
         for (axis, filter) in self.lateral.iter_mut().enumerate() {
             // The true move carries drift · command on top of the command.
             let drift = Vector3::new(filter.state[1], filter.state[2], filter.state[3]);
@@ -127,63 +150,87 @@ impl StateFilter {
             f[(0, 2)] = -commanded.y;
             f[(0, 3)] = -commanded.z;
             filter.covariance = f * filter.covariance * f.transpose()
-                + Matrix4::from_diagonal(&Vector4::new(1e-8, 1e-12, 1e-12, 1e-12));
+                + Matrix4::from_diagonal(&Vector4::new(floor, 1e-12, 1e-12, 1e-12));
             filter.state[0] = m_f.translation.vector[axis];
         }
-        self.axial_variance += (t.move_error_per_mm * commanded.norm()).powi(2) + 1e-8;
+        self.axial_variance += (t.move_error_per_mm * commanded.norm()).powi(2) + floor;
+        let turn = rotation_error_sd(&t, executed);
+        self.rotation_variance += Vector3::repeat(turn * turn);
     }
 
-    /// Takes in a new measurement of {F} in {M}: blends it in, starts again from it, or holds
-    /// it back (see the module's comment).
-    pub fn update(&mut self, measured: &Pose) -> Fusion {
-        let t = self.tuning;
-        let r = t.measurement_sd_mm.powi(2);
+    /// Takes in a new measurement of {F} in {M} with the covariance of its errors, ordered
+    /// `(δP mm, δO rad)` (the camera's noise already applied): blends it in, starts again from
+    /// it, or holds it back (see the module's comment).
+    pub fn update(&mut self, measured: &Pose, covariance: &Matrix6<f64>) -> Fusion {
+        let r = covariance.diagonal();
         let Some(predicted) = self.m_f else {
-            self.set_to(*measured, r);
+            self.set_to(*measured, covariance);
             return Fusion::Reset;
         };
-        let (gap_mm, gap_deg) = gap(&predicted, measured);
-        if gap_mm > t.jump_mm || gap_deg > t.jump_deg {
+        let innovation = difference(measured, &predicted);
+        let prior = [
+            self.lateral[0].covariance[(0, 0)],
+            self.lateral[1].covariance[(0, 0)],
+            self.axial_variance,
+            self.rotation_variance.x,
+            self.rotation_variance.y,
+            self.rotation_variance.z,
+        ];
+        let spread: [f64; 6] = std::array::from_fn(|i| prior[i] + r[i]);
+        let sigmas = (0..6)
+            .map(|i| innovation[i].abs() / spread[i].sqrt())
+            .fold(0.0, f64::max);
+        if !(sigmas <= self.tuning.gross_sigmas) {
+            let gross = self.tuning.gross_sigmas;
             let confirmed = self.held_back.is_some_and(|held| {
-                let (mm, deg) = gap(&held, measured);
-                mm <= t.jump_mm && deg <= t.jump_deg
+                let gap = difference(measured, &held);
+                (0..6).all(|i| gap[i].abs() <= gross * (2.0 * r[i]).sqrt())
             });
             if confirmed {
-                self.set_to(*measured, r);
-                return Fusion::Reset;
+                self.set_to(*measured, covariance);
+                return Fusion::Jumped { sigmas };
             }
             self.held_back = Some(*measured);
-            return Fusion::HeldBack { gap_mm, gap_deg };
+            return Fusion::HeldBack { sigmas };
         }
         self.held_back = None;
-        let mut blended = pose::interpolate(&predicted, measured, t.orientation_gain);
+        self.last_nis = Some((0..6).map(|i| innovation[i].powi(2) / spread[i]).sum());
+        let mut fused = predicted;
         for (axis, filter) in self.lateral.iter_mut().enumerate() {
-            let innovation = measured.translation.vector[axis] - filter.state[0];
             let p = filter.covariance;
-            let gain: Vector4<f64> = p.column(0) / (p[(0, 0)] + r);
-            filter.state += gain * innovation;
+            let gain: Vector4<f64> = p.column(0) / (p[(0, 0)] + r[axis]);
+            filter.state += gain * innovation[axis];
             filter.covariance = (Matrix4::identity() - gain * Vector4::x().transpose()) * p;
-            blended.translation.vector[axis] = filter.state[0];
+            fused.translation.vector[axis] = filter.state[0];
         }
-        let gain = self.axial_variance / (self.axial_variance + r);
-        blended.translation.vector.z = predicted.translation.vector.z
-            + gain * (measured.translation.vector.z - predicted.translation.vector.z);
+        let gain = self.axial_variance / (self.axial_variance + r[2]);
+        fused.translation.vector.z += gain * innovation[2];
         self.axial_variance *= 1.0 - gain;
-        self.m_f = Some(blended);
+        let mut turn = Vector3::zeros();
+        for axis in 0..3 {
+            let v = self.rotation_variance[axis];
+            let gain = v / (v + r[3 + axis]);
+            turn[axis] = gain * innovation[3 + axis];
+            self.rotation_variance[axis] = v * (1.0 - gain);
+        }
+        fused.rotation = UnitQuaternion::from_scaled_axis(turn) * predicted.rotation;
+        self.m_f = Some(fused);
         Fusion::Blended
     }
 
     /// Starts again from a measurement, keeping the learned drift.
-    fn set_to(&mut self, measured: Pose, variance: f64) {
+    fn set_to(&mut self, measured: Pose, covariance: &Matrix6<f64>) {
         for (axis, filter) in self.lateral.iter_mut().enumerate() {
             filter.state[0] = measured.translation.vector[axis];
             for k in 1..4 {
                 filter.covariance[(0, k)] = 0.0;
                 filter.covariance[(k, 0)] = 0.0;
             }
-            filter.covariance[(0, 0)] = variance;
+            filter.covariance[(0, 0)] = covariance[(axis, axis)];
         }
-        self.axial_variance = variance;
+        self.axial_variance = covariance[(2, 2)];
+        self.rotation_variance =
+            Vector3::new(covariance[(3, 3)], covariance[(4, 4)], covariance[(5, 5)]);
         self.m_f = Some(measured);
         self.held_back = None;
     }
@@ -193,11 +240,49 @@ impl StateFilter {
         self.m_f
     }
 
+    /// The estimate with its uncertainty, once there is one.
+    pub fn belief(&self) -> Option<FilterBelief<'_>> {
+        self.m_f.map(|m_f| FilterBelief { filter: self, m_f })
+    }
+
+    /// σ of the estimate's errors.
+    pub fn sd(&self) -> PoseSd {
+        let v = self.rotation_variance;
+        PoseSd {
+            lateral_mm: self.lateral_sd_mm(),
+            axial_mm: self.axial_variance.max(0.0).sqrt(),
+            tilt_rad: v.x.max(v.y).max(0.0).sqrt(),
+            twist_rad: v.z.max(0.0).sqrt(),
+        }
+    }
+
+    /// σ of the error an executed `step` adds: the drift not yet learned, the execution error.
+    pub fn sd_added_by(&self, step: &Move) -> PoseSd {
+        let t = &self.tuning;
+        let c = step.translation_mm;
+        let floor = t.move_error_floor_mm.powi(2);
+        let lateral = self
+            .lateral
+            .iter()
+            .map(|f| {
+                let drift: Matrix3<f64> = f.covariance.fixed_view::<3, 3>(1, 1).into_owned();
+                ((c.transpose() * drift * c)[(0, 0)] + floor).max(0.0).sqrt()
+            })
+            .fold(0.0, f64::max);
+        let turn = rotation_error_sd(t, step);
+        PoseSd {
+            lateral_mm: lateral,
+            axial_mm: ((t.move_error_per_mm * c.norm()).powi(2) + floor).sqrt(),
+            tilt_rad: turn,
+            twist_rad: turn,
+        }
+    }
+
     /// σ of the lateral offset estimate (mm), the larger of the two axes.
     pub fn lateral_sd_mm(&self) -> f64 {
         self.lateral
             .iter()
-            .map(|f| f.covariance[(0, 0)].sqrt())
+            .map(|f| f.covariance[(0, 0)].max(0.0).sqrt())
             .fold(0.0, f64::max)
     }
 
@@ -221,20 +306,93 @@ impl StateFilter {
         let row = |f: &LateralFilter| RowVector3::new(f.state[1], f.state[2], f.state[3]);
         Matrix2x3::from_rows(&[row(&self.lateral[0]), row(&self.lateral[1])])
     }
+
+    /// Variances of the estimate's errors, ordered `(δP mm², δO rad²)` per axis of {M}.
+    pub fn variances(&self) -> [f64; 6] {
+        [
+            self.lateral[0].covariance[(0, 0)],
+            self.lateral[1].covariance[(0, 0)],
+            self.axial_variance,
+            self.rotation_variance.x,
+            self.rotation_variance.y,
+            self.rotation_variance.z,
+        ]
+    }
+
+    /// The normalised estimation error squared against the true {F} in {M} (6 components, the
+    /// cross-axis correlations left out; its mean is 6 when the covariance is right). `None`
+    /// before the first estimate.
+    pub fn nees(&self, truth: &Pose) -> Option<[f64; 6]> {
+        let error = difference(&self.m_f?, truth);
+        let v = self.variances();
+        Some(std::array::from_fn(|i| error[i] * error[i] / v[i]))
+    }
+
+    /// The camera's point noise as a multiple of its data sheet, as last learned.
+    pub fn noise_scale(&self) -> f64 {
+        self.noise_scale
+    }
+
+    pub fn set_noise_scale(&mut self, scale: f64) {
+        self.noise_scale = scale;
+    }
+
+    /// Normalised innovation squared of the last frame blended in (6 components; its mean is
+    /// 6 when the filter's covariance is right).
+    pub fn last_nis(&self) -> Option<f64> {
+        self.last_nis
+    }
 }
 
-/// How far apart two estimates of {F} in {M} are (mm, deg).
-fn gap(a: &Pose, b: &Pose) -> (f64, f64) {
-    (
-        (b.translation.vector - a.translation.vector).norm(),
-        b.rotation.angle_to(&a.rotation).to_degrees(),
-    )
+/// The filter's estimate as a [`Belief`] for the supervisor.
+#[derive(Debug, Clone, Copy)]
+pub struct FilterBelief<'a> {
+    filter: &'a StateFilter,
+    m_f: Pose,
+}
+
+impl Belief for FilterBelief<'_> {
+    fn m_f(&self) -> Pose {
+        self.m_f
+    }
+
+    fn sd(&self) -> PoseSd {
+        self.filter.sd()
+    }
+
+    fn sd_added_by(&self, step: &Move) -> PoseSd {
+        self.filter.sd_added_by(step)
+    }
+}
+
+/// σ (rad, per axis) of the rotation error an executed move adds.
+fn rotation_error_sd(t: &FusionTuning, step: &Move) -> f64 {
+    t.rotation_error_per_rad * step.rotation_deg.norm().to_radians()
+        + t.rotation_error_per_mm * step.translation_mm.norm()
+        + t.rotation_error_floor_rad
+}
+
+/// `a` against `b` as `(δP mm, δO rad)`: the position difference and the rotation taking `b`'s
+/// orientation to `a`'s, on the left.
+fn difference(a: &Pose, b: &Pose) -> [f64; 6] {
+    let dp = a.translation.vector - b.translation.vector;
+    let turn = (a.rotation * b.rotation.inverse()).scaled_axis();
+    [dp.x, dp.y, dp.z, turn.x, turn.y, turn.z]
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::geometry::pose::pose_from_mm_deg;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, StandardNormal};
+
+    /// A measurement covariance: σ mm per position axis, σ_deg per rotation axis.
+    fn covariance(sd_mm: f64, sd_deg: f64) -> Matrix6<f64> {
+        let (p, o) = (sd_mm * sd_mm, sd_deg.to_radians().powi(2));
+        Matrix6::from_diagonal(&nalgebra::Vector6::new(p, p, p, o, o, o))
+    }
 
     fn measured(p: [f64; 3]) -> Pose {
         pose_from_mm_deg(Vector3::from(p), Vector3::zeros())
@@ -242,72 +400,83 @@ mod tests {
 
     #[test]
     fn predicts_moves_and_averages_agreeing_measurements() {
+        let r = covariance(0.03, 0.013);
         let mut filter = StateFilter::new(FusionTuning::default());
-        filter.update(&measured([1.0, 0.0, -10.0]));
+        assert_eq!(filter.update(&measured([1.0, 0.0, -10.0]), &r), Fusion::Reset);
+        assert!((filter.sd().lateral_mm - 0.03).abs() < 1e-12);
         // Move 1 mm in x: predicted P_x = 0; a measurement of 0.1 pulls the estimate part-way.
         filter.predict(&Move::translation(1.0, 0.0, 0.0));
-        filter.update(&measured([0.1, 0.0, -10.0]));
+        assert_eq!(filter.update(&measured([0.1, 0.0, -10.0]), &r), Fusion::Blended);
         let p = filter.m_f().unwrap().translation.vector;
         assert!(p.x > 0.0 && p.x < 0.1, "{p}");
-        // A 3 mm surprise is held back; a second frame that agrees with it resets to it.
+        assert!(filter.sd().lateral_mm < 0.03);
+        // A 3 mm surprise is held back; a second frame that agrees with it is a jump.
         let before = filter.m_f();
         assert!(matches!(
-            filter.update(&measured([3.0, 0.0, -10.0])),
-            Fusion::HeldBack { gap_mm, .. } if (gap_mm - 2.9).abs() < 0.1
+            filter.update(&measured([3.0, 0.0, -10.0]), &r),
+            Fusion::HeldBack { sigmas } if sigmas > 50.0
         ));
         assert_eq!(filter.m_f(), before);
-        assert_eq!(filter.update(&measured([3.01, 0.0, -10.0])), Fusion::Reset);
+        assert!(matches!(
+            filter.update(&measured([3.01, 0.0, -10.0]), &r),
+            Fusion::Jumped { .. }
+        ));
         assert!((filter.m_f().unwrap().translation.vector.x - 3.01).abs() < 1e-12);
     }
 
     #[test]
     fn one_gross_frame_leaves_the_estimate_and_its_certainty_alone() {
-        // Twenty agreeing frames make the estimate sure; one frame 1 mm and 0.5 deg off between
-        // them is held back each time, and the estimate goes on as if it had not come.
+        let r = covariance(0.03, 0.013);
         let steady = measured([0.02, -0.01, -30.0]);
         let gross = pose_from_mm_deg(Vector3::new(1.0, -0.01, -30.0), Vector3::new(0.5, 0.0, 0.0));
         let mut clean = StateFilter::new(FusionTuning::default());
         let mut disturbed = StateFilter::new(FusionTuning::default());
         for i in 0..20 {
-            clean.update(&steady);
-            disturbed.update(&steady);
+            clean.update(&steady, &r);
+            disturbed.update(&steady, &r);
             if i % 5 == 4 {
-                let verdict = disturbed.update(&gross);
-                assert!(matches!(verdict, Fusion::HeldBack { gap_deg, .. } if gap_deg > 0.49));
+                let verdict = disturbed.update(&gross, &r);
+                assert!(matches!(verdict, Fusion::HeldBack { .. }), "{verdict:?}");
             }
         }
         assert_eq!(disturbed.m_f(), clean.m_f());
-        assert_eq!(disturbed.lateral_sd_mm(), clean.lateral_sd_mm());
-        assert!(clean.lateral_sd_mm() < 0.01, "{}", clean.lateral_sd_mm());
+        assert_eq!(disturbed.sd(), clean.sd());
+        // Twenty frames of σ 0.03 mm: σ 0.03/√20.
+        assert!((clean.lateral_sd_mm() - 0.03 / 20f64.sqrt()).abs() < 1e-6);
     }
 
     #[test]
     fn a_held_back_frame_is_carried_along_by_the_moves_until_confirmed() {
         // The part really is 2 mm further in x than estimated: the first frame is held back, the
-        // robot then moves 1 mm in x, and the next frame (1 mm from the first one as seen
-        // before the move, but where the first one says it should be now) confirms it.
+        // robot then moves 1 mm in x, and the next frame confirms it where the first one says it
+        // should be now.
+        let r = covariance(0.03, 0.013);
         let mut filter = StateFilter::new(FusionTuning::default());
-        filter.update(&measured([0.0, 0.0, -10.0]));
+        filter.update(&measured([0.0, 0.0, -10.0]), &r);
         assert!(matches!(
-            filter.update(&measured([2.0, 0.0, -10.0])),
+            filter.update(&measured([2.0, 0.0, -10.0]), &r),
             Fusion::HeldBack { .. }
         ));
         filter.predict(&Move::translation(1.0, 0.0, 0.0));
-        assert_eq!(filter.update(&measured([1.0, 0.0, -10.0])), Fusion::Reset);
+        assert!(matches!(
+            filter.update(&measured([1.0, 0.0, -10.0]), &r),
+            Fusion::Jumped { .. }
+        ));
         assert!((filter.m_f().unwrap().translation.vector.x - 1.0).abs() < 1e-12);
     }
 
     #[test]
     fn learns_a_steady_sideways_drift() {
         // Each Δz = −1 mm moves {M} an extra −0.002 mm in x, so P_x grows by 0.002.
+        let r = covariance(1e-3, 0.013);
         let mut filter = StateFilter::new(FusionTuning::default());
         let (mut truth_x, mut truth_z) = (0.0, -80.0);
-        filter.update(&measured([truth_x, 0.0, truth_z]));
+        filter.update(&measured([truth_x, 0.0, truth_z]), &r);
         for _ in 0..60 {
             filter.predict(&Move::translation(0.0, 0.0, -1.0));
             truth_x += 0.002;
             truth_z += 1.0;
-            filter.update(&measured([truth_x, 0.0, truth_z]));
+            filter.update(&measured([truth_x, 0.0, truth_z]), &r);
         }
         assert!(
             (filter.drift()[(0, 2)] - 0.002).abs() < 2e-4,
@@ -318,5 +487,53 @@ mod tests {
         assert!(filter.lateral_sd_mm() < 0.01);
         // Uncertainty grows with the length of the next axial move.
         assert!(filter.lateral_sd_after_mm(-5.0) > filter.lateral_sd_after_mm(-1.0));
+        assert!(
+            filter.sd_added_by(&Move::translation(0.0, 0.0, -5.0)).lateral_mm
+                > filter.sd_added_by(&Move::translation(0.0, 0.0, -1.0)).lateral_mm
+        );
+    }
+
+    #[test]
+    fn its_covariance_matches_the_spread_of_its_errors() {
+        // A still part seen through frames of known noise, and a part moved by a drifting robot:
+        // over many runs the estimate's error has the variance the filter claims, per axis.
+        for (sd_mm, sd_deg, drift) in [(0.01, 0.005, 0.0), (0.1, 0.05, 0.003)] {
+            let r = covariance(sd_mm, sd_deg);
+            let mut rng = ChaCha8Rng::seed_from_u64(5);
+            let runs = 4000;
+            let mut squares = [0.0; 6];
+            let mut claimed = [0.0; 6];
+            for _ in 0..runs {
+                let mut filter = StateFilter::new(FusionTuning::default());
+                let mut truth = pose_from_mm_deg(Vector3::new(0.0, 0.0, -60.0), Vector3::new(0.3, -0.2, 5.0));
+                for step in 0..25 {
+                    if step > 0 {
+                        let command = Move::translation(0.0, 0.0, 2.0);
+                        filter.predict(&command);
+                        truth = command.as_pose().inverse() * truth;
+                        truth.translation.vector.x -= drift * 2.0;
+                    }
+                    let noise: [f64; 6] = std::array::from_fn(|_| StandardNormal.sample(&mut rng));
+                    let mut seen = truth;
+                    seen.translation.vector += Vector3::new(noise[0], noise[1], noise[2]) * sd_mm;
+                    seen.rotation = UnitQuaternion::from_scaled_axis(
+                        Vector3::new(noise[3], noise[4], noise[5]) * sd_deg.to_radians(),
+                    ) * seen.rotation;
+                    filter.update(&seen, &r);
+                }
+                let error = difference(&filter.m_f().unwrap(), &truth);
+                let variances = filter.variances();
+                for i in 0..6 {
+                    squares[i] += error[i] * error[i];
+                    claimed[i] += variances[i];
+                }
+            }
+            for i in 0..6 {
+                let ratio = squares[i] / claimed[i];
+                // The claimed variance is never much below the truth (overconfident) and at most
+                // twice it (too cautious); 4000 runs resolve the ratio to about ±5%.
+                assert!((0.5..1.1).contains(&ratio), "σ {sd_mm} mm, axis {i}: error²/claimed {ratio:.3}");
+            }
+        }
     }
 }

@@ -2,6 +2,7 @@
 //! sees, one [`Shot`] in and one [`Estimate`] out. The twin's environment calls it inline; the
 //! service runs it on a thread of its own (`cell::ingestion`).
 
+use super::uncertainty::NoiseScale;
 use super::{
     CameraError, CameraFrame, Fusion, FusionTuning, StateEstimator, StateFilter, state_vector,
 };
@@ -43,6 +44,8 @@ pub struct Estimate {
 pub struct Ingest {
     estimator: StateEstimator,
     filter: StateFilter,
+    /// How noisy the camera really is, learned from each frame's fit residuals.
+    noise: NoiseScale,
     hole_pitch_deg: f64,
     state: [f64; 12],
     raw_state: [f64; 12],
@@ -54,6 +57,7 @@ impl Ingest {
         Ingest {
             estimator: StateEstimator::new(cell, frames),
             filter: StateFilter::new(FusionTuning::default()),
+            noise: NoiseScale::default(),
             hole_pitch_deg: cell.hole_pitch_deg(),
             state: [0.0; 12],
             raw_state: [0.0; 12],
@@ -83,6 +87,8 @@ impl Ingest {
     /// Forgets everything: a new episode starts blind.
     fn reset(&mut self) {
         self.filter.reset();
+        self.noise = NoiseScale::default();
+        self.filter.set_noise_scale(self.noise.scale());
         self.state = [0.0; 12];
         self.raw_state = [0.0; 12];
         self.estimated_m_f = None;
@@ -98,7 +104,7 @@ impl Ingest {
     /// and the state move on; on failure (no fit, or a frame the filter holds back) the state
     /// stays as it was and the estimate is stale (the supervisor then vetoes every move).
     fn ingest(&mut self, frame: &CameraFrame, remaining: Option<&Pose>) -> Result<(), CameraError> {
-        let mut measurement = match self.estimator.estimate(frame) {
+        let mut measurement = match self.estimator.estimate(frame, self.noise.scale()) {
             Ok(measurement) => measurement,
             Err(error) => {
                 self.estimated_m_f = None;
@@ -109,9 +115,13 @@ impl Ingest {
             measurement.w_m *= remaining;
             measurement.m_f = remaining.inverse() * measurement.m_f;
         }
-        if let Fusion::HeldBack { gap_mm, gap_deg } = self.filter.update(&measurement.m_f) {
+        self.noise
+            .add(measurement.residual_squares, measurement.residual_dof);
+        self.filter.set_noise_scale(self.noise.scale());
+        let covariance = measurement.covariance * self.noise.cautious_variance_factor();
+        if let Fusion::HeldBack { sigmas } = self.filter.update(&measurement.m_f, &covariance) {
             self.estimated_m_f = None;
-            return Err(CameraError::HeldBack { gap_mm, gap_deg });
+            return Err(CameraError::HeldBack { sigmas });
         }
         self.raw_state = measurement.state(self.hole_pitch_deg);
         let fused = self.filter.m_f().unwrap_or(measurement.m_f);

@@ -9,6 +9,7 @@ mod estimate;
 pub mod fusion;
 pub mod ingest;
 mod sim;
+pub mod uncertainty;
 
 pub use estimate::{Measurement, StateEstimator, state_vector};
 pub use fusion::{Fusion, FusionTuning, StateFilter};
@@ -61,9 +62,9 @@ pub enum CameraError {
     NonFinite,
     /// The frame disagrees with the fused estimate; held back until a second frame confirms it.
     #[error(
-        "the frame is {gap_mm:.3} mm and {gap_deg:.3} deg from the fused estimate: held back until the next frame confirms it"
+        "the frame is {sigmas:.1} σ from the fused estimate: held back until the next frame confirms it"
     )]
-    HeldBack { gap_mm: f64, gap_deg: f64 },
+    HeldBack { sigmas: f64 },
 }
 
 fn describe_fit_error(error: &FitError) -> String {

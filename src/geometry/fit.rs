@@ -31,6 +31,8 @@ pub struct FrameFit {
     pub used: usize,
     /// Points dropped as outliers.
     pub rejected: usize,
+    /// Bit i set: point i of the input was used in the final fit.
+    pub inliers: u64,
 }
 
 /// Why no frame could be fitted.
@@ -124,6 +126,7 @@ pub fn fit_frame(
             max_residual_mm,
             used,
             rejected: n - used,
+            inliers: mask,
         });
     }
 }
