@@ -55,7 +55,10 @@ fn the_covariance_is_consistent_across_noise_and_calibration() {
             assert!((3.0..=7.2).contains(&total), "{label}, sum {total:.2}");
             assert!(nees.iter().all(|&n| n <= 1.35), "{label}");
             // The noise it learned from the residuals is the camera's.
-            assert!((scale / noise - 1.0).abs() < 0.15, "{label}: learned ×{scale:.2}");
+            assert!(
+                (scale / noise - 1.0).abs() < 0.15,
+                "{label}: learned ×{scale:.2}"
+            );
         }
     }
 }

@@ -166,11 +166,16 @@ impl StateEstimator {
         for i in (0..usable).filter(|i| fit.inliers & (1u64 << i) != 0) {
             fitted[count] = fit.pose * model[i];
             sigmas[count] = self.sheet_sigma_mm(&fitted[count]);
-            residual_squares += (measured[i] - fitted[count]).norm_squared() / sigmas[count].powi(2);
+            residual_squares +=
+                (measured[i] - fitted[count]).norm_squared() / sigmas[count].powi(2);
             count += 1;
         }
         let centre = Point3::from(
-            fitted[..count].iter().map(|p| p.coords).sum::<Vector3<f64>>() / count as f64,
+            fitted[..count]
+                .iter()
+                .map(|p| p.coords)
+                .sum::<Vector3<f64>>()
+                / count as f64,
         );
         let covariance = fit_covariance(&fitted[..count], &sigmas[..count], &centre).ok_or(
             CameraError::Fixture {

@@ -176,8 +176,7 @@ mod tests {
 
     fn sample_covariance(samples: &[[f64; 6]]) -> Matrix6<f64> {
         let n = samples.len() as f64;
-        let mean: [f64; 6] =
-            std::array::from_fn(|i| samples.iter().map(|s| s[i]).sum::<f64>() / n);
+        let mean: [f64; 6] = std::array::from_fn(|i| samples.iter().map(|s| s[i]).sum::<f64>() / n);
         Matrix6::from_fn(|i, j| {
             samples
                 .iter()
@@ -203,7 +202,9 @@ mod tests {
         (0..6)
             .map(|k| {
                 let a = k as f64 * std::f64::consts::TAU / 6.0;
-                Point3::from(centre + Vector3::new(140.0 * a.cos(), 140.0 * a.sin(), 5.0 * (-1f64).powi(k)))
+                Point3::from(
+                    centre + Vector3::new(140.0 * a.cos(), 140.0 * a.sin(), 5.0 * (-1f64).powi(k)),
+                )
             })
             .collect()
     }
@@ -211,7 +212,10 @@ mod tests {
     #[test]
     fn fit_covariance_matches_monte_carlo() {
         let model = fixture(Vector3::zeros());
-        let truth = pose_from_mm_deg(Vector3::new(10.0, -2000.0, 300.0), Vector3::new(5.0, -20.0, 40.0));
+        let truth = pose_from_mm_deg(
+            Vector3::new(10.0, -2000.0, 300.0),
+            Vector3::new(5.0, -20.0, 40.0),
+        );
         let points: Vec<Point3<f64>> = model.iter().map(|p| truth * p).collect();
         let sigmas: Vec<f64> = (0..6).map(|k| 0.03 + 0.005 * k as f64).collect();
         let centre = Point3::from(points.iter().map(|p| p.coords).sum::<Vector3<f64>>() / 6.0);
@@ -222,15 +226,14 @@ mod tests {
                 let noisy: Vec<Point3<f64>> = points
                     .iter()
                     .zip(&sigmas)
-                    .map(|(p, s)| {
-                        p + Vector3::from_fn(|_, _| StandardNormal.sample(&mut rng)) * *s
-                    })
+                    .map(|(p, s)| p + Vector3::from_fn(|_, _| StandardNormal.sample(&mut rng)) * *s)
                     .collect();
                 let fit = fit_frame(&model, &noisy, f64::INFINITY).unwrap();
                 // The fit's error as a motion about the centre.
                 let error = fit.pose * truth.inverse();
                 let theta = error.rotation.scaled_axis();
-                let dt = error.translation.vector + (error.rotation * centre.coords - centre.coords);
+                let dt =
+                    error.translation.vector + (error.rotation * centre.coords - centre.coords);
                 [dt.x, dt.y, dt.z, theta.x, theta.y, theta.z]
             })
             .collect();
@@ -240,8 +243,14 @@ mod tests {
     #[test]
     fn relative_covariance_matches_monte_carlo() {
         // {M} and {F} about 2 m from the camera, 120 mm apart, each seen through a fixture.
-        let w_m = pose_from_mm_deg(Vector3::new(0.0, -2100.0, 60.0), Vector3::new(1.0, 0.5, 30.0));
-        let m_f = pose_from_mm_deg(Vector3::new(0.02, -0.01, -30.0), Vector3::new(0.1, -0.2, 3.0));
+        let w_m = pose_from_mm_deg(
+            Vector3::new(0.0, -2100.0, 60.0),
+            Vector3::new(1.0, 0.5, 30.0),
+        );
+        let m_f = pose_from_mm_deg(
+            Vector3::new(0.02, -0.01, -30.0),
+            Vector3::new(0.1, -0.2, 3.0),
+        );
         let w_f = w_m * m_f;
         let m_c1 = pose_from_mm_deg(Vector3::new(0.0, 0.0, 30.0), Vector3::zeros());
         let f_c2 = pose_from_mm_deg(Vector3::new(0.0, 0.0, -90.0), Vector3::zeros());
@@ -280,7 +289,10 @@ mod tests {
     #[test]
     fn noise_scale_learns_the_true_scale_from_residuals() {
         let model = fixture(Vector3::zeros());
-        let truth = pose_from_mm_deg(Vector3::new(0.0, -2000.0, 0.0), Vector3::new(0.0, 0.0, 10.0));
+        let truth = pose_from_mm_deg(
+            Vector3::new(0.0, -2000.0, 0.0),
+            Vector3::new(0.0, 0.0, 10.0),
+        );
         let sheet_sigma = 0.03;
         for true_scale in [0.25, 1.0, 4.0, 8.0] {
             let mut rng = ChaCha8Rng::seed_from_u64(13);
@@ -303,7 +315,11 @@ mod tests {
                 estimate.add(squares, 3 * 6 - 6);
             }
             let ratio = estimate.scale() / true_scale;
-            assert!((ratio - 1.0).abs() < 0.1, "scale {true_scale}: estimated {}", estimate.scale());
+            assert!(
+                (ratio - 1.0).abs() < 0.1,
+                "scale {true_scale}: estimated {}",
+                estimate.scale()
+            );
             assert!(estimate.cautious_variance_factor() > estimate.variance_factor());
         }
     }

@@ -184,12 +184,47 @@ pub fn clearance(geom: &PartGeometry, f_m: &Pose) -> Clearance {
 /// settled within 2048 sub-intervals or at half-width 1e-12 ends the search with its grown
 /// (pessimistic, ≤ 0) clearance, so running out of budget can only report contact, never hide one.
 pub fn clearance_along(geom: &PartGeometry, from: &Pose, to: &Pose) -> Clearance {
-    let mut acc = clearance(geom, to);
+    clearance_along_grown(geom, from, to, &Growth::default())
+}
+
+/// How far every point of Segment I may be from where its pose puts it (mm, in {F}): the
+/// envelope of the poses an uncertain estimate allows.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Growth {
+    /// Sideways (across the bore axis).
+    pub sideways_mm: f64,
+    /// Along the bore axis, for the shaft against the wall and the entrance face.
+    pub axial_mm: f64,
+    /// Along the bore axis, for the shoulder against the seating face.
+    pub seat_mm: f64,
+}
+
+/// The clearance of every pose within `growth` of `f_m`: a lower bound on the clearance of
+/// Segment I wherever its points lie within `growth` of where `f_m` puts them.
+pub fn clearance_grown(geom: &PartGeometry, f_m: &Pose, growth: &Growth) -> Clearance {
+    grown_clearance(
+        geom,
+        f_m,
+        growth.sideways_mm,
+        growth.axial_mm,
+        growth.seat_mm,
+    )
+}
+
+/// [`clearance_along`] for the shaft grown by `growth` at every pose of the move: a lower
+/// bound on the clearance along the move of any Segment I within `growth` of it.
+pub fn clearance_along_grown(
+    geom: &PartGeometry,
+    from: &Pose,
+    to: &Pose,
+    growth: &Growth,
+) -> Clearance {
+    let mut acc = clearance_grown(geom, to, growth);
     if !acc.is_clear() {
         return acc;
     }
     if let Some(s) = tip_crossing_fraction(geom, from, to) {
-        acc = acc.min_with(clearance(geom, &interpolate(from, to, s)));
+        acc = acc.min_with(clearance_grown(geom, &interpolate(from, to, s), growth));
         if !acc.is_clear() {
             return acc;
         }
@@ -212,7 +247,7 @@ pub fn clearance_along(geom: &PartGeometry, from: &Pose, to: &Pose) -> Clearance
         let mid = 0.5 * (a + b);
         let half = 0.5 * (b - a);
         let pose = interpolate(from, to, mid);
-        acc = acc.min_with(clearance(geom, &pose));
+        acc = acc.min_with(clearance_grown(geom, &pose, growth));
         if !acc.is_clear() {
             return acc;
         }
@@ -221,9 +256,9 @@ pub fn clearance_along(geom: &PartGeometry, from: &Pose, to: &Pose) -> Clearance
         let grown = grown_clearance(
             geom,
             &pose,
-            dt_xy * half + turn * reach_shaft + SWEEP_SLACK_MM,
-            dt_z * half + turn * reach_shaft + SWEEP_SLACK_MM,
-            dt_z * half + turn * reach_seat + SWEEP_SLACK_MM,
+            growth.sideways_mm + dt_xy * half + turn * reach_shaft + SWEEP_SLACK_MM,
+            growth.axial_mm + dt_z * half + turn * reach_shaft + SWEEP_SLACK_MM,
+            growth.seat_mm + dt_z * half + turn * reach_seat + SWEEP_SLACK_MM,
         );
         if grown.is_clear() {
             continue;

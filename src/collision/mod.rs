@@ -1,3 +1,4 @@
 pub mod clearance;
 pub mod obb;
+pub mod risk;
 pub mod supervisor;

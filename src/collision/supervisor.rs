@@ -1,17 +1,25 @@
 //! The collision supervisor: checks the pose a move would lead to *before* the robot sees it.
 //!
 //! Order of checks (cheapest and most fundamental first): finite numbers, step limits, a fresh
-//! measurement, reachability (IK, leg stroke, singularity) in the robot's nominal model, then the
-//! OBB broad phase (paper, 15 axes) and the exact shaft-in-bore clearance along the move. The
-//! answer is allow (with the target platform pose and leg lengths) or a veto with its reason.
+//! estimate, reachability (IK, leg stroke, singularity) in the robot's nominal model, then the
+//! OBB broad phase (paper, 15 axes) and the exact shaft-in-bore clearance along the move from
+//! the mean estimate, then the chance constraint: the move is allowed only if the probability
+//! of contact along it, under the estimate's distribution, is below the cell's bound
+//! (`supervisor.contact_risk_per_move`, docs/estimation.md). A move the cell cannot be sure
+//! enough of is refused as `uncertain`: the cell holds for more frames. The answer is allow
+//! (with the target platform pose and leg lengths) or a veto with its reason.
 //! The paper's rule lives with the caller: a vetoed move is dropped, the state is read again and a
 //! new move is asked for; too many vetoes in a row fail the episode.
 
-use super::clearance::{Clearance, ContactKind, PartGeometry, clearance, clearance_along};
+use super::clearance::{
+    Clearance, ContactKind, Growth, PartGeometry, clearance, clearance_along_grown, clearance_grown,
+};
 use super::obb::Obb;
+use super::risk;
 use crate::config::cell::CellConfig;
-use crate::geometry::{CellFrames, Move, Pose, pose};
+use crate::geometry::{Belief, CellFrames, Move, Pose, PoseSd, pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
+use nalgebra::Point3;
 use nalgebra::Vector3;
 
 /// Why a move was refused.
@@ -27,6 +35,15 @@ pub enum VetoReason {
     },
     #[error("no fresh camera measurement")]
     StaleMeasurement,
+    /// Not sure enough of the move: hold for more frames.
+    #[error(
+        "contact risk {risk:.1e} along the move is above the bound {bound:.0e} (clearance {clearance_mm:.4} mm by the estimate): holding for more frames"
+    )]
+    Uncertain {
+        risk: f64,
+        bound: f64,
+        clearance_mm: f64,
+    },
     #[error("unreachable: {0}")]
     Kinematics(KinematicsError),
     #[error("predicted {kind:?} contact: clearance {clearance_mm:.4} mm")]
@@ -51,6 +68,7 @@ impl VetoReason {
             VetoReason::NonFinite { .. } => "non_finite",
             VetoReason::StepLimit { .. } => "step_limit",
             VetoReason::StaleMeasurement => "stale_measurement",
+            VetoReason::Uncertain { .. } => "uncertain",
             VetoReason::Kinematics(e) => e.code(),
             VetoReason::Collision { .. } => "collision",
             VetoReason::WallMargin { .. } => "wall_margin",
@@ -73,8 +91,11 @@ pub struct Allowed {
     pub target_platform: Pose,
     pub legs_mm: [f64; 6],
     /// Smallest clearance (mm) found along the move after its start (the end pose, the entrance
-    /// crossing and the sub-moves examined); infinite when the parts are far apart.
+    /// crossing and the sub-moves examined), by the mean estimate; infinite when the parts are
+    /// far apart.
     pub clearance_mm: f64,
+    /// The estimated probability of contact along the move (see [`risk::contact_risk`]).
+    pub contact_risk: f64,
 }
 
 pub type Verdict = Result<Allowed, VetoReason>;
@@ -89,6 +110,10 @@ pub struct Supervisor {
     step_limit_mm: f64,
     step_limit_deg: f64,
     wall_margin_mm: f64,
+    /// The bound on the probability of contact per move.
+    risk_bound: f64,
+    /// How many σ of each error the envelope of [`Supervisor::growth`] spans for that bound.
+    sigmas: f64,
 }
 
 /// A move that keeps the wall gap where it was is not refused for closing it by rounding.
@@ -105,7 +130,14 @@ impl Supervisor {
             step_limit_mm: cell.steps.position_mm,
             step_limit_deg: cell.steps.orientation_deg,
             wall_margin_mm: cell.supervisor.wall_margin_mm,
+            risk_bound: cell.supervisor.contact_risk_per_move,
+            sigmas: risk::sigmas_for(cell.supervisor.contact_risk_per_move),
         }
+    }
+
+    /// The bound on the probability of contact per move.
+    pub fn risk_bound(&self) -> f64 {
+        self.risk_bound
     }
 
     pub fn parts(&self) -> &PartGeometry {
@@ -116,9 +148,9 @@ impl Supervisor {
         &self.bore_obb
     }
 
-    /// Checks `step`, given the robot's platform setpoint (in its nominal model) and the camera's
-    /// latest measurement of {F} in {M} (`None` when stale).
-    pub fn check(&self, setpoint: &Pose, measured_m_f: Option<&Pose>, step: &Move) -> Verdict {
+    /// Checks `step`, given the robot's platform setpoint (in its nominal model) and the cell's
+    /// latest estimate of {F} in {M} with its uncertainty (`None` when stale).
+    pub fn check(&self, setpoint: &Pose, belief: Option<&dyn Belief>, step: &Move) -> Verdict {
         if !step.is_finite() {
             return Err(VetoReason::NonFinite { what: "action" });
         }
@@ -138,8 +170,10 @@ impl Supervisor {
                 limit: self.step_limit_deg,
             });
         }
-        let m_f = measured_m_f.ok_or(VetoReason::StaleMeasurement)?;
-        if !pose::is_finite(m_f) {
+        let belief = belief.ok_or(VetoReason::StaleMeasurement)?;
+        let m_f = belief.m_f();
+        let sd = belief.sd().max(&belief.sd_after(step));
+        if !pose::is_finite(&m_f) || !sd.is_finite() {
             return Err(VetoReason::NonFinite {
                 what: "measurement",
             });
@@ -157,17 +191,83 @@ impl Supervisor {
             .map_err(VetoReason::Kinematics)?;
         let from = m_f.inverse();
         let to = from * step_pose;
-        let clearance_mm = self.predicted_clearance(&from, &to)?;
+        let along = self.predicted_clearance(&from, &to)?;
+        let contact_risk = self.judge_risk(&from, &to, &along, &sd)?;
         Ok(Allowed {
             target_platform,
             legs_mm,
-            clearance_mm,
+            clearance_mm: along.min_mm(),
+            contact_risk,
         })
     }
 
-    /// The predicted clearance along the move, vetoing a predicted contact, or a wall gap under
-    /// the margin that the move would close further.
-    fn predicted_clearance(&self, from: &Pose, to: &Pose) -> Result<f64, VetoReason> {
+    /// The chance constraint. Every point of Segment I lies within [`Supervisor::growth`] of
+    /// where the mean estimate puts it, except with probability below the bound; so if the
+    /// shaft grown by that much is clear all along the move, the move is allowed. A move that
+    /// leaves the grown shaft no nearer Segment II than it is now is allowed too: it adds no risk
+    /// to where the cell already stands (this is how the cell backs away from a wall it is
+    /// unsure of). Otherwise the move is refused as uncertain.
+    fn judge_risk(
+        &self,
+        from: &Pose,
+        to: &Pose,
+        along: &Clearance,
+        sd: &PoseSd,
+    ) -> Result<f64, VetoReason> {
+        if along.wall_mm.is_infinite() && along.seat_mm.is_infinite() {
+            return Ok(0.0);
+        }
+        let spread = self.spread(from, to, sd);
+        let risk = risk::contact_risk(along, &spread);
+        let growth = spread.scaled(self.sigmas);
+        let grown = swept_clearance_grown(&self.parts, &self.bore_obb, from, to, &growth);
+        if grown.is_clear() {
+            return Ok(risk.min(self.risk_bound));
+        }
+        let now = clearance_grown(&self.parts, from, &growth);
+        let no_nearer = |after: f64, before: f64| after >= before - GAP_ROUNDING_MM;
+        if no_nearer(grown.wall_mm, now.wall_mm) && no_nearer(grown.seat_mm, now.seat_mm) {
+            return Ok(risk);
+        }
+        Err(VetoReason::Uncertain {
+            risk: risk.max(self.risk_bound),
+            bound: self.risk_bound,
+            clearance_mm: along.min_mm(),
+        })
+    }
+
+    /// σ of how far any point of Segment I may be from where the estimate puts it, sideways and
+    /// along the bore axis, during the move from `from` to `to` (poses of {M} in {F}), for
+    /// estimate errors of σ `sd` (its own and the move's). A rotation error δθ about the bore's
+    /// entrance moves a point of the shaft that is inside the bore sideways by at most its depth
+    /// below the entrance × δθ, and a point of the shoulder or the tip rim along the axis by at
+    /// most its radius × δθ; a twist about the shaft's own axis maps the shaft onto itself, so it
+    /// only matters through the offset of the axis from the bore's.
+    fn spread(&self, from: &Pose, to: &Pose, sd: &PoseSd) -> risk::Spread {
+        let parts = &self.parts;
+        let tip = Point3::new(0.0, 0.0, -parts.shaft_length_mm);
+        let depth = |f_m: &Pose| (-(f_m * tip).z).clamp(0.0, parts.shaft_length_mm);
+        let lever_mm = depth(from).max(depth(to));
+        let offset_mm = |f_m: &Pose| f_m.translation.vector.xy().norm();
+        let sideways = sd.lateral_mm
+            + lever_mm * sd.tilt_rad
+            + offset_mm(from).max(offset_mm(to)) * sd.twist_rad;
+        let axial = sd.axial_mm + parts.shaft_radius_mm * sd.tilt_rad;
+        let seat = sd.axial_mm + parts.body_radius_mm.max(parts.shaft_radius_mm) * sd.tilt_rad;
+        // The estimate's errors are in {M}; the shaft's axis is tilted from the bore's by up to
+        // α, which mixes a little of each direction into the other.
+        let sin_tilt = |f_m: &Pose| (f_m.rotation * nalgebra::Vector3::z()).xy().norm();
+        let mix = sin_tilt(from).max(sin_tilt(to));
+        risk::Spread {
+            sideways_mm: sideways + mix * axial,
+            axial_mm: axial + mix * sideways,
+            seat_mm: seat + mix * sideways,
+        }
+    }
+
+    /// The predicted clearance along the move by the mean estimate, vetoing a predicted contact,
+    /// or a wall gap under the margin that the move would close further.
+    fn predicted_clearance(&self, from: &Pose, to: &Pose) -> Result<Clearance, VetoReason> {
         let along = swept_clearance(&self.parts, &self.bore_obb, from, to);
         if let Some(kind) = along.contact_kind() {
             return Err(VetoReason::Collision {
@@ -185,7 +285,7 @@ impl Supervisor {
                 });
             }
         }
-        Ok(along.min_mm())
+        Ok(along)
     }
 }
 
@@ -194,9 +294,22 @@ impl Supervisor {
 /// the move, against Segment II's OBB; only if they overlap is the exact clearance along the move
 /// computed. Far apart, both gaps are reported as infinite.
 pub fn swept_clearance(parts: &PartGeometry, bore_obb: &Obb, from: &Pose, to: &Pose) -> Clearance {
+    swept_clearance_grown(parts, bore_obb, from, to, &Growth::default())
+}
+
+/// [`swept_clearance`] of the shaft grown by `growth` (see [`clearance_along_grown`]).
+pub fn swept_clearance_grown(
+    parts: &PartGeometry,
+    bore_obb: &Obb,
+    from: &Pose,
+    to: &Pose,
+    growth: &Growth,
+) -> Clearance {
     let relative = from.inverse() * to;
     let reach_mm = parts.shaft_length_mm.max(parts.body_radius_mm) * 2.0;
-    let sweep_mm = relative.translation.vector.norm() + reach_mm * relative.rotation.angle();
+    let sweep_mm = relative.translation.vector.norm()
+        + reach_mm * relative.rotation.angle()
+        + growth.sideways_mm.max(growth.axial_mm).max(growth.seat_mm);
     let end = parts.shaft_obb(to);
     let swept = Obb {
         edges_mm: end.edges_mm + Vector3::repeat(2.0 * sweep_mm),
@@ -208,12 +321,13 @@ pub fn swept_clearance(parts: &PartGeometry, bore_obb: &Obb, from: &Pose, to: &P
             seat_mm: f64::INFINITY,
         };
     }
-    clearance_along(parts, from, to)
+    clearance_along_grown(parts, from, to, growth)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::Exact;
     use nalgebra::Isometry3;
 
     fn setup() -> (Supervisor, Pose) {
@@ -233,14 +347,18 @@ mod tests {
         let (supervisor, home) = setup();
         let m_f = inserted(30.0, 0.04);
         let allowed = supervisor
-            .check(&home, Some(&m_f), &Move::translation(-0.03, 0.0, -1.0))
+            .check(
+                &home,
+                Some(&Exact(m_f)),
+                &Move::translation(-0.03, 0.0, -1.0),
+            )
             .unwrap();
         // From 0.04 mm off the axis (0.01 mm of the 0.05 mm radial clearance left) to 0.01 mm
         // off (0.04 mm left): the smallest clearance seen along the way lies between.
         let c = allowed.clearance_mm;
         assert!((0.01 - 1e-9..=0.04 + 1e-9).contains(&c), "{c}");
         let veto = supervisor
-            .check(&home, Some(&m_f), &Move::translation(0.02, 0.0, 0.0))
+            .check(&home, Some(&Exact(m_f)), &Move::translation(0.02, 0.0, 0.0))
             .unwrap_err();
         assert_eq!(veto.code(), "collision");
         assert!(
@@ -255,7 +373,7 @@ mod tests {
         // 0.025 mm off the axis: 0.025 mm of gap. 0.01 mm further out leaves 0.015 mm.
         let outwards = Move::translation(0.01, 0.0, -1.0);
         let veto = supervisor
-            .check(&home, Some(&inserted(30.0, 0.025)), &outwards)
+            .check(&home, Some(&Exact(inserted(30.0, 0.025))), &outwards)
             .unwrap_err();
         assert_eq!(veto.code(), "wall_margin");
         match veto {
@@ -275,11 +393,19 @@ mod tests {
         let near = inserted(30.0, 0.04);
         assert!(
             supervisor
-                .check(&home, Some(&near), &Move::translation(0.0, 0.0, -1.0))
+                .check(
+                    &home,
+                    Some(&Exact(near)),
+                    &Move::translation(0.0, 0.0, -1.0)
+                )
                 .is_ok()
         );
         let veto = supervisor
-            .check(&home, Some(&near), &Move::translation(0.005, 0.0, 0.0))
+            .check(
+                &home,
+                Some(&Exact(near)),
+                &Move::translation(0.005, 0.0, 0.0),
+            )
             .unwrap_err();
         assert_eq!(veto.code(), "wall_margin");
         // Without a margin only contact is refused.
@@ -288,7 +414,7 @@ mod tests {
         let without = Supervisor::new(&cell);
         assert!(
             without
-                .check(&home, Some(&inserted(30.0, 0.025)), &outwards)
+                .check(&home, Some(&Exact(inserted(30.0, 0.025))), &outwards)
                 .is_ok()
         );
     }
@@ -298,7 +424,11 @@ mod tests {
         let (supervisor, home) = setup();
         let m_f = Isometry3::translation(30.0, 0.0, 100.0).inverse();
         let allowed = supervisor
-            .check(&home, Some(&m_f), &Move::translation(-5.0, 0.0, -5.0))
+            .check(
+                &home,
+                Some(&Exact(m_f)),
+                &Move::translation(-5.0, 0.0, -5.0),
+            )
             .unwrap();
         assert_eq!(allowed.clearance_mm, f64::INFINITY);
     }
@@ -315,7 +445,7 @@ mod tests {
         let nan = Move::translation(f64::NAN, 0.0, 0.0);
         assert_eq!(
             supervisor
-                .check(&home, Some(&m_f), &nan)
+                .check(&home, Some(&Exact(m_f)), &nan)
                 .unwrap_err()
                 .code(),
             "non_finite"
@@ -324,13 +454,13 @@ mod tests {
         broken.translation.vector.x = f64::INFINITY;
         assert_eq!(
             supervisor
-                .check(&home, Some(&broken), &small)
+                .check(&home, Some(&Exact(broken)), &small)
                 .unwrap_err()
                 .code(),
             "non_finite"
         );
         let veto = supervisor
-            .check(&home, Some(&m_f), &Move::rotation(0.0, 1.2, 0.0))
+            .check(&home, Some(&Exact(m_f)), &Move::rotation(0.0, 1.2, 0.0))
             .unwrap_err();
         assert!(
             matches!(veto, VetoReason::StepLimit { value, limit, .. } if value == 1.2 && limit == 1.0)
@@ -344,7 +474,7 @@ mod tests {
         let high = home * Isometry3::translation(0.0, 0.0, 250.0);
         let m_f = Isometry3::translation(0.0, 0.0, 400.0).inverse();
         let veto = supervisor
-            .check(&high, Some(&m_f), &Move::translation(0.0, 0.0, 1.0))
+            .check(&high, Some(&Exact(m_f)), &Move::translation(0.0, 0.0, 1.0))
             .unwrap_err();
         match veto {
             VetoReason::Kinematics(KinematicsError::LegOutOfStroke {
@@ -354,5 +484,93 @@ mod tests {
             }
             other => panic!("expected a stroke veto, got {other:?}"),
         }
+    }
+
+    /// An estimate with the given σ in every direction, and no move error.
+    struct Spread(Pose, PoseSd);
+
+    impl Belief for Spread {
+        fn m_f(&self) -> Pose {
+            self.0
+        }
+        fn sd(&self) -> PoseSd {
+            self.1
+        }
+        fn sd_after(&self, _step: &Move) -> PoseSd {
+            self.1
+        }
+    }
+
+    #[test]
+    fn an_allowed_move_keeps_the_contact_probability_below_the_bound_by_sampling() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        // A bound large enough to measure by sampling: 1 in 100.
+        let mut cell = CellConfig::reference();
+        cell.supervisor.contact_risk_per_move = 1e-2;
+        cell.supervisor.wall_margin_mm = 0.0;
+        let supervisor = Supervisor::new(&cell);
+        let home = Isometry3::translation(0.0, 0.0, cell.robot.home_height_mm);
+        let sd = PoseSd {
+            lateral_mm: 0.008,
+            axial_mm: 0.01,
+            tilt_rad: 6e-5,
+            twist_rad: 6e-5,
+        };
+        let step = Move::translation(0.0, 0.0, -2.0);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let samples = 20_000;
+        let (mut allowed, mut refused) = (0, 0);
+        for offset_mm in [0.0, 0.004, 0.008, 0.012, 0.016, 0.02, 0.03] {
+            let m_f = inserted(30.0, offset_mm);
+            let verdict = supervisor.check(&home, Some(&Spread(m_f, sd)), &step);
+            let mut contacts = 0;
+            for _ in 0..samples {
+                let n: [f64; 6] = std::array::from_fn(|_| StandardNormal.sample(&mut rng));
+                let mut truth = m_f;
+                truth.translation.vector += nalgebra::Vector3::new(
+                    n[0] * sd.lateral_mm,
+                    n[1] * sd.lateral_mm,
+                    n[2] * sd.axial_mm,
+                );
+                truth.rotation =
+                    nalgebra::UnitQuaternion::from_scaled_axis(nalgebra::Vector3::new(
+                        n[3] * sd.tilt_rad,
+                        n[4] * sd.tilt_rad,
+                        n[5] * sd.twist_rad,
+                    )) * truth.rotation;
+                let from = truth.inverse();
+                let to = from * step.as_pose();
+                if !super::super::clearance::clearance_along(supervisor.parts(), &from, &to)
+                    .is_clear()
+                {
+                    contacts += 1;
+                }
+            }
+            let sampled = contacts as f64 / samples as f64;
+            // Three binomial standard errors at the bound.
+            let slack = 3.0 * (1e-2 / samples as f64).sqrt();
+            match verdict {
+                Ok(allow) => {
+                    allowed += 1;
+                    assert!(sampled <= 1e-2 + slack, "{offset_mm} mm: sampled {sampled}");
+                    assert!(
+                        allow.contact_risk + slack >= sampled,
+                        "{offset_mm} mm: claimed {} against sampled {sampled}",
+                        allow.contact_risk
+                    );
+                }
+                Err(VetoReason::Uncertain { risk, .. }) => {
+                    refused += 1;
+                    assert!(risk > 1e-2);
+                }
+                Err(other) => panic!("{offset_mm} mm: {other}"),
+            }
+        }
+        // Both sides of the bound were exercised.
+        assert!(
+            allowed >= 2 && refused >= 2,
+            "{allowed} allowed, {refused} refused"
+        );
     }
 }

@@ -239,14 +239,39 @@ pub struct StepLimitConfig {
 }
 
 /// The collision supervisor (docs/design.md §8).
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SupervisorConfig {
-    /// A move may not bring the shaft nearer the bore wall than this (mm), by the measured pose;
-    /// a move that starts nearer may not close the gap further. It covers what the measurement
-    /// may be off by sideways: the gap it predicts is not the true one. 0: only a predicted
-    /// contact is refused.
+    /// A move is allowed only if the probability of contact along it, under the estimate's
+    /// distribution, is below this bound (docs/estimation.md).
+    #[serde(default = "default_contact_risk_per_move")]
+    pub contact_risk_per_move: f64,
+    /// Steps the cell may hold in a row for more frames, because no move is sure enough, before
+    /// the job ends as `uncertain`.
+    #[serde(default = "default_max_uncertain_holds")]
+    pub max_uncertain_holds: u32,
+    /// An extra margin on the mean: a move may not bring the shaft nearer the bore wall than this
+    /// (mm) by the estimate, nor close a gap already under it. 0: the probability bound alone.
+    #[serde(default)]
     pub wall_margin_mm: f64,
+}
+
+fn default_contact_risk_per_move() -> f64 {
+    1e-4
+}
+
+fn default_max_uncertain_holds() -> u32 {
+    150
+}
+
+impl Default for SupervisorConfig {
+    fn default() -> Self {
+        SupervisorConfig {
+            contact_risk_per_move: default_contact_risk_per_move(),
+            max_uncertain_holds: default_max_uncertain_holds(),
+            wall_margin_mm: 0.0,
+        }
+    }
 }
 
 /// The paper's reward (§3.3), Table 1 weights.
@@ -424,6 +449,21 @@ impl CellConfig {
                     "clearance ≤ 0: the bore must be wider than the shaft ({} mm)",
                     self.shaft.diameter_mm
                 ),
+            ));
+        }
+        let risk = self.supervisor.contact_risk_per_move;
+        if !(risk > 0.0 && risk < 0.5) {
+            return Err(invalid(
+                "supervisor.contact_risk_per_move",
+                risk,
+                "must be more than 0 and less than 0.5",
+            ));
+        }
+        if self.supervisor.max_uncertain_holds == 0 {
+            return Err(invalid(
+                "supervisor.max_uncertain_holds",
+                0.0,
+                "must be at least 1",
             ));
         }
         let margin = self.supervisor.wall_margin_mm;

@@ -19,21 +19,25 @@ pub struct PoseSd {
 }
 
 impl PoseSd {
-    /// Component-wise sum: a bound on the σ of a sum of errors, however they are correlated
-    /// (σ of a sum ≤ sum of the σ).
-    pub fn plus(&self, other: &PoseSd) -> PoseSd {
+    /// Component-wise maximum.
+    pub fn max(&self, other: &PoseSd) -> PoseSd {
         PoseSd {
-            lateral_mm: self.lateral_mm + other.lateral_mm,
-            axial_mm: self.axial_mm + other.axial_mm,
-            tilt_rad: self.tilt_rad + other.tilt_rad,
-            twist_rad: self.twist_rad + other.twist_rad,
+            lateral_mm: self.lateral_mm.max(other.lateral_mm),
+            axial_mm: self.axial_mm.max(other.axial_mm),
+            tilt_rad: self.tilt_rad.max(other.tilt_rad),
+            twist_rad: self.twist_rad.max(other.twist_rad),
         }
     }
 
     pub fn is_finite(&self) -> bool {
-        [self.lateral_mm, self.axial_mm, self.tilt_rad, self.twist_rad]
-            .iter()
-            .all(|v| v.is_finite() && *v >= 0.0)
+        [
+            self.lateral_mm,
+            self.axial_mm,
+            self.tilt_rad,
+            self.twist_rad,
+        ]
+        .iter()
+        .all(|v| v.is_finite() && *v >= 0.0)
     }
 }
 
@@ -43,7 +47,27 @@ pub trait Belief {
     fn m_f(&self) -> Pose;
     /// σ of its errors now.
     fn sd(&self) -> PoseSd;
-    /// σ of the error an executed `step` adds (the robot's execution error and what is not yet
-    /// known of its calibration).
-    fn sd_added_by(&self, step: &Move) -> PoseSd;
+    /// σ of its errors once `step` is executed: the error now carried along, the robot's
+    /// execution error and what is not yet known of its calibration. Along the move the error
+    /// is the error now plus a growing share of the move's, so its σ is never above the larger
+    /// of [`Belief::sd`] and this (the variance is convex in the share).
+    fn sd_after(&self, step: &Move) -> PoseSd;
+}
+
+/// A pose known exactly (no uncertainty): for tests, and for a supervisor judging geometry alone.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Exact(pub Pose);
+
+impl Belief for Exact {
+    fn m_f(&self) -> Pose {
+        self.0
+    }
+
+    fn sd(&self) -> PoseSd {
+        PoseSd::default()
+    }
+
+    fn sd_after(&self, _step: &Move) -> PoseSd {
+        PoseSd::default()
+    }
 }

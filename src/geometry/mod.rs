@@ -6,7 +6,7 @@ pub mod frames;
 pub mod motion;
 pub mod pose;
 
-pub use belief::{Belief, PoseSd};
+pub use belief::{Belief, Exact, PoseSd};
 pub use frames::CellFrames;
 pub use motion::Move;
 pub use pose::Pose;

@@ -44,6 +44,14 @@ impl Move {
         pose_from_mm_deg(self.translation_mm, self.rotation_deg)
     }
 
+    /// The same move, `factor` times as long (translation and rotation alike).
+    pub fn scaled(&self, factor: f64) -> Move {
+        Move {
+            translation_mm: self.translation_mm * factor,
+            rotation_deg: self.rotation_deg * factor,
+        }
+    }
+
     pub fn is_finite(&self) -> bool {
         self.to_array().iter().all(|v| v.is_finite())
     }

@@ -2,15 +2,15 @@
 //! it wraps sees it (openrr arci's pattern for safety limits).
 
 use super::{Robot, RobotError};
-use crate::collision::supervisor::Supervisor;
-use crate::geometry::{Move, Pose};
+use crate::collision::supervisor::{Supervisor, VetoReason};
+use crate::geometry::{Belief, Move, Pose};
 
 /// `inner` behind the supervisor. The supervisor judges a move against the robot's setpoint
-/// and the camera's latest estimate of {F} in {M}, given by [`Supervised::observe`]; with no
-/// estimate (a stale camera) every move is vetoed.
+/// and the cell's latest estimate of {F} in {M} with its uncertainty, given by
+/// [`Supervised::observe`]; with no estimate (a stale camera) every move is vetoed.
 pub struct Supervised<'s, R> {
     supervisor: &'s Supervisor,
-    measured_m_f: Option<Pose>,
+    belief: Option<&'s dyn Belief>,
     inner: R,
 }
 
@@ -19,20 +19,47 @@ impl<'s, R: Robot> Supervised<'s, R> {
     pub fn new(supervisor: &'s Supervisor, inner: R) -> Self {
         Supervised {
             supervisor,
-            measured_m_f: None,
+            belief: None,
             inner,
         }
     }
 
-    /// The camera's latest estimate of {F} in {M}; `None` when it is stale.
-    pub fn observe(&mut self, measured_m_f: Option<Pose>) {
-        self.measured_m_f = measured_m_f;
+    /// The cell's latest estimate of {F} in {M}; `None` when it is stale.
+    pub fn observe(&mut self, belief: Option<&'s dyn Belief>) {
+        self.belief = belief;
     }
 
     pub fn inner(&self) -> &R {
         &self.inner
     }
+
+    /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
+    /// of its half and quarter that it is sure of instead: the cell slows down rather than
+    /// holds. Answers the move executed; the first refusal when none is allowed.
+    pub fn execute_cautiously(&mut self, step: &Move) -> Result<Move, RobotError> {
+        let setpoint = self.inner.setpoint();
+        let mut refusal = None;
+        for factor in CAUTIOUS_FACTORS {
+            let candidate = step.scaled(factor);
+            match self.supervisor.check(&setpoint, self.belief, &candidate) {
+                Ok(_) => {
+                    self.inner.execute(&candidate)?;
+                    return Ok(candidate);
+                }
+                Err(reason @ VetoReason::Uncertain { .. }) => {
+                    refusal.get_or_insert(reason);
+                }
+                Err(reason) => return Err(RobotError::Vetoed(refusal.unwrap_or(reason))),
+            }
+        }
+        Err(RobotError::Vetoed(
+            refusal.expect("the loop ends only after an uncertain refusal"),
+        ))
+    }
 }
+
+/// The shares of a move tried, longest first, when the whole is too uncertain.
+const CAUTIOUS_FACTORS: [f64; 3] = [1.0, 0.5, 0.25];
 
 impl<R: Robot> Robot for Supervised<'_, R> {
     fn setpoint(&self) -> Pose {
@@ -45,7 +72,7 @@ impl<R: Robot> Robot for Supervised<'_, R> {
 
     fn execute(&mut self, step: &Move) -> Result<(), RobotError> {
         self.supervisor
-            .check(&self.inner.setpoint(), self.measured_m_f.as_ref(), step)
+            .check(&self.inner.setpoint(), self.belief, step)
             .map_err(RobotError::Vetoed)?;
         self.inner.execute(step)
     }
@@ -59,6 +86,7 @@ impl<R: Robot> Robot for Supervised<'_, R> {
 mod tests {
     use super::*;
     use crate::config::cell::CellConfig;
+    use crate::geometry::Exact;
     use nalgebra::Isometry3;
 
     /// A robot that records what reaches it and goes nowhere.
@@ -105,7 +133,8 @@ mod tests {
                 crate::collision::supervisor::VetoReason::StaleMeasurement
             ))
         );
-        robot.observe(Some(inserted_off_axis()));
+        let known = Exact(inserted_off_axis());
+        robot.observe(Some(&known));
         assert_eq!(robot.execute(&towards_axis), Ok(()));
         match robot.execute(&into_wall) {
             Err(RobotError::Vetoed(reason)) => assert_eq!(reason.code(), "collision"),

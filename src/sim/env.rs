@@ -18,9 +18,9 @@ use crate::collision::clearance::PartGeometry;
 use crate::collision::obb::Obb;
 use crate::collision::supervisor::{Supervisor, VetoReason, swept_clearance};
 use crate::config::cell::CellConfig;
-use crate::geometry::{CellFrames, Move, Pose, pose};
+use crate::geometry::{Belief, CellFrames, Move, Pose, pose};
 use crate::kinematics::KinematicsError;
-use crate::robot::{Robot, RobotError, Supervised};
+use crate::robot::{RobotError, Supervised};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -60,6 +60,9 @@ pub enum FailureReason {
     Contact,
     /// The robot could not execute a move (forward kinematics failed).
     RobotFault,
+    /// The cell held for more frames too many times in a row: no move was sure enough to
+    /// make (the supervisor's `uncertain` vetoes). The robot holds where it is.
+    Uncertain,
 }
 
 impl FailureReason {
@@ -70,6 +73,7 @@ impl FailureReason {
             FailureReason::MotionLimit => "motion_limit",
             FailureReason::Contact => "contact",
             FailureReason::RobotFault => "robot_fault",
+            FailureReason::Uncertain => "uncertain",
         }
     }
 }
@@ -200,9 +204,13 @@ pub struct AssemblyEnv {
     rng: ChaCha8Rng,
     // Episode state.
     step: u32,
+    /// Vetoes in a row for contact, reach or limits (the paper's collision warnings).
     consecutive_vetoes: u32,
-    /// The fused estimate of {F} in {M} the supervisor judges the next move against.
-    estimated_m_f: Option<Pose>,
+    /// Holds in a row because no move was sure enough (`uncertain` vetoes).
+    uncertain_holds: u32,
+    /// The fused estimate of {F} in {M} the supervisor judges the next move against (a snapshot
+    /// of the state filter; none when the last capture could not be used).
+    belief: Option<StateFilter>,
     /// What [`AssemblyEnv::act`] found, until [`AssemblyEnv::settle`].
     pending: Option<PendingMove>,
     observation: Observation,
@@ -228,7 +236,8 @@ impl AssemblyEnv {
             rng: ChaCha8Rng::seed_from_u64(0),
             step: 0,
             consecutive_vetoes: 0,
-            estimated_m_f: None,
+            uncertain_holds: 0,
+            belief: None,
             pending: None,
             observation: Observation {
                 state: [0.0; 12],
@@ -290,6 +299,7 @@ impl AssemblyEnv {
             .map_err(EnvError::Unreachable)?;
         self.step = 0;
         self.consecutive_vetoes = 0;
+        self.uncertain_holds = 0;
         self.outcome = None;
         self.pending = None;
         self.reward = None;
@@ -341,13 +351,17 @@ impl AssemblyEnv {
                 rng: &mut self.rng,
             },
         );
-        robot.observe(self.estimated_m_f);
+        let belief = self.belief.as_ref().and_then(StateFilter::belief);
+        robot.observe(belief.as_ref().map(|b| b as &dyn Belief));
         let mut pending = PendingMove::default();
         let mut capture_fraction = 1.0;
-        match robot.execute(action) {
-            Ok(()) => {
+        let mut executed = *action;
+        match robot.execute_cautiously(action) {
+            Ok(step) => {
+                executed = step;
                 self.consecutive_vetoes = 0;
-                pending.executed = Some(*action);
+                self.uncertain_holds = 0;
+                pending.executed = Some(executed);
                 let after = *self.robot.true_platform();
                 let path = swept_clearance(
                     &self.parts,
@@ -358,10 +372,15 @@ impl AssemblyEnv {
                 if !path.is_clear() {
                     pending.failure = Some(FailureReason::Contact);
                 }
-                capture_fraction = self.capture_fraction(action);
+                capture_fraction = self.capture_fraction(&executed);
+            }
+            Err(RobotError::Vetoed(reason @ VetoReason::Uncertain { .. })) => {
+                self.uncertain_holds += 1;
+                pending.veto = Some(reason);
             }
             Err(RobotError::Vetoed(reason)) => {
                 self.consecutive_vetoes += 1;
+                self.uncertain_holds = 0;
                 pending.veto = Some(reason);
             }
             Err(RobotError::Fault(_)) => {
@@ -373,7 +392,7 @@ impl AssemblyEnv {
         let seen = pose::interpolate(&before, &after, capture_fraction);
         // The part of the commanded move still to come after the capture, in {M}.
         let remaining = (capture_fraction < 1.0).then(|| {
-            let commanded = action.as_pose();
+            let commanded = executed.as_pose();
             pose::interpolate(&Pose::identity(), &commanded, capture_fraction).inverse() * commanded
         });
         self.capture(&seen, pending.executed, remaining);
@@ -397,6 +416,8 @@ impl AssemblyEnv {
             Some(Outcome::Success)
         } else if self.consecutive_vetoes >= self.cell.episode.max_consecutive_vetoes {
             Some(Outcome::Failure(FailureReason::CollisionLimit))
+        } else if self.uncertain_holds >= self.cell.supervisor.max_uncertain_holds {
+            Some(Outcome::Failure(FailureReason::Uncertain))
         } else if self.outside_workspace(&true_f_m, &errors) {
             Some(Outcome::Failure(FailureReason::MotionLimit))
         } else if self.step >= self.cell.episode.max_steps {
@@ -486,11 +507,11 @@ impl AssemblyEnv {
         self.observation.raw_state = estimate.raw_state;
         self.observation.estimate = estimate.filter;
         self.observation.measurement_fresh = estimate.fresh;
-        self.estimated_m_f = estimate.m_f;
+        self.belief = estimate.m_f.is_some().then_some(estimate.filter);
     }
 
     fn estimated_tip_in_bore(&self) -> bool {
-        self.estimated_m_f.is_some_and(|m_f| {
+        self.belief.and_then(|b| b.m_f()).is_some_and(|m_f| {
             let tip = m_f.inverse() * Point3::new(0.0, 0.0, -self.parts.shaft_length_mm);
             tip.z < 0.0
         })

@@ -167,6 +167,7 @@ fn random_in_ball(rng: &mut impl Rng, radius: f64) -> Vector3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::Exact;
     use rand::SeedableRng;
 
     #[test]
@@ -202,7 +203,7 @@ mod tests {
         // Far from the bore: the supervisor only checks limits and reachability.
         let far = Pose::translation(0.0, 0.0, 400.0).inverse();
         let allowed = crate::collision::supervisor::Supervisor::new(&cell)
-            .check(&home, Some(&far), &step)
+            .check(&home, Some(&Exact(far)), &step)
             .unwrap();
         let mut drive = TwinDrive {
             robot: &mut robot,
