@@ -175,6 +175,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         let options = EnvOptions {
             noise_scale: noise,
             initial,
+            ..EnvOptions::from_cell(cell)
         };
         let (summary, _) =
             eval::evaluate(cell, options, args.episodes, args.seed, &factory, &|_| {});

@@ -10,6 +10,7 @@
 //! tolerance, failure on true contact (the robot's protective stop), on too many vetoes in a row,
 //! on leaving the workspace, or on running out of steps.
 
+use super::fault::{Fault, Injection};
 use super::reward::{Ending, RewardTerms, RewardTracker};
 use super::robot::{TwinDrive, TwinRobot};
 use crate::camera::ingest::{Estimate, Ingest, Shot};
@@ -118,8 +119,11 @@ pub struct StepResult {
     pub reward: RewardTerms,
     /// The supervisor's veto of this step's move, if any.
     pub veto: Option<VetoReason>,
-    /// Leg encoder readings after the step (mm).
+    /// Leg encoder readings after the step, as the robot reports them (mm).
     pub legs_mm: [f64; 6],
+    /// The nominal leg lengths the supervisor let through for this step's move (none: vetoed,
+    /// or the robot could not take it).
+    pub commanded_legs_mm: Option<[f64; 6]>,
     pub done: bool,
     pub outcome: Option<Outcome>,
     pub true_errors: PoseErrors,
@@ -161,6 +165,7 @@ struct PendingMove {
     executed: Option<Move>,
     veto: Option<VetoReason>,
     failure: Option<FailureReason>,
+    commanded_legs_mm: Option<[f64; 6]>,
 }
 
 /// Options that are not part of the cell file.
@@ -168,6 +173,11 @@ struct PendingMove {
 pub struct EnvOptions {
     /// Multiplies the camera's point noise (1 = the spec).
     pub noise_scale: f64,
+    /// Multiplies the radius of the ball the robot's true joint centres are drawn in
+    /// (`imperfections.calibration_error_mm`; 1 = the cell file's, 0 = perfect calibration).
+    pub calibration_scale: f64,
+    /// A fault injected mid-episode (`sim::fault`), none by default.
+    pub fault: Option<Fault>,
     pub initial: InitialConditions,
 }
 
@@ -175,6 +185,8 @@ impl EnvOptions {
     pub fn from_cell(cell: &CellConfig) -> Self {
         EnvOptions {
             noise_scale: 1.0,
+            calibration_scale: 1.0,
+            fault: None,
             initial: InitialConditions::from_cell(cell),
         }
     }
@@ -198,6 +210,10 @@ pub struct AssemblyEnv {
     /// The episode's one random stream: initial pose, calibration, then per step the robot's
     /// leg errors and the camera's noise, in that order.
     rng: ChaCha8Rng,
+    /// The episode's fault, drawn from a stream of its own (`sim::fault`).
+    injection: Option<Injection>,
+    /// Captures so far in this episode (each frame's sequence number).
+    captures: u64,
     // Episode state.
     step: u32,
     consecutive_vetoes: u32,
@@ -218,7 +234,7 @@ impl AssemblyEnv {
             camera: SimCamera::new(cell, &frames, options.noise_scale),
             ingest: Ingest::new(cell, &frames),
             supervisor: Supervisor::new(cell),
-            robot: TwinRobot::new(cell),
+            robot: TwinRobot::new(cell).with_calibration_scale(options.calibration_scale),
             bore_obb: parts.bore_obb(),
             parts,
             frames,
@@ -226,6 +242,8 @@ impl AssemblyEnv {
             options,
             shot: Shot::default(),
             rng: ChaCha8Rng::seed_from_u64(0),
+            injection: None,
+            captures: 0,
             step: 0,
             consecutive_vetoes: 0,
             estimated_m_f: None,
@@ -284,6 +302,12 @@ impl AssemblyEnv {
     /// ingestion has a usable frame (or gives up), then [`AssemblyEnv::start_from`].
     pub fn begin_episode(&mut self, seed: u64, initial: InitialConditions) -> Result<(), EnvError> {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.captures = 0;
+        self.injection = self.options.fault.map(|fault| {
+            let centroid = super::fault::c2_centroid_w(&self.frames);
+            Injection::draw(fault, seed, centroid, self.frames.c2_points_mm.len())
+        });
+        self.robot.set_faults(Default::default());
         let f_m = self.sample_initial(initial);
         self.robot
             .reset(self.frames.platform_for(&f_m), &mut self.rng)
@@ -333,6 +357,11 @@ impl AssemblyEnv {
             return Err(EnvError::OutOfOrder("act before the last move was settled"));
         }
         self.step += 1;
+        // A lagging robot has completed its last move by now.
+        self.robot.catch_up();
+        if let Some(injection) = &self.injection {
+            self.robot.set_faults(injection.robot_faults(self.step));
+        }
         let before = *self.robot.true_platform();
         let mut robot = Supervised::new(
             &self.supervisor,
@@ -348,6 +377,7 @@ impl AssemblyEnv {
             Ok(()) => {
                 self.consecutive_vetoes = 0;
                 pending.executed = Some(*action);
+                pending.commanded_legs_mm = self.robot.commanded_mm().copied();
                 let after = *self.robot.true_platform();
                 let path = swept_clearance(
                     &self.parts,
@@ -370,7 +400,15 @@ impl AssemblyEnv {
             }
         }
         let after = *self.robot.true_platform();
-        let seen = pose::interpolate(&before, &after, capture_fraction);
+        let lag = self
+            .robot
+            .faults()
+            .lag_fraction
+            .filter(|_| pending.executed.is_some());
+        let seen = pose::interpolate(&before, &after, capture_fraction * lag.unwrap_or(1.0));
+        if lag.is_some() {
+            self.robot.report_lagging_at(&seen);
+        }
         // The part of the commanded move still to come after the capture, in {M}.
         let remaining = (capture_fraction < 1.0).then(|| {
             let commanded = action.as_pose();
@@ -422,6 +460,7 @@ impl AssemblyEnv {
             reward,
             veto: pending.veto,
             legs_mm: *self.robot.encoders_mm(),
+            commanded_legs_mm: pending.commanded_legs_mm,
             done: outcome.is_some(),
             outcome,
             true_errors: errors,
@@ -452,6 +491,16 @@ impl AssemblyEnv {
         self.step
     }
 
+    /// The legs' encoder readings as the robot reports them now (mm).
+    pub fn encoders_mm(&self) -> [f64; 6] {
+        *self.robot.encoders_mm()
+    }
+
+    /// The step this episode's fault starts at (none without a fault).
+    pub fn fault_onset(&self) -> Option<u32> {
+        self.injection.as_ref().map(Injection::onset)
+    }
+
     /// Where the capture happens along the move just executed: the camera takes its picture
     /// `latency_s` before the next decision, so a move longer than the cycle minus the latency
     /// is seen part-way.
@@ -476,6 +525,11 @@ impl AssemblyEnv {
         let (w_m, w_f) = self.frames.world_poses(platform);
         self.camera
             .capture_into(&w_m, &w_f, &mut self.rng, &mut self.shot.frame);
+        self.captures += 1;
+        self.shot.frame.sequence = self.captures;
+        if let Some(injection) = &mut self.injection {
+            injection.deliver(self.step, &mut self.shot.frame);
+        }
         self.shot.executed = executed;
         self.shot.remaining = remaining;
     }
