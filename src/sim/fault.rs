@@ -19,7 +19,11 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::ops::RangeInclusive;
 
-/// A fault the twin can inject, from its onset to the end of the episode.
+/// A fault the twin can inject, from its onset (a step drawn in 5..=35) to the end of the
+/// episode: `camera_shift` (fixture C2's measured points moved 0.2 mm and 0.05° rigidly),
+/// `occlusion` (one coded point missing), `frozen_camera` (the last frame before the onset
+/// delivered again and again), `out_of_order` (every third frame two steps old), `robot_lag`
+/// (seen and read half-way along each move) or `robot_short` (legs land at 70% of each change).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Fault {
