@@ -5,7 +5,7 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
 use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, eval};
-use assembly_cell::sim::{EnvOptions, InitialConditions};
+use assembly_cell::sim::{EnvOptions, Fault, InitialConditions};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -85,6 +85,14 @@ struct EvalArgs {
     /// Multiplies the camera's point noise (0 = noiseless, 1 = the spec).
     #[arg(long, default_value_t = 1.0)]
     noise_scale: f64,
+    /// Multiplies the robot's kinematic calibration error, the radius of the ball its true joint
+    /// centres are drawn in (0 = perfectly calibrated, 1 = the cell file's).
+    #[arg(long, default_value_t = 1.0)]
+    calibration_scale: f64,
+    /// Inject a fault in every episode, from a step drawn in 5..=35 to the end: camera_shift,
+    /// occlusion, frozen_camera, out_of_order, robot_lag or robot_short (docs/configuration.md).
+    #[arg(long, value_name = "NAME")]
+    fault: Option<Fault>,
     /// Imperfections of the twin to switch off (comma-separated).
     #[arg(long, value_enum, value_delimiter = ',')]
     without: Vec<Imperfection>,
@@ -200,6 +208,12 @@ fn run_eval(args: EvalArgs) -> Result<()> {
             args.noise_scale
         );
     }
+    if !(args.calibration_scale.is_finite() && args.calibration_scale >= 0.0) {
+        bail!(
+            "--calibration-scale must be a finite number ≥ 0, got {}",
+            args.calibration_scale
+        );
+    }
     // Fail on an unknown name or a bad policy file before any work starts.
     let policy_file = controller_file(&args.controller);
     let factory: policy::ControllerFactory = match &policy_file {
@@ -212,6 +226,8 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     };
     let options = EnvOptions {
         noise_scale: args.noise_scale,
+        calibration_scale: args.calibration_scale,
+        fault: args.fault,
         initial,
     };
     let progress = ProgressBar::new(args.episodes as u64);
@@ -224,14 +240,16 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     });
     progress.finish_and_clear();
     println!(
-        "{} on {}: {} episodes, seed {}, initial {} mm / {} deg, noise ×{}",
+        "{} on {}: {} episodes, seed {}, initial {} mm / {} deg, noise ×{}, calibration ×{}, fault {}",
         summary.controller,
         summary.cell,
         summary.episodes,
         summary.seed,
         summary.init_pos_mm,
         summary.init_ori_deg,
-        summary.noise_scale
+        summary.noise_scale,
+        summary.calibration_scale,
+        summary.fault.as_deref().unwrap_or("none"),
     );
     println!(
         "  success rate {:.4} ({} of {})",

@@ -58,6 +58,10 @@ fn initial_conditions_and_switches_are_applied() {
         "3",
         "--noise-scale",
         "0",
+        "--calibration-scale",
+        "2.5",
+        "--fault",
+        "robot_lag",
         "--without",
         "calibration_error,latency",
         "--cell",
@@ -73,6 +77,13 @@ fn initial_conditions_and_switches_are_applied() {
     assert_eq!(summary["init_pos_mm"], 10.0);
     assert_eq!(summary["init_ori_deg"], 3.0);
     assert_eq!(summary["noise_scale"], 0.0);
+    assert_eq!(summary["calibration_scale"], 2.5);
+    assert_eq!(summary["fault"], "robot_lag");
+    let first = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        first.contains("noise ×0, calibration ×2.5, fault robot_lag"),
+        "{first}"
+    );
     assert_eq!(summary["cell"], "phi200");
 }
 
@@ -97,6 +108,15 @@ fn bad_input_is_refused_with_a_message() {
     refused(&["eval", "--episodes", "0"], "--episodes");
     refused(&["eval", "--init-ori-deg", "45"], "--init-ori-deg");
     refused(&["eval", "--without", "gravity"], "gravity");
+    refused(&["eval", "--calibration-scale=-1"], "--calibration-scale");
+    refused(
+        &["eval", "--calibration-scale", "inf"],
+        "--calibration-scale",
+    );
+    refused(
+        &["eval", "--fault", "gravity"],
+        "unknown fault `gravity`: expected one of camera_shift, occlusion",
+    );
 }
 
 #[test]

@@ -109,7 +109,39 @@ fn upload_evaluate_activate_and_roll_back() {
         10,
         "every episode is a success or a counted failure"
     );
+    assert_eq!(result["noise_scale"], 1.0);
+    assert_eq!(result["calibration_scale"], 1.0);
+    assert_eq!(result["fault"], Value::Null);
 
+    // Under a mismatch: the values are checked naming the field, and kept with the evaluation.
+    let evaluate = format!("/api/policies/{bc_id}/evaluate");
+    for (body, field) in [
+        (json!({"noise_scale": 16.5}), "noise_scale"),
+        (json!({"calibration_scale": -1}), "calibration_scale"),
+        (json!({"fault": "gravity"}), "fault"),
+    ] {
+        let (status, refused) = server.post(&evaluate, Some(&admin), Some(body.clone()));
+        assert_eq!(status, 422, "{body}: {refused}");
+        let message = refused["error"]["message"].as_str().unwrap();
+        assert!(message.contains(field), "{body}: {message}");
+    }
+    let (status, evaluation) = server.post(
+        &evaluate,
+        Some(&admin),
+        Some(
+            json!({"episodes": 3, "seed": 3, "noise_scale": 2, "calibration_scale": 0,
+                    "fault": "occlusion"}),
+        ),
+    );
+    assert_eq!(status, 202, "{evaluation}");
+    assert_eq!(evaluation["noise_scale"], 2.0);
+    assert_eq!(evaluation["calibration_scale"], 0.0);
+    assert_eq!(evaluation["fault"], "occlusion");
+    let evaluated = wait_evaluated(&server, bc_id);
+    assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
+    assert_eq!(evaluated["evaluation"]["fault"], "occlusion");
+
+    // The gate reads the evaluation without a mismatch.
     let (status, activated) = server.post(
         &format!("/api/policies/{bc_id}/activate"),
         Some(&admin),

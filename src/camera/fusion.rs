@@ -80,7 +80,16 @@ pub struct StateFilter {
     noise_scale: f64,
     /// Normalised innovation squared of the last frame blended in (6 components).
     last_nis: Option<f64>,
+    /// Exponentially weighted mean of each component's normalised innovation: near 0 while the
+    /// frames agree with the moves, drifting to the size of a bias that no move explains.
+    innovation_trend: [f64; 6],
 }
+
+/// Weight of the newest frame in [`StateFilter`]'s innovation trend.
+const TREND_WEIGHT: f64 = 0.3;
+/// A trend beyond this (in σ of one innovation; about 7 σ of the trend's own noise) is a bias
+/// the moves do not explain.
+const TREND_LIMIT: f64 = 3.0;
 
 /// What [`StateFilter::update`] made of a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -92,8 +101,9 @@ pub enum Fusion {
     /// Held back: its innovation is this many σ (the largest component), and no earlier frame
     /// confirms it.
     HeldBack { sigmas: f64 },
-    /// A second frame confirmed a jump of this many σ that no commanded move explains; the
-    /// estimate starts again from it.
+    /// A second frame confirmed a jump of this many σ, or the frames have drifted this many σ
+    /// (of one innovation, on average) from what the moves predict: a change no commanded
+    /// move explains. The estimate starts again from the frame.
     Jumped { sigmas: f64 },
 }
 
@@ -111,6 +121,7 @@ impl StateFilter {
             held_back: None,
             noise_scale: 1.0,
             last_nis: None,
+            innovation_trend: [0.0; 6],
         };
         filter.reset();
         filter
@@ -120,6 +131,7 @@ impl StateFilter {
         self.m_f = None;
         self.held_back = None;
         self.last_nis = None;
+        self.innovation_trend = [0.0; 6];
         let drift_variance = self.tuning.drift_prior_sd.powi(2);
         for filter in &mut self.lateral {
             filter.state = Vector4::zeros();
@@ -198,6 +210,15 @@ impl StateFilter {
         }
         self.held_back = None;
         self.last_nis = Some((0..6).map(|i| innovation[i].powi(2) / spread[i]).sum());
+        let mut trend = 0.0f64;
+        for (i, mean) in self.innovation_trend.iter_mut().enumerate() {
+            *mean = (1.0 - TREND_WEIGHT) * *mean + TREND_WEIGHT * innovation[i] / spread[i].sqrt();
+            trend = trend.max(mean.abs());
+        }
+        if trend > TREND_LIMIT {
+            self.set_to(*measured, covariance);
+            return Fusion::Jumped { sigmas: trend };
+        }
         let mut fused = predicted;
         for (axis, filter) in self.lateral.iter_mut().enumerate() {
             let p = filter.covariance;
@@ -236,6 +257,7 @@ impl StateFilter {
             Vector3::new(covariance[(3, 3)], covariance[(4, 4)], covariance[(5, 5)]);
         self.m_f = Some(measured);
         self.held_back = None;
+        self.innovation_trend = [0.0; 6];
     }
 
     /// The estimate of {F} in {M}, once there is one.

@@ -22,6 +22,41 @@ pub struct Shot {
     pub frame: CameraFrame,
 }
 
+/// A camera fault ingestion noticed (docs/estimation.md, faults).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Detected {
+    /// A coded point has been missing from [`OCCLUSION_FRAMES`] frames in a row; the fits go on
+    /// without it (their covariance grows accordingly).
+    Occlusion,
+    /// The camera has sent the same frame [`FROZEN_FRAMES`] times in a row.
+    FrozenCamera,
+    /// A frame older than one already taken in; it is dropped.
+    OutOfOrder,
+    /// The measured pose jumped, confirmed by a second frame, where the robot's moves say it
+    /// cannot have: the camera or a fixture has been knocked out of calibration.
+    CameraShift,
+}
+
+impl Detected {
+    pub fn code(&self) -> &'static str {
+        match self {
+            Detected::Occlusion => "occlusion",
+            Detected::FrozenCamera => "frozen_camera",
+            Detected::OutOfOrder => "out_of_order",
+            Detected::CameraShift => "camera_shift",
+        }
+    }
+}
+
+/// Frames in a row a coded point may be missing before it is reported occluded (a dropped
+/// point, 2% a frame in the reference camera, is missing 8 frames in a row once in 4e13).
+pub const OCCLUSION_FRAMES: u32 = 8;
+/// Identical frames in a row that make the camera frozen.
+pub const FROZEN_FRAMES: u32 = 3;
+/// Largest coded-point id tracked for occlusion, per fixture.
+const TRACKED_POINTS: usize = 16;
+
 /// What ingestion makes of a shot: the state the controller and the supervisor work from.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Estimate {
@@ -36,6 +71,61 @@ pub struct Estimate {
     pub filter: StateFilter,
     /// Whether this capture was usable.
     pub fresh: bool,
+    /// A camera fault noticed at this capture.
+    pub detected: Option<Detected>,
+}
+
+/// What ingestion remembers of the frames to notice faults.
+#[derive(Debug, Clone, Default)]
+struct FrameWatch {
+    last_sequence: Option<u64>,
+    last_points: Vec<super::CodedPoint>,
+    repeats: u32,
+    /// Frames in a row each coded point of {C1} and {C2} has been missing.
+    missing: [[u32; TRACKED_POINTS]; 2],
+}
+
+impl FrameWatch {
+    /// Screens a frame before it is used: `Err` for a frame that must not be used, with the
+    /// fault it shows once it is one; `Ok` with anything noticed about a usable one.
+    fn screen(&mut self, frame: &CameraFrame) -> Result<Option<Detected>, Option<Detected>> {
+        if self.last_sequence.is_some_and(|last| frame.sequence < last) {
+            return Err(Some(Detected::OutOfOrder));
+        }
+        let same = self.last_sequence == Some(frame.sequence)
+            && frame.points.len() == self.last_points.len()
+            && frame.points.iter().zip(&self.last_points).all(|(a, b)| {
+                a.fixture == b.fixture && a.id == b.id && a.position_mm == b.position_mm
+            });
+        if same && !frame.points.is_empty() {
+            self.repeats += 1;
+            return Err((self.repeats + 1 >= FROZEN_FRAMES).then_some(Detected::FrozenCamera));
+        }
+        self.repeats = 0;
+        self.last_sequence = Some(frame.sequence);
+        self.last_points.clone_from(&frame.points);
+        let mut seen = [[false; TRACKED_POINTS]; 2];
+        for point in &frame.points {
+            if let Some(slot) = seen[fixture_index(point.fixture)].get_mut(usize::from(point.id)) {
+                *slot = true;
+            }
+        }
+        let mut occluded = false;
+        for (missing, seen) in self.missing.iter_mut().zip(seen) {
+            for (count, seen) in missing.iter_mut().zip(seen) {
+                *count = if seen { 0 } else { *count + 1 };
+                occluded |= *count == OCCLUSION_FRAMES;
+            }
+        }
+        Ok(occluded.then_some(Detected::Occlusion))
+    }
+}
+
+fn fixture_index(fixture: super::Fixture) -> usize {
+    match fixture {
+        super::Fixture::C1 => 0,
+        super::Fixture::C2 => 1,
+    }
 }
 
 /// Fits each capture, carries it forward by the part of the move still to come, fuses it into
@@ -46,6 +136,9 @@ pub struct Ingest {
     filter: StateFilter,
     /// How noisy the camera really is, learned from each frame's fit residuals.
     noise: NoiseScale,
+    watch: FrameWatch,
+    /// Set when the last fusion was a confirmed jump.
+    jumped: bool,
     hole_pitch_deg: f64,
     state: [f64; 12],
     raw_state: [f64; 12],
@@ -58,6 +151,8 @@ impl Ingest {
             estimator: StateEstimator::new(cell, frames),
             filter: StateFilter::new(FusionTuning::default()),
             noise: NoiseScale::default(),
+            watch: FrameWatch::default(),
+            jumped: false,
             hole_pitch_deg: cell.hole_pitch_deg(),
             state: [0.0; 12],
             raw_state: [0.0; 12],
@@ -74,13 +169,25 @@ impl Ingest {
         if let Some(step) = &shot.executed {
             self.predict(step);
         }
-        let fresh = self.ingest(&shot.frame, shot.remaining.as_ref()).is_ok();
+        let (fresh, detected) = match self.watch.screen(&shot.frame) {
+            Err(fault) => {
+                self.estimated_m_f = None;
+                (false, fault)
+            }
+            Ok(noticed) => {
+                self.jumped = false;
+                let fresh = self.ingest(&shot.frame, shot.remaining.as_ref()).is_ok();
+                let shifted = self.jumped.then_some(Detected::CameraShift);
+                (fresh, shifted.or(noticed))
+            }
+        };
         Estimate {
             state: self.state,
             raw_state: self.raw_state,
             m_f: self.estimated_m_f,
             filter: self.filter,
             fresh,
+            detected,
         }
     }
 
@@ -89,6 +196,7 @@ impl Ingest {
         self.filter.reset();
         self.noise = NoiseScale::default();
         self.filter.set_noise_scale(self.noise.scale());
+        self.watch = FrameWatch::default();
         self.state = [0.0; 12];
         self.raw_state = [0.0; 12];
         self.estimated_m_f = None;
@@ -119,9 +227,13 @@ impl Ingest {
             .add(measurement.residual_squares, measurement.residual_dof);
         self.filter.set_noise_scale(self.noise.scale());
         let covariance = measurement.covariance * self.noise.cautious_variance_factor();
-        if let Fusion::HeldBack { sigmas } = self.filter.update(&measurement.m_f, &covariance) {
-            self.estimated_m_f = None;
-            return Err(CameraError::HeldBack { sigmas });
+        match self.filter.update(&measurement.m_f, &covariance) {
+            Fusion::HeldBack { sigmas } => {
+                self.estimated_m_f = None;
+                return Err(CameraError::HeldBack { sigmas });
+            }
+            Fusion::Jumped { .. } => self.jumped = true,
+            Fusion::Blended | Fusion::Reset => {}
         }
         self.raw_state = measurement.state(self.hole_pitch_deg);
         let fused = self.filter.m_f().unwrap_or(measurement.m_f);

@@ -49,6 +49,9 @@ pub struct CodedPoint {
 #[derive(Debug, Clone, Default)]
 pub struct CameraFrame {
     pub points: Vec<CodedPoint>,
+    /// The capture's number within its episode: 1 for the episode's first capture, +1 per
+    /// capture (0 when nobody numbered it). A frame delivered late or twice keeps its number.
+    pub sequence: u64,
 }
 
 /// Why a capture gave no state.

@@ -117,6 +117,7 @@ impl SimCamera {
     pub fn capture(&self, w_m: &Pose, w_f: &Pose, rng: &mut impl Rng) -> CameraFrame {
         let mut frame = CameraFrame {
             points: Vec::with_capacity(self.c1_in_m.len() + self.c2_in_f.len()),
+            sequence: 0,
         };
         self.capture_into(w_m, w_f, rng, &mut frame);
         frame

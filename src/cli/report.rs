@@ -7,6 +7,9 @@
 //! - Table 4: success by camera noise level (× the spec's point σ).
 //! - Table 5: avg steps, avg reward and success of every controller on the reference cell.
 //! - Table 6: the same on phi200, without retraining.
+//! - Mismatch: success, avg steps and contacts of every Table 5 controller when the twin departs
+//!   from the cell file: camera noise ×0.5 to ×4, calibration error ×1 to ×3, and each injected
+//!   fault (`sim::fault`).
 //! - Fig. 7: learning curves (return and success, moving averages) of the `--curve` files
 //!   written by `celld train td3` (td3_curve.json) and `celld train flat` (td3-flat_curve.json).
 
@@ -17,7 +20,7 @@ use assembly_cell::learning::refine::EpisodeRecord;
 use assembly_cell::policy::eval::{self, EvalSummary};
 use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, ControllerFactory};
-use assembly_cell::sim::{EnvOptions, InitialConditions};
+use assembly_cell::sim::{EnvOptions, Fault, InitialConditions, Mismatch};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -152,8 +155,10 @@ pub fn run(args: ReportArgs) -> Result<()> {
         .iter()
         .map(|name| builtin(name))
         .collect();
-    let total =
-        learned_policies.len() * conditions.len() + (builtins.len() + learned_policies.len()) * 2;
+    let mismatches = mismatch_conditions();
+    let extra = mismatches.iter().filter(|(_, m)| !m.is_none()).count();
+    let total = learned_policies.len() * conditions.len()
+        + (builtins.len() + learned_policies.len()) * (2 + extra);
     let bar = ProgressBar::new(total as u64);
     bar.set_style(
         ProgressStyle::with_template(
@@ -164,7 +169,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let evaluate = |controller: &Controller,
                     cell: &CellConfig,
                     initial,
-                    noise,
+                    mismatch: Mismatch,
                     condition: &str|
      -> Result<Cell> {
         bar.set_message(format!(
@@ -172,10 +177,10 @@ pub fn run(args: ReportArgs) -> Result<()> {
             controller.label, cell.name
         ));
         let factory = (controller.factory)(cell)?;
-        let options = EnvOptions {
-            noise_scale: noise,
+        let options = mismatch.apply(EnvOptions {
             initial,
-        };
+            ..EnvOptions::from_cell(cell)
+        });
         let (summary, _) =
             eval::evaluate(cell, options, args.episodes, args.seed, &factory, &|_| {});
         bar.inc(1);
@@ -188,21 +193,52 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let mut robustness = Vec::new();
     for controller in &learned_policies {
         for (label, initial, noise) in &conditions {
-            robustness.push(evaluate(controller, &reference, *initial, *noise, label)?);
+            let mismatch = Mismatch {
+                noise_scale: *noise,
+                ..Mismatch::NONE
+            };
+            robustness.push(evaluate(controller, &reference, *initial, mismatch, label)?);
         }
     }
     let mut table5 = Vec::new();
     let mut table6 = Vec::new();
     let default_phi200 = InitialConditions::from_cell(&phi200);
     for controller in builtins.iter().chain(&learned_policies) {
-        table5.push(evaluate(controller, &reference, default, 1.0, "phi170")?);
+        table5.push(evaluate(
+            controller,
+            &reference,
+            default,
+            Mismatch::NONE,
+            "phi170",
+        )?);
         table6.push(evaluate(
             controller,
             &phi200,
             default_phi200,
-            1.0,
+            Mismatch::NONE,
             "phi200",
         )?);
+    }
+    // The twin as the cell file says is Table 5's own evaluation (the same options and seed).
+    let mut mismatch = Vec::new();
+    for (controller, nominal_cell) in builtins.iter().chain(&learned_policies).zip(&table5) {
+        for (label, conditions) in &mismatches {
+            if conditions.is_none() {
+                mismatch.push(Cell {
+                    controller: nominal_cell.controller.clone(),
+                    condition: label.clone(),
+                    summary: nominal_cell.summary.clone(),
+                });
+            } else {
+                mismatch.push(evaluate(
+                    controller,
+                    &reference,
+                    default,
+                    *conditions,
+                    label,
+                )?);
+            }
+        }
     }
     bar.finish_and_clear();
     let command = command_line(std::env::args().skip(1));
@@ -213,6 +249,8 @@ pub fn run(args: ReportArgs) -> Result<()> {
         &robustness,
         &table5,
         &table6,
+        &mismatches,
+        &mismatch,
         &curves,
     );
     std::fs::write(args.out.join("report.md"), markdown)?;
@@ -226,6 +264,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
             "robustness": robustness,
             "table5": table5,
             "table6": table6,
+            "mismatch": mismatch,
         }))?,
     )?;
     if !curves.is_empty() {
@@ -263,6 +302,49 @@ pub fn run(args: ReportArgs) -> Result<()> {
 
 /// Camera noise levels of Table 4, × the spec's point σ.
 const NOISE_LEVELS: [f64; 5] = [0.0, 0.5, 1.0, 2.0, 4.0];
+
+/// Camera noise levels of the mismatch table, × the spec's point σ.
+const MISMATCH_NOISE: [f64; 4] = [0.5, 1.0, 2.0, 4.0];
+
+/// Calibration error levels of the mismatch table, × the cell file's.
+const MISMATCH_CALIBRATION: [f64; 3] = [1.0, 2.0, 3.0];
+
+/// The mismatch table's columns: a label and the twin's departure from the cell file.
+fn mismatch_conditions() -> Vec<(String, Mismatch)> {
+    let noise = MISMATCH_NOISE.iter().map(|&noise_scale| {
+        (
+            format!("noise ×{noise_scale}"),
+            Mismatch {
+                noise_scale,
+                ..Mismatch::NONE
+            },
+        )
+    });
+    let calibration = MISMATCH_CALIBRATION.iter().map(|&calibration_scale| {
+        (
+            format!("calibration ×{calibration_scale}"),
+            Mismatch {
+                calibration_scale,
+                ..Mismatch::NONE
+            },
+        )
+    });
+    let faults = Fault::ALL.iter().map(|&fault| {
+        (
+            fault.code().to_string(),
+            Mismatch {
+                fault: Some(fault),
+                ..Mismatch::NONE
+            },
+        )
+    });
+    noise.chain(calibration).chain(faults).collect()
+}
+
+/// Episodes of an evaluation that ended in contact.
+fn contacts(summary: &EvalSummary) -> usize {
+    summary.failures.get("contact").copied().unwrap_or(0)
+}
 
 fn read_curve(path: &PathBuf) -> Result<Vec<EpisodeRecord>> {
     #[derive(serde::Deserialize)]
@@ -344,6 +426,8 @@ fn render(
     robustness: &[Cell],
     table5: &[Cell],
     table6: &[Cell],
+    mismatches: &[(String, Mismatch)],
+    mismatch: &[Cell],
     curves: &[(String, Vec<EpisodeRecord>)],
 ) -> String {
     let mut md = String::new();
@@ -426,6 +510,7 @@ fn render(
         }
         let _ = writeln!(md);
     }
+    render_mismatch(&mut md, table5, mismatches, mismatch);
     if !curves.is_empty() {
         let _ = writeln!(md, "## Fig. 7: learning curves\n");
         let _ = writeln!(
@@ -447,9 +532,53 @@ fn render(
     md
 }
 
+/// The mismatch table: a row per Table 5 controller, a column per condition.
+fn render_mismatch(
+    md: &mut String,
+    table5: &[Cell],
+    mismatches: &[(String, Mismatch)],
+    mismatch: &[Cell],
+) {
+    let _ = writeln!(
+        md,
+        "## Mismatch: every method, phi170, when the twin departs from the cell file\n"
+    );
+    let _ = writeln!(
+        md,
+        "Each cell: success rate / avg steps (successful episodes) / episodes ended by contact. \
+         Noise × the spec's point σ; calibration × the cell file's calibration error (the radius \
+         of the ball the robot's true joint centres are drawn in); a fault starts at a step drawn \
+         in 5..=35 and lasts to the end of the episode (docs/configuration.md). Noise ×1 and \
+         calibration ×1 are Table 5's phi170 column.\n"
+    );
+    let labels: Vec<&str> = mismatches.iter().map(|(label, _)| label.as_str()).collect();
+    let _ = writeln!(md, "| method | {} |", labels.join(" | "));
+    let _ = writeln!(md, "|---|{}", "---|".repeat(labels.len()));
+    for controller in table5.iter().map(|c| &c.controller) {
+        let row: Vec<String> = labels
+            .iter()
+            .map(|label| {
+                mismatch
+                    .iter()
+                    .find(|c| &c.controller == controller && c.condition == *label)
+                    .map_or("-".to_string(), |c| {
+                        format!(
+                            "{:.3} / {} / {}",
+                            c.summary.success_rate,
+                            steps(&c.summary),
+                            contacts(&c.summary)
+                        )
+                    })
+            })
+            .collect();
+        let _ = writeln!(md, "| {controller} | {} |", row.join(" | "));
+    }
+    let _ = writeln!(md);
+}
+
 #[cfg(test)]
 mod tests {
-    use super::{command_line, shell_quoted};
+    use super::{command_line, mismatch_conditions, shell_quoted};
 
     #[test]
     fn a_quoted_argument_reads_back_the_same_through_a_shell() {
@@ -485,5 +614,34 @@ mod tests {
             command_line(args.into_iter()),
             "celld report --curve 'BC+TD3 (hierarchical)=runs/report/T27/td3_curve.json'"
         );
+    }
+
+    #[test]
+    fn the_mismatch_table_has_every_noise_calibration_and_fault_column() {
+        let labels: Vec<String> = mismatch_conditions().into_iter().map(|(l, _)| l).collect();
+        assert_eq!(
+            labels,
+            [
+                "noise ×0.5",
+                "noise ×1",
+                "noise ×2",
+                "noise ×4",
+                "calibration ×1",
+                "calibration ×2",
+                "calibration ×3",
+                "camera_shift",
+                "occlusion",
+                "frozen_camera",
+                "out_of_order",
+                "robot_lag",
+                "robot_short",
+            ]
+        );
+        let nominal: Vec<_> = mismatch_conditions()
+            .into_iter()
+            .filter(|(_, m)| m.is_none())
+            .map(|(l, _)| l)
+            .collect();
+        assert_eq!(nominal, ["noise ×1", "calibration ×1"]);
     }
 }

@@ -4,6 +4,7 @@
 use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
+use crate::sim::{Fault, Mismatch, UnknownFault};
 use crate::storage::policies::{self, Evaluation, Policy};
 use crate::storage::tokens::Role;
 use crate::workflows;
@@ -132,10 +133,34 @@ pub struct EvaluateBody {
     /// The evaluation's seed (default 1).
     #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
+    /// Multiplies the camera's point noise (default 1, the spec; 0 noiseless).
+    #[schema(minimum = 0, maximum = 16)]
+    noise_scale: Option<f64>,
+    /// Multiplies the robot's kinematic calibration error (default 1, the cell file's; 0 a
+    /// perfectly calibrated robot).
+    #[schema(minimum = 0, maximum = 16)]
+    calibration_scale: Option<f64>,
+    /// A fault injected in every episode from a step drawn in 5..=35 (default none).
+    #[serde(default, deserialize_with = "optional_fault")]
+    fault: Option<Fault>,
+}
+
+/// A fault by name; an unknown one is refused naming the field and the names there are.
+fn optional_fault<'de, D: serde::Deserializer<'de>>(
+    deserializer: D,
+) -> std::result::Result<Option<Fault>, D::Error> {
+    Option::<String>::deserialize(deserializer)?
+        .map(|name| {
+            name.parse()
+                .map_err(|e: UnknownFault| serde::de::Error::custom(format!("fault: {e}")))
+        })
+        .transpose()
 }
 
 /// Evaluates the policy in the twin of this cell (admin), in the background at low priority;
-/// the answer is the evaluation as it starts. The body may be left out.
+/// the answer is the evaluation as it starts. The body may be left out. An evaluation under a
+/// mismatch (`noise_scale` or `calibration_scale` other than 1, or a `fault`) is stored and
+/// shown like any other, but the activation gate reads only those without one.
 #[utoipa::path(post, path = "/api/policies/{id}/evaluate", tag = "policies",
     params(("id" = i64, Path)), request_body(content = Option<EvaluateBody>),
     responses((status = 202, description = "Started", body = Evaluation)))]
@@ -147,8 +172,20 @@ async fn evaluate(
 ) -> ApiResult<(StatusCode, Json<Evaluation>)> {
     let caller = auth.require(Role::Admin)?;
     let body: EvaluateBody = optional_body(&body)?;
-    let evaluation =
-        workflows::policies::evaluate(&context, id, body.episodes, body.seed, &caller.name).await?;
+    let mismatch = Mismatch {
+        noise_scale: body.noise_scale.unwrap_or(1.0),
+        calibration_scale: body.calibration_scale.unwrap_or(1.0),
+        fault: body.fault,
+    };
+    let evaluation = workflows::policies::evaluate(
+        &context,
+        id,
+        body.episodes,
+        body.seed,
+        mismatch,
+        &caller.name,
+    )
+    .await?;
     Ok((StatusCode::ACCEPTED, Json(evaluation)))
 }
 

@@ -37,6 +37,10 @@ pub struct EvalSummary {
     pub init_pos_mm: f64,
     pub init_ori_deg: f64,
     pub noise_scale: f64,
+    /// The robot's calibration error × the cell file's.
+    pub calibration_scale: f64,
+    /// The fault injected in every episode (`sim::Fault::code`), if any.
+    pub fault: Option<String>,
     pub successes: usize,
     pub success_rate: f64,
     /// Average steps over the successful episodes (null when none succeeded).
@@ -164,6 +168,8 @@ fn summarise(
         init_pos_mm: options.initial.offset_mm,
         init_ori_deg: options.initial.orientation_deg,
         noise_scale: options.noise_scale,
+        calibration_scale: options.calibration_scale,
+        fault: options.fault.map(|f| f.code().to_string()),
         successes: successes.len(),
         success_rate: successes.len() as f64 / n,
         avg_steps: (!successes.is_empty()).then(|| {

@@ -10,9 +10,10 @@
 //! tolerance, failure on true contact (the robot's protective stop), on too many vetoes in a row,
 //! on leaving the workspace, or on running out of steps.
 
+use super::fault::{Fault, Injection};
 use super::reward::{Ending, RewardTerms, RewardTracker};
 use super::robot::{TwinDrive, TwinRobot};
-use crate::camera::ingest::{Estimate, Ingest, Shot};
+use crate::camera::ingest::{Detected, Estimate, Ingest, Shot};
 use crate::camera::{FusionTuning, SimCamera, StateFilter};
 use crate::collision::clearance::PartGeometry;
 use crate::collision::obb::Obb;
@@ -63,6 +64,13 @@ pub enum FailureReason {
     /// The cell held for more frames too many times in a row: no move was sure enough to
     /// make (the supervisor's `uncertain` vetoes). The robot holds where it is.
     Uncertain,
+    /// The camera's measurement jumped where the robot did not move: knocked out of
+    /// calibration. The robot holds.
+    CameraShift,
+    /// The camera keeps sending the same frame. The robot holds.
+    FrozenCamera,
+    /// The robot stopped short of its setpoint and stays there. The robot holds.
+    RobotShort,
 }
 
 impl FailureReason {
@@ -74,6 +82,9 @@ impl FailureReason {
             FailureReason::Contact => "contact",
             FailureReason::RobotFault => "robot_fault",
             FailureReason::Uncertain => "uncertain",
+            FailureReason::CameraShift => "camera_shift",
+            FailureReason::FrozenCamera => "frozen_camera",
+            FailureReason::RobotShort => "robot_short",
         }
     }
 }
@@ -122,8 +133,14 @@ pub struct StepResult {
     pub reward: RewardTerms,
     /// The supervisor's veto of this step's move, if any.
     pub veto: Option<VetoReason>,
-    /// Leg encoder readings after the step (mm).
+    /// Leg encoder readings after the step, as the robot reports them (mm).
     pub legs_mm: [f64; 6],
+    /// The nominal leg lengths the supervisor let through for this step's move (none: vetoed,
+    /// or the robot could not take it).
+    pub commanded_legs_mm: Option<[f64; 6]>,
+    /// A fault noticed at this step (`occlusion`, `out_of_order`, `robot_lag`, or the code of
+    /// the fault the episode ends on).
+    pub detected: Option<&'static str>,
     pub done: bool,
     pub outcome: Option<Outcome>,
     pub true_errors: PoseErrors,
@@ -165,6 +182,20 @@ struct PendingMove {
     executed: Option<Move>,
     veto: Option<VetoReason>,
     failure: Option<FailureReason>,
+    commanded_legs_mm: Option<[f64; 6]>,
+    detected: Option<&'static str>,
+}
+
+/// Largest difference (mm) between a leg's reading and its command that counts as arrived:
+/// 20 times the reference robot's leg resolution and random error.
+const LEG_ARRIVAL_MM: f64 = 0.01;
+
+/// Whether `encoders` are within [`LEG_ARRIVAL_MM`] of `command`.
+fn arrived(encoders: &[f64; 6], command: &[f64; 6]) -> bool {
+    encoders
+        .iter()
+        .zip(command)
+        .all(|(e, c)| (e - c).abs() <= LEG_ARRIVAL_MM)
 }
 
 /// Options that are not part of the cell file.
@@ -172,6 +203,11 @@ struct PendingMove {
 pub struct EnvOptions {
     /// Multiplies the camera's point noise (1 = the spec).
     pub noise_scale: f64,
+    /// Multiplies the radius of the ball the robot's true joint centres are drawn in
+    /// (`imperfections.calibration_error_mm`; 1 = the cell file's, 0 = perfect calibration).
+    pub calibration_scale: f64,
+    /// A fault injected mid-episode (`sim::fault`), none by default.
+    pub fault: Option<Fault>,
     pub initial: InitialConditions,
 }
 
@@ -179,6 +215,8 @@ impl EnvOptions {
     pub fn from_cell(cell: &CellConfig) -> Self {
         EnvOptions {
             noise_scale: 1.0,
+            calibration_scale: 1.0,
+            fault: None,
             initial: InitialConditions::from_cell(cell),
         }
     }
@@ -202,12 +240,19 @@ pub struct AssemblyEnv {
     /// The episode's one random stream: initial pose, calibration, then per step the robot's
     /// leg errors and the camera's noise, in that order.
     rng: ChaCha8Rng,
+    /// The episode's fault, drawn from a stream of its own (`sim::fault`).
+    injection: Option<Injection>,
+    /// Captures so far in this episode (each frame's sequence number).
+    captures: u64,
     // Episode state.
     step: u32,
     /// Vetoes in a row for contact, reach or limits (the paper's collision warnings).
     consecutive_vetoes: u32,
     /// Holds in a row because no move was sure enough (`uncertain` vetoes).
     uncertain_holds: u32,
+    /// The legs commanded by the last move, when the encoders had not reached them at its
+    /// capture.
+    unarrived: Option<[f64; 6]>,
     /// The fused estimate of {F} in {M} the supervisor judges the next move against (a snapshot
     /// of the state filter; none when the last capture could not be used).
     belief: Option<StateFilter>,
@@ -226,7 +271,7 @@ impl AssemblyEnv {
             camera: SimCamera::new(cell, &frames, options.noise_scale),
             ingest: Ingest::new(cell, &frames),
             supervisor: Supervisor::new(cell),
-            robot: TwinRobot::new(cell),
+            robot: TwinRobot::new(cell).with_calibration_scale(options.calibration_scale),
             bore_obb: parts.bore_obb(),
             parts,
             frames,
@@ -234,9 +279,12 @@ impl AssemblyEnv {
             options,
             shot: Shot::default(),
             rng: ChaCha8Rng::seed_from_u64(0),
+            injection: None,
+            captures: 0,
             step: 0,
             consecutive_vetoes: 0,
             uncertain_holds: 0,
+            unarrived: None,
             belief: None,
             pending: None,
             observation: Observation {
@@ -293,6 +341,12 @@ impl AssemblyEnv {
     /// ingestion has a usable frame (or gives up), then [`AssemblyEnv::start_from`].
     pub fn begin_episode(&mut self, seed: u64, initial: InitialConditions) -> Result<(), EnvError> {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.captures = 0;
+        self.injection = self.options.fault.map(|fault| {
+            let centroid = super::fault::c2_centroid_w(&self.frames);
+            Injection::draw(fault, seed, centroid, self.frames.c2_points_mm.len())
+        });
+        self.robot.set_faults(Default::default());
         let f_m = self.sample_initial(initial);
         self.robot
             .reset(self.frames.platform_for(&f_m), &mut self.rng)
@@ -300,6 +354,7 @@ impl AssemblyEnv {
         self.step = 0;
         self.consecutive_vetoes = 0;
         self.uncertain_holds = 0;
+        self.unarrived = None;
         self.outcome = None;
         self.pending = None;
         self.reward = None;
@@ -343,7 +398,29 @@ impl AssemblyEnv {
             return Err(EnvError::OutOfOrder("act before the last move was settled"));
         }
         self.step += 1;
+        // A lagging robot has completed its last move by now.
+        self.robot.catch_up();
+        if let Some(injection) = &self.injection {
+            self.robot.set_faults(injection.robot_faults(self.step));
+        }
         let before = *self.robot.true_platform();
+        let mut pending = PendingMove::default();
+        let mut capture_fraction = 1.0;
+        let mut executed = *action;
+        // A robot that had not reached its last setpoint at the capture: arrived since (it
+        // lags: hold one step, so the next frame sees it still) or still short (end, holding).
+        let hold = match self.unarrived.take() {
+            None => false,
+            Some(command) if arrived(self.robot.encoders_mm(), &command) => {
+                pending.detected = Some("robot_lag");
+                true
+            }
+            Some(_) => {
+                pending.detected = Some(FailureReason::RobotShort.code());
+                pending.failure = Some(FailureReason::RobotShort);
+                true
+            }
+        };
         let mut robot = Supervised::new(
             &self.supervisor,
             TwinDrive {
@@ -353,15 +430,18 @@ impl AssemblyEnv {
         );
         let belief = self.belief.as_ref().and_then(StateFilter::belief);
         robot.observe(belief.as_ref().map(|b| b as &dyn Belief));
-        let mut pending = PendingMove::default();
-        let mut capture_fraction = 1.0;
-        let mut executed = *action;
-        match robot.execute_cautiously(action) {
+        let verdict = if hold {
+            Err(RobotError::Vetoed(VetoReason::StaleMeasurement))
+        } else {
+            robot.execute_cautiously(action)
+        };
+        match verdict {
             Ok(step) => {
                 executed = step;
                 self.consecutive_vetoes = 0;
                 self.uncertain_holds = 0;
                 pending.executed = Some(executed);
+                pending.commanded_legs_mm = self.robot.commanded_mm().copied();
                 let after = *self.robot.true_platform();
                 let path = swept_clearance(
                     &self.parts,
@@ -374,6 +454,7 @@ impl AssemblyEnv {
                 }
                 capture_fraction = self.capture_fraction(&executed);
             }
+            Err(RobotError::Vetoed(_)) if hold => {}
             Err(RobotError::Vetoed(reason @ VetoReason::Uncertain { .. })) => {
                 self.uncertain_holds += 1;
                 pending.veto = Some(reason);
@@ -389,7 +470,20 @@ impl AssemblyEnv {
             }
         }
         let after = *self.robot.true_platform();
-        let seen = pose::interpolate(&before, &after, capture_fraction);
+        let lag = self
+            .robot
+            .faults()
+            .lag_fraction
+            .filter(|_| pending.executed.is_some());
+        let seen = pose::interpolate(&before, &after, capture_fraction * lag.unwrap_or(1.0));
+        if lag.is_some() {
+            self.robot.report_lagging_at(&seen);
+        }
+        if let Some(command) = pending.commanded_legs_mm {
+            if !arrived(self.robot.encoders_mm(), &command) {
+                self.unarrived = Some(command);
+            }
+        }
         // The part of the commanded move still to come after the capture, in {M}.
         let remaining = (capture_fraction < 1.0).then(|| {
             let commanded = executed.as_pose();
@@ -410,7 +504,13 @@ impl AssemblyEnv {
         self.observe(estimate);
         let true_f_m = self.true_f_m();
         let errors = self.pose_errors(&true_f_m);
-        let outcome = if let Some(reason) = pending.failure {
+        let camera_failure = match estimate.detected {
+            Some(Detected::CameraShift) => Some(FailureReason::CameraShift),
+            Some(Detected::FrozenCamera) => Some(FailureReason::FrozenCamera),
+            _ => None,
+        };
+        let detected = pending.detected.or(estimate.detected.map(|d| d.code()));
+        let outcome = if let Some(reason) = pending.failure.or(camera_failure) {
             Some(Outcome::Failure(reason))
         } else if self.is_success(&errors) {
             Some(Outcome::Success)
@@ -443,6 +543,8 @@ impl AssemblyEnv {
             reward,
             veto: pending.veto,
             legs_mm: *self.robot.encoders_mm(),
+            commanded_legs_mm: pending.commanded_legs_mm,
+            detected,
             done: outcome.is_some(),
             outcome,
             true_errors: errors,
@@ -473,6 +575,16 @@ impl AssemblyEnv {
         self.step
     }
 
+    /// The legs' encoder readings as the robot reports them now (mm).
+    pub fn encoders_mm(&self) -> [f64; 6] {
+        *self.robot.encoders_mm()
+    }
+
+    /// The step this episode's fault starts at (none without a fault).
+    pub fn fault_onset(&self) -> Option<u32> {
+        self.injection.as_ref().map(Injection::onset)
+    }
+
     /// Where the capture happens along the move just executed: the camera takes its picture
     /// `latency_s` before the next decision, so a move longer than the cycle minus the latency
     /// is seen part-way.
@@ -497,6 +609,11 @@ impl AssemblyEnv {
         let (w_m, w_f) = self.frames.world_poses(platform);
         self.camera
             .capture_into(&w_m, &w_f, &mut self.rng, &mut self.shot.frame);
+        self.captures += 1;
+        self.shot.frame.sequence = self.captures;
+        if let Some(injection) = &mut self.injection {
+            injection.deliver(self.step, &mut self.shot.frame);
+        }
         self.shot.executed = executed;
         self.shot.remaining = remaining;
     }

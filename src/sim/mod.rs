@@ -3,6 +3,7 @@
 
 pub mod batch;
 pub mod env;
+pub mod fault;
 pub mod reward;
 pub mod robot;
 
@@ -11,4 +12,5 @@ pub use env::{
     AssemblyEnv, EnvError, EnvOptions, FailureReason, InitialConditions, Observation, Outcome,
     PoseErrors, StepResult,
 };
+pub use fault::{Fault, Mismatch, UnknownFault};
 pub use reward::RewardTerms;

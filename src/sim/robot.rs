@@ -6,7 +6,11 @@
 //! in its nominal model) and commands the leg lengths the nominal model gives for it. Like any
 //! position-controlled axis, each leg lands within its error of the commanded length; errors do
 //! not accumulate from move to move, but the calibration error bends every move the same way.
+//!
+//! Robot faults ([`RobotFaults`], `sim::fault`) make it land short of its command or report its
+//! legs late.
 
+use super::fault::RobotFaults;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
@@ -20,6 +24,8 @@ pub struct TwinRobot {
     nominal: StewartGeometry,
     truth: StewartGeometry,
     calibration_error_mm: f64,
+    /// Multiplies each drawn joint displacement (1: the cell file's calibration error).
+    calibration_scale: f64,
     resolution_mm: f64,
     leg_error_sd_mm: f64,
     /// Segment I's frame {M} in the platform's {P}: turns a move in {M} into a platform pose.
@@ -28,7 +34,13 @@ pub struct TwinRobot {
     true_platform: Pose,
     /// The commanded platform pose, in the nominal model.
     setpoint: Pose,
+    /// What the encoders report.
     encoders_mm: [f64; 6],
+    /// The legs' true lengths.
+    legs_mm: [f64; 6],
+    /// The nominal leg lengths of the last move's command.
+    commanded_mm: Option<[f64; 6]>,
+    faults: RobotFaults,
 }
 
 impl TwinRobot {
@@ -53,7 +65,11 @@ impl TwinRobot {
             } else {
                 0.0
             },
+            calibration_scale: 1.0,
             encoders_mm: nominal.leg_lengths_mm(&home),
+            legs_mm: nominal.leg_lengths_mm(&home),
+            commanded_mm: None,
+            faults: RobotFaults::default(),
             p_m: CellFrames::from_config(cell).p_m,
             nominal,
             true_platform: home,
@@ -61,19 +77,40 @@ impl TwinRobot {
         }
     }
 
+    /// Scales the calibration error: each joint displacement drawn at [`TwinRobot::reset`] is
+    /// multiplied by `scale` (0: a perfectly calibrated robot). The draws are the same whatever
+    /// the scale, so episodes under different scales share their other random numbers.
+    pub fn with_calibration_scale(mut self, scale: f64) -> Self {
+        self.calibration_scale = scale;
+        self
+    }
+
+    /// The faults the next moves suffer (none by default; [`TwinRobot::reset`] keeps them).
+    pub fn set_faults(&mut self, faults: RobotFaults) {
+        self.faults = faults;
+    }
+
+    pub fn faults(&self) -> &RobotFaults {
+        &self.faults
+    }
+
     /// Starts an episode with the platform truly at `true_platform`; draws a new calibration error
-    /// (each joint centre displaced uniformly within a ball of the configured radius).
+    /// (each joint centre displaced uniformly within a ball of the configured radius, times the
+    /// calibration scale).
     pub fn reset(
         &mut self,
         true_platform: Pose,
         rng: &mut impl Rng,
     ) -> Result<(), KinematicsError> {
-        let mut draw = || random_in_ball(rng, self.calibration_error_mm);
+        let scale = self.calibration_scale;
+        let mut draw = || random_in_ball(rng, self.calibration_error_mm) * scale;
         let base: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
         let platform: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
         self.truth = self.nominal.with_joint_offsets(&base, &platform);
         self.true_platform = true_platform;
         let legs = self.truth.leg_lengths_mm(&true_platform);
+        self.legs_mm = legs;
+        self.commanded_mm = None;
         self.encoders_mm = legs.map(|l| quantize(l, self.resolution_mm));
         self.setpoint = self
             .nominal
@@ -84,7 +121,9 @@ impl TwinRobot {
 
     /// Moves to the setpoint `target` whose nominal leg lengths are `command_mm`. The legs land at
     /// the command rounded to the actuator resolution plus a random error; the true pose follows
-    /// from the true geometry (forward kinematics warm-started from the last true pose).
+    /// from the true geometry (forward kinematics warm-started from the last true pose). With
+    /// `robot_short` each leg goes only that fraction of the way from its length to the rounded
+    /// command, before the random error.
     pub fn execute(
         &mut self,
         target: &Pose,
@@ -92,14 +131,42 @@ impl TwinRobot {
         rng: &mut impl Rng,
     ) -> Result<(), KinematicsError> {
         let mut actual = [0.0; 6];
-        for (leg, command) in actual.iter_mut().zip(command_mm) {
+        for ((leg, command), before) in actual.iter_mut().zip(command_mm).zip(&self.legs_mm) {
             let noise: f64 = rng.sample(StandardNormal);
-            *leg = quantize(*command, self.resolution_mm) + self.leg_error_sd_mm * noise;
+            let mut goal = quantize(*command, self.resolution_mm);
+            if let Some(fraction) = self.faults.short_fraction {
+                goal = before + fraction * (goal - before);
+            }
+            *leg = goal + self.leg_error_sd_mm * noise;
         }
+        self.commanded_mm = Some(*command_mm);
         self.true_platform = self.truth.forward(&actual, &self.true_platform)?.pose;
+        self.legs_mm = actual;
         self.encoders_mm = actual.map(|l| quantize(l, self.resolution_mm));
         self.setpoint = *target;
         Ok(())
+    }
+
+    /// `robot_lag`: until [`TwinRobot::catch_up`], the encoders report the legs of the platform
+    /// at `platform` (a pose along the last move) instead of where the move ended.
+    pub fn report_lagging_at(&mut self, platform: &Pose) {
+        let legs = self.truth.leg_lengths_mm(platform);
+        self.encoders_mm = legs.map(|l| quantize(l, self.resolution_mm));
+    }
+
+    /// The encoders report the legs where they are (the end of a lagging move).
+    pub fn catch_up(&mut self) {
+        self.encoders_mm = self.legs_mm.map(|l| quantize(l, self.resolution_mm));
+    }
+
+    /// The nominal leg lengths the last executed move commanded (none since the reset).
+    pub fn commanded_mm(&self) -> Option<&[f64; 6]> {
+        self.commanded_mm.as_ref()
+    }
+
+    /// The legs' true lengths (the twin's ground truth).
+    pub fn true_legs_mm(&self) -> &[f64; 6] {
+        &self.legs_mm
     }
 
     pub fn true_platform(&self) -> &Pose {
@@ -110,6 +177,7 @@ impl TwinRobot {
         &self.setpoint
     }
 
+    /// What the encoders report.
     pub fn encoders_mm(&self) -> &[f64; 6] {
         &self.encoders_mm
     }

@@ -2,6 +2,7 @@
 //! `active` or `retired`; evaluations in the twin, which the activation gate reads.
 
 use super::{Db, DbError, NOW, json_column};
+use crate::sim::Mismatch;
 use serde::Serialize;
 use serde_json::Value;
 
@@ -31,6 +32,13 @@ pub struct Evaluation {
     pub episodes: i64,
     pub seed: u64,
     pub cell_hash: String,
+    /// The camera's point noise × the spec's (1: as the cell file says).
+    pub noise_scale: f64,
+    /// The robot's calibration error × the cell file's (1: as the cell file says).
+    pub calibration_scale: f64,
+    /// The fault injected in every episode, if any.
+    #[schema(value_type = Option<crate::sim::Fault>)]
+    pub fault: Option<String>,
     pub success_rate: Option<f64>,
     pub avg_steps: Option<f64>,
     pub failures: Value,
@@ -59,6 +67,9 @@ struct EvaluationRow {
     episodes: i64,
     seed: i64,
     cell_hash: String,
+    noise_scale: f64,
+    calibration_scale: f64,
+    fault: Option<String>,
     success_rate: Option<f64>,
     avg_steps: Option<f64>,
     failures: Option<String>,
@@ -78,6 +89,9 @@ impl From<EvaluationRow> for Evaluation {
             // Stored as the same 64 bits in SQLite's signed integer.
             seed: row.seed as u64,
             cell_hash: row.cell_hash,
+            noise_scale: row.noise_scale,
+            calibration_scale: row.calibration_scale,
+            fault: row.fault,
             success_rate: row.success_rate,
             avg_steps: row.avg_steps,
             failures: json_column(row.failures),
@@ -224,22 +238,29 @@ pub async fn activate_if_none_active(db: &Db, id: i64) -> Result<bool, DbError> 
     Ok(done.rows_affected() == 1)
 }
 
+/// Records an evaluation as it starts: `episodes` under `seed` on the cell with `cell_hash`, its
+/// twin departing from the cell file by `mismatch`.
 pub async fn start_evaluation(
     db: &Db,
     policy_id: i64,
     episodes: i64,
     seed: u64,
     cell_hash: &str,
+    mismatch: &Mismatch,
     requested_by: &str,
 ) -> Result<Evaluation, DbError> {
     let row: EvaluationRow = sqlx::query_as(
-        "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, requested_by)
-         VALUES (?, 'running', ?, ?, ?, ?) RETURNING *",
+        "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, noise_scale,
+                calibration_scale, fault, requested_by)
+         VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?) RETURNING *",
     )
     .bind(policy_id)
     .bind(episodes)
     .bind(seed as i64)
     .bind(cell_hash)
+    .bind(mismatch.noise_scale)
+    .bind(mismatch.calibration_scale)
+    .bind(mismatch.fault.map(|f| f.code()))
     .bind(requested_by)
     .fetch_one(&db.writer)
     .await?;
@@ -300,7 +321,9 @@ pub async fn fail_leftover_evaluations(db: &Db) -> Result<u64, DbError> {
     Ok(done.rows_affected())
 }
 
-/// The latest finished evaluation of `policy_id` on the cell with `cell_hash`.
+/// The latest finished evaluation of `policy_id` on the cell with `cell_hash`, under the twin as
+/// the cell file describes it (noise and calibration scale 1, no fault): what the activation
+/// gate reads.
 pub async fn latest_evaluation_on(
     db: &Db,
     policy_id: i64,
@@ -308,6 +331,7 @@ pub async fn latest_evaluation_on(
 ) -> Result<Option<Evaluation>, DbError> {
     let row: Option<EvaluationRow> = sqlx::query_as(
         "SELECT * FROM policy_evaluations WHERE policy_id = ? AND cell_hash = ? AND status = 'done'
+                AND noise_scale = 1 AND calibration_scale = 1 AND fault IS NULL
          ORDER BY id DESC LIMIT 1",
     )
     .bind(policy_id)
@@ -364,6 +388,48 @@ mod tests {
                 let only = store(&empty, "only").await;
                 assert!(activate_if_none_active(&empty, only).await.unwrap());
                 assert_eq!(status(&empty, only).await, "active");
+            });
+    }
+
+    /// The activation gate reads only evaluations under the twin as the cell file says.
+    #[test]
+    fn the_gate_reads_no_evaluation_under_a_mismatch() {
+        let dir = tempfile::tempdir().unwrap();
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap()
+            .block_on(async {
+                let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
+                let id = store(&db, "policy").await;
+                let nominal = start_evaluation(&db, id, 10, 1, "cell", &Mismatch::NONE, "test")
+                    .await
+                    .unwrap();
+                assert_eq!(nominal.noise_scale, 1.0);
+                assert_eq!(nominal.fault, None);
+                finish_evaluation(&db, nominal.id, Ok((0.99, Some(40.0), json!({}))))
+                    .await
+                    .unwrap();
+                let faulty = Mismatch {
+                    noise_scale: 2.0,
+                    calibration_scale: 3.0,
+                    fault: Some(crate::sim::Fault::FrozenCamera),
+                };
+                let mismatched = start_evaluation(&db, id, 10, 1, "cell", &faulty, "test")
+                    .await
+                    .unwrap();
+                finish_evaluation(&db, mismatched.id, Ok((0.5, None, json!({}))))
+                    .await
+                    .unwrap();
+                let latest = latest_evaluation(&db, id).await.unwrap().unwrap();
+                assert_eq!(latest.id, mismatched.id);
+                assert_eq!((latest.noise_scale, latest.calibration_scale), (2.0, 3.0));
+                assert_eq!(latest.fault.as_deref(), Some("frozen_camera"));
+                let gate = latest_evaluation_on(&db, id, "cell")
+                    .await
+                    .unwrap()
+                    .unwrap();
+                assert_eq!(gate.id, nominal.id);
             });
     }
 }

@@ -5,7 +5,7 @@ use super::{Context, Error, Result, off_the_runtime};
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
 use crate::policy::{Controller, ControllerFactory};
-use crate::sim::EnvOptions;
+use crate::sim::{EnvOptions, Mismatch};
 use crate::storage::policies::{self, Evaluation, NewPolicy, Policy};
 use crate::storage::{Db, audit, tokens};
 use serde_json::{Value, json};
@@ -50,6 +50,9 @@ pub async fn register(db: &Db, name: &str, bytes: Vec<u8>, by: &str) -> Result<(
 /// Most episodes one evaluation may ask for.
 const MAX_EVALUATION_EPISODES: u32 = 100_000;
 
+/// The largest noise or calibration scale an evaluation may ask for.
+pub const MAX_MISMATCH_SCALE: f64 = 16.0;
+
 /// An upload: [`register`]ed, and audited when the bytes are new; says whether they were.
 pub async fn upload(
     context: &Context,
@@ -70,13 +73,15 @@ pub async fn upload(
     Ok((policy, created))
 }
 
-/// An evaluation an admin asked for: `episodes` (default: `policies.evaluation_episodes`)
-/// and `seed` (default 1) checked, the evaluation started and audited.
+/// An evaluation an admin asked for: `episodes` (default: `policies.evaluation_episodes`),
+/// `seed` (default 1) and the twin's `mismatch` (noise and calibration scales in
+/// 0..=[`MAX_MISMATCH_SCALE`]) checked, the evaluation started and audited.
 pub async fn evaluate(
     context: &Context,
     id: i64,
     episodes: Option<u32>,
     seed: Option<u64>,
+    mismatch: Mismatch,
     by: &str,
 ) -> Result<Evaluation> {
     find(context, id).await?;
@@ -86,24 +91,42 @@ pub async fn evaluate(
             "episodes = {episodes} is outside 1..={MAX_EVALUATION_EPISODES}"
         )));
     }
-    let evaluation = spawn_evaluation(context, id, episodes, seed.unwrap_or(1), by).await?;
+    for (field, value) in [
+        ("noise_scale", mismatch.noise_scale),
+        ("calibration_scale", mismatch.calibration_scale),
+    ] {
+        if !(value.is_finite() && (0.0..=MAX_MISMATCH_SCALE).contains(&value)) {
+            return Err(Error::unprocessable(format!(
+                "{field} = {value} is outside 0..={MAX_MISMATCH_SCALE}"
+            )));
+        }
+    }
+    let evaluation =
+        spawn_evaluation(context, id, episodes, seed.unwrap_or(1), mismatch, by).await?;
     audit::record(
         &context.db,
         by,
         "policy.evaluate",
-        json!({"policy_id": id, "evaluation_id": evaluation.id, "episodes": episodes}),
+        json!({
+            "policy_id": id,
+            "evaluation_id": evaluation.id,
+            "episodes": episodes,
+            "mismatch": mismatch,
+        }),
     )
     .await?;
     Ok(evaluation)
 }
 
-/// Starts an evaluation of policy `id` on the cell's twin in the background and returns its
-/// record. It runs on one low-priority thread of its own, so a running job keeps its timing.
+/// Starts an evaluation of policy `id` on the cell's twin, departing from the cell file by
+/// `mismatch`, in the background and returns its record. It runs on one low-priority thread of
+/// its own, so a running job keeps its timing.
 pub async fn spawn_evaluation(
     context: &Context,
     id: i64,
     episodes: u32,
     seed: u64,
+    mismatch: Mismatch,
     requested_by: &str,
 ) -> Result<Evaluation> {
     let cell = context.cell_config.clone();
@@ -113,6 +136,7 @@ pub async fn spawn_evaluation(
         i64::from(episodes),
         seed,
         &cell.config_hash(),
+        &mismatch,
         requested_by,
     )
     .await?;
@@ -135,7 +159,7 @@ pub async fn spawn_evaluation(
             let (summary, _) = pool.install(|| {
                 eval::evaluate(
                     &cell,
-                    EnvOptions::from_cell(&cell),
+                    mismatch.apply(EnvOptions::from_cell(&cell)),
                     episodes as usize,
                     seed,
                     &factory,
@@ -254,7 +278,8 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
         return Ok(());
     }
     let episodes = context.settings.policies.evaluation_episodes;
-    let evaluation = spawn_evaluation(context, policy.id, episodes, 1, "celld").await?;
+    let evaluation =
+        spawn_evaluation(context, policy.id, episodes, 1, Mismatch::NONE, "celld").await?;
     let (context, threshold) = (
         context.clone(),
         context.settings.policies.activation_threshold,
