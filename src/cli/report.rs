@@ -242,17 +242,13 @@ pub fn run(args: ReportArgs) -> Result<()> {
     }
     bar.finish_and_clear();
     let command = command_line(std::env::args().skip(1));
-    let markdown = render(
-        &args,
-        &command,
-        &learned_policies,
-        &robustness,
-        &table5,
-        &table6,
-        &mismatches,
-        &mismatch,
-        &curves,
-    );
+    let tables = Tables {
+        robustness: &robustness,
+        table5: &table5,
+        table6: &table6,
+        mismatch: &mismatch,
+    };
+    let markdown = render(&args, &command, &learned_policies, &tables, &curves);
     std::fs::write(args.out.join("report.md"), markdown)?;
     std::fs::write(
         args.out.join("report.json"),
@@ -419,17 +415,28 @@ fn shell_quoted(arg: &str) -> String {
     }
 }
 
+/// The evaluated table cells, for [`render`].
+struct Tables<'a> {
+    /// Tables 2–4.
+    robustness: &'a [Cell],
+    table5: &'a [Cell],
+    table6: &'a [Cell],
+    mismatch: &'a [Cell],
+}
+
 fn render(
     args: &ReportArgs,
     command: &str,
     learned: &[Controller],
-    robustness: &[Cell],
-    table5: &[Cell],
-    table6: &[Cell],
-    mismatches: &[(String, Mismatch)],
-    mismatch: &[Cell],
+    tables: &Tables,
     curves: &[(String, Vec<EpisodeRecord>)],
 ) -> String {
+    let Tables {
+        robustness,
+        table5,
+        table6,
+        mismatch,
+    } = *tables;
     let mut md = String::new();
     let _ = writeln!(md, "# The paper's tables on our twin\n");
     let made_by = match &args.made_by {
@@ -510,7 +517,7 @@ fn render(
         }
         let _ = writeln!(md);
     }
-    render_mismatch(&mut md, table5, mismatches, mismatch);
+    render_mismatch(&mut md, table5, mismatch);
     if !curves.is_empty() {
         let _ = writeln!(md, "## Fig. 7: learning curves\n");
         let _ = writeln!(
@@ -533,12 +540,7 @@ fn render(
 }
 
 /// The mismatch table: a row per Table 5 controller, a column per condition.
-fn render_mismatch(
-    md: &mut String,
-    table5: &[Cell],
-    mismatches: &[(String, Mismatch)],
-    mismatch: &[Cell],
-) {
+fn render_mismatch(md: &mut String, table5: &[Cell], mismatch: &[Cell]) {
     let _ = writeln!(
         md,
         "## Mismatch: every method, phi170, when the twin departs from the cell file\n"
@@ -551,7 +553,10 @@ fn render_mismatch(
          in 5..=35 and lasts to the end of the episode (docs/configuration.md). Noise ×1 and \
          calibration ×1 are Table 5's phi170 column.\n"
     );
-    let labels: Vec<&str> = mismatches.iter().map(|(label, _)| label.as_str()).collect();
+    let labels: Vec<String> = mismatch_conditions()
+        .into_iter()
+        .map(|(label, _)| label)
+        .collect();
     let _ = writeln!(md, "| method | {} |", labels.join(" | "));
     let _ = writeln!(md, "|---|{}", "---|".repeat(labels.len()));
     for controller in table5.iter().map(|c| &c.controller) {
@@ -560,7 +565,7 @@ fn render_mismatch(
             .map(|label| {
                 mismatch
                     .iter()
-                    .find(|c| &c.controller == controller && c.condition == *label)
+                    .find(|c| &c.controller == controller && &c.condition == label)
                     .map_or("-".to_string(), |c| {
                         format!(
                             "{:.3} / {} / {}",

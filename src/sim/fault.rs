@@ -583,7 +583,7 @@ mod tests {
         let mut late = 0;
         for (i, record) in records.iter().enumerate() {
             let captured = clean[i].frame.sequence;
-            if record.step >= onset && (record.step - onset) % 3 == 0 {
+            if record.step >= onset && (record.step - onset).is_multiple_of(3) {
                 late += 1;
                 let earlier = &records[i - 2];
                 assert_eq!(earlier.step + 2, record.step);
@@ -739,7 +739,7 @@ mod tests {
         cell.imperfections.outliers = false;
         let seed = 17;
         let moves = |step: u32| {
-            if step % 2 == 0 {
+            if step.is_multiple_of(2) {
                 Move::default()
             } else {
                 zigzag(step)
@@ -771,7 +771,7 @@ mod tests {
             if b.step < onset {
                 assert!(same_frame(&a.frame, &b.frame));
                 assert!(gap < 1e-9);
-            } else if b.step % 2 == 1 {
+            } else if !b.step.is_multiple_of(2) {
                 // A move: seen and read half-way.
                 let previous = records[i - 1].result.commanded_legs_mm.unwrap();
                 let half = (0..6)
