@@ -5,12 +5,11 @@
 //! learns how the robot really moves sideways per mm commanded (its calibration error bends
 //! every move the same way). The state vector, the supervisor and every controller use it.
 //!
-//! Position P: per lateral axis a four-state Kalman filter over the offset (mm) and the sideways
-//! drift per mm commanded along x, y and z of {M}; the axial component has a one-state filter.
-//! Orientation O: a one-state Kalman filter per axis of {M} over the rotation error (rad). Each
-//! frame comes with its covariance (the fits' covariance at the data sheet's noise × the noise
-//! the camera is seen to have, `uncertainty::NoiseScale`), so the filter's covariance follows
-//! the real noise.
+//! One Kalman filter over twelve error states: the position P (mm) and orientation O (rad) of
+//! {F} in {M}, and the sideways drift of x and y per mm commanded along x, y and z of {M}. Each
+//! frame comes with its full 6×6 covariance (the fits' covariance at the data sheet's noise ×
+//! the noise the camera is seen to have, `uncertainty::NoiseScale`), so the filter's joint
+//! covariance, correlations between position and orientation included, follows the real noise.
 //!
 //! A frame whose innovation is beyond [`FusionTuning::gross_sigmas`] σ in any component is
 //! held back, not blended: one gross frame must not throw away what the filter has learned. A
@@ -19,7 +18,7 @@
 
 use crate::geometry::pose::Pose;
 use crate::geometry::{Belief, Move, PoseSd};
-use nalgebra::{Matrix2x3, Matrix4, Matrix6, RowVector3, UnitQuaternion, Vector3, Vector4};
+use nalgebra::{Matrix2x3, Matrix6, SMatrix, SVector, UnitQuaternion, Vector3, Vector6};
 
 /// Filter settings. The move errors suit the reference robot (0.5 µm leg resolution and error,
 /// joint centres within 0.5 mm of nominal) with room for three times its calibration error.
@@ -57,23 +56,20 @@ impl Default for FusionTuning {
     }
 }
 
-/// One lateral axis: state (offset mm, sideways drift per mm commanded along x, y, z of {M})
-/// and its covariance.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct LateralFilter {
-    state: Vector4<f64>,
-    covariance: Matrix4<f64>,
-}
+/// The error state: `(δP mm, δO rad, drift of x per mm along x/y/z, drift of y per mm along
+/// x/y/z)`.
+type Covariance = SMatrix<f64, 12, 12>;
 
 /// The fused estimate. `Copy`, so an observation can carry a snapshot of it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StateFilter {
     tuning: FusionTuning,
     m_f: Option<Pose>,
-    lateral: [LateralFilter; 2],
-    axial_variance: f64,
-    /// Variance of the rotation error about x, y and z of {M} (rad²).
-    rotation_variance: Vector3<f64>,
+    /// The learned sideways drift: the extra move of {M} along x (first three) and y (last
+    /// three) per mm commanded along x, y and z of {M}.
+    drift: SVector<f64, 6>,
+    /// Joint covariance of the errors of the pose and of the drift.
+    covariance: Covariance,
     /// The last frame that disagreed with the estimate, carried along by the moves since.
     held_back: Option<Pose>,
     /// The camera's point noise as a multiple of its data sheet, as ingestion last learned it.
@@ -112,12 +108,8 @@ impl StateFilter {
         let mut filter = StateFilter {
             tuning,
             m_f: None,
-            lateral: [LateralFilter {
-                state: Vector4::zeros(),
-                covariance: Matrix4::zeros(),
-            }; 2],
-            axial_variance: 0.0,
-            rotation_variance: Vector3::zeros(),
+            drift: SVector::zeros(),
+            covariance: Covariance::zeros(),
             held_back: None,
             noise_scale: 1.0,
             last_nis: None,
@@ -132,15 +124,11 @@ impl StateFilter {
         self.held_back = None;
         self.last_nis = None;
         self.innovation_trend = [0.0; 6];
+        self.drift = SVector::zeros();
+        self.covariance = Covariance::zeros();
         let drift_variance = self.tuning.drift_prior_sd.powi(2);
-        for filter in &mut self.lateral {
-            filter.state = Vector4::zeros();
-            filter.covariance = Matrix4::from_diagonal(&Vector4::new(
-                0.0,
-                drift_variance,
-                drift_variance,
-                drift_variance,
-            ));
+        for i in 6..12 {
+            self.covariance[(i, i)] = drift_variance;
         }
     }
 
@@ -154,52 +142,44 @@ impl StateFilter {
         if let Some(held) = self.held_back.as_mut() {
             *held = executed.as_pose().inverse() * *held;
         }
-        let commanded = executed.translation_mm;
-        let floor = t.move_error_floor_mm.powi(2);
-        for (axis, filter) in self.lateral.iter_mut().enumerate() {
-            // The true move carries drift · command on top of the command.
-            let drift = Vector3::new(filter.state[1], filter.state[2], filter.state[3]);
-            m_f.translation.vector[axis] -= drift.dot(&commanded);
-            let mut f = Matrix4::identity();
-            f[(0, 1)] = -commanded.x;
-            f[(0, 2)] = -commanded.y;
-            f[(0, 3)] = -commanded.z;
-            filter.covariance = f * filter.covariance * f.transpose()
-                + Matrix4::from_diagonal(&Vector4::new(floor, 1e-12, 1e-12, 1e-12));
-            filter.state[0] = m_f.translation.vector[axis];
+        let c = executed.translation_mm;
+        // The true move carries drift · command sideways on top of the command.
+        m_f.translation.vector.x -= self.drift.fixed_rows::<3>(0).dot(&c);
+        m_f.translation.vector.y -= self.drift.fixed_rows::<3>(3).dot(&c);
+        let mut f = Covariance::identity();
+        for k in 0..3 {
+            f[(0, 6 + k)] = -c[k];
+            f[(1, 9 + k)] = -c[k];
         }
-        self.axial_variance += (t.move_error_per_mm * commanded.norm()).powi(2) + floor;
-        self.rotation_variance += rotation_error_sd(&t, executed).map(|sd| sd * sd);
+        let floor = t.move_error_floor_mm.powi(2);
+        let turn = rotation_error_sd(&t, executed).map(|sd| sd * sd);
+        let mut q = SVector::<f64, 12>::repeat(1e-12);
+        q[0] = floor;
+        q[1] = floor;
+        q[2] = (t.move_error_per_mm * c.norm()).powi(2) + floor;
+        q.fixed_rows_mut::<3>(3).copy_from(&turn);
+        self.covariance = f * self.covariance * f.transpose() + Covariance::from_diagonal(&q);
     }
 
     /// Takes in a new measurement of {F} in {M} with the covariance of its errors, ordered
     /// `(δP mm, δO rad)` (the camera's noise already applied): blends it in, starts again from
     /// it, or holds it back (see the module's comment).
     pub fn update(&mut self, measured: &Pose, covariance: &Matrix6<f64>) -> Fusion {
-        let r = covariance.diagonal();
         let Some(predicted) = self.m_f else {
             self.set_to(*measured, covariance);
             return Fusion::Reset;
         };
-        let innovation = difference(measured, &predicted);
-        let prior = [
-            self.lateral[0].covariance[(0, 0)],
-            self.lateral[1].covariance[(0, 0)],
-            self.axial_variance,
-            self.rotation_variance.x,
-            self.rotation_variance.y,
-            self.rotation_variance.z,
-        ];
-        let spread: [f64; 6] = std::array::from_fn(|i| prior[i] + r[i]);
+        let innovation = Vector6::from(difference(measured, &predicted));
+        let spread: Matrix6<f64> = self.covariance.fixed_view::<6, 6>(0, 0) + covariance;
         let sigmas = (0..6)
-            .map(|i| innovation[i].abs() / spread[i].sqrt())
+            .map(|i| innovation[i].abs() / spread[(i, i)].sqrt())
             .fold(0.0, f64::max);
         // NaN counts as gross.
         if sigmas.is_nan() || sigmas > self.tuning.gross_sigmas {
             let gross = self.tuning.gross_sigmas;
             let confirmed = self.held_back.is_some_and(|held| {
                 let gap = difference(measured, &held);
-                (0..6).all(|i| gap[i].abs() <= gross * (2.0 * r[i]).sqrt())
+                (0..6).all(|i| gap[i].abs() <= gross * (2.0 * covariance[(i, i)]).sqrt())
             });
             if confirmed {
                 self.set_to(*measured, covariance);
@@ -209,52 +189,50 @@ impl StateFilter {
             return Fusion::HeldBack { sigmas };
         }
         self.held_back = None;
-        self.last_nis = Some((0..6).map(|i| innovation[i].powi(2) / spread[i]).sum());
+        let Some(spread_inverse) = spread.try_inverse() else {
+            self.held_back = Some(*measured);
+            return Fusion::HeldBack { sigmas };
+        };
+        self.last_nis = Some((innovation.transpose() * spread_inverse * innovation)[(0, 0)]);
         let mut trend = 0.0f64;
         for (i, mean) in self.innovation_trend.iter_mut().enumerate() {
-            *mean = (1.0 - TREND_WEIGHT) * *mean + TREND_WEIGHT * innovation[i] / spread[i].sqrt();
+            *mean =
+                (1.0 - TREND_WEIGHT) * *mean + TREND_WEIGHT * innovation[i] / spread[(i, i)].sqrt();
             trend = trend.max(mean.abs());
         }
         if trend > TREND_LIMIT {
             self.set_to(*measured, covariance);
             return Fusion::Jumped { sigmas: trend };
         }
+        // Kalman gain K = P Hᵀ S⁻¹ with H = [I₆ 0]; Joseph form for the covariance.
+        let gain: SMatrix<f64, 12, 6> = self.covariance.fixed_view::<12, 6>(0, 0) * spread_inverse;
+        let correction = gain * innovation;
+        let mut h = SMatrix::<f64, 6, 12>::zeros();
+        h.fixed_view_mut::<6, 6>(0, 0).fill_with_identity();
+        let keep = Covariance::identity() - gain * h;
+        self.covariance =
+            keep * self.covariance * keep.transpose() + gain * covariance * gain.transpose();
+        self.covariance = (self.covariance + self.covariance.transpose()) * 0.5;
         let mut fused = predicted;
-        for (axis, filter) in self.lateral.iter_mut().enumerate() {
-            let p = filter.covariance;
-            let gain: Vector4<f64> = p.column(0) / (p[(0, 0)] + r[axis]);
-            filter.state += gain * innovation[axis];
-            filter.covariance = (Matrix4::identity() - gain * Vector4::x().transpose()) * p;
-            fused.translation.vector[axis] = filter.state[0];
-        }
-        let gain = self.axial_variance / (self.axial_variance + r[2]);
-        fused.translation.vector.z += gain * innovation[2];
-        self.axial_variance *= 1.0 - gain;
-        let mut turn = Vector3::zeros();
-        for axis in 0..3 {
-            let v = self.rotation_variance[axis];
-            let gain = v / (v + r[3 + axis]);
-            turn[axis] = gain * innovation[3 + axis];
-            self.rotation_variance[axis] = v * (1.0 - gain);
-        }
-        fused.rotation = UnitQuaternion::from_scaled_axis(turn) * predicted.rotation;
+        fused.translation.vector += correction.fixed_rows::<3>(0);
+        fused.rotation =
+            UnitQuaternion::from_scaled_axis(correction.fixed_rows::<3>(3).into_owned())
+                * predicted.rotation;
+        self.drift += correction.fixed_rows::<6>(6);
         self.m_f = Some(fused);
         Fusion::Blended
     }
 
     /// Starts again from a measurement, keeping the learned drift.
     fn set_to(&mut self, measured: Pose, covariance: &Matrix6<f64>) {
-        for (axis, filter) in self.lateral.iter_mut().enumerate() {
-            filter.state[0] = measured.translation.vector[axis];
-            for k in 1..4 {
-                filter.covariance[(0, k)] = 0.0;
-                filter.covariance[(k, 0)] = 0.0;
-            }
-            filter.covariance[(0, 0)] = covariance[(axis, axis)];
-        }
-        self.axial_variance = covariance[(2, 2)];
-        self.rotation_variance =
-            Vector3::new(covariance[(3, 3)], covariance[(4, 4)], covariance[(5, 5)]);
+        let drift = self.covariance.fixed_view::<6, 6>(6, 6).into_owned();
+        self.covariance = Covariance::zeros();
+        self.covariance
+            .fixed_view_mut::<6, 6>(0, 0)
+            .copy_from(covariance);
+        self.covariance
+            .fixed_view_mut::<6, 6>(6, 6)
+            .copy_from(&drift);
         self.m_f = Some(measured);
         self.held_back = None;
         self.innovation_trend = [0.0; 6];
@@ -270,73 +248,66 @@ impl StateFilter {
         self.m_f.map(|m_f| FilterBelief { filter: self, m_f })
     }
 
-    /// σ of the estimate's errors.
-    pub fn sd(&self) -> PoseSd {
-        let v = self.rotation_variance;
-        PoseSd {
-            lateral_mm: self.lateral_sd_mm(),
-            axial_mm: self.axial_variance.max(0.0).sqrt(),
-            tilt_rad: v.x.max(v.y).max(0.0).sqrt(),
-            twist_rad: v.z.max(0.0).sqrt(),
-        }
+    /// Covariance of the estimate's errors, ordered `(δP mm, δO rad)` in {M}.
+    pub fn covariance(&self) -> Matrix6<f64> {
+        self.covariance.fixed_view::<6, 6>(0, 0).into_owned()
     }
 
-    /// σ of the estimate's errors once `step` is executed (see [`Belief::sd_after`]): the
-    /// filter's prediction of the move, without changing the filter.
-    pub fn sd_after(&self, step: &Move) -> PoseSd {
+    /// The same once `step` is executed (the filter's prediction, leaving the filter as it is).
+    pub fn covariance_after(&self, step: &Move) -> Matrix6<f64> {
         let mut after = *self;
         after.predict(step);
-        after.sd()
+        after.covariance()
+    }
+
+    /// σ of the estimate's errors, per direction.
+    pub fn sd(&self) -> PoseSd {
+        PoseSd::from_covariance(&self.covariance())
+    }
+
+    /// σ of the estimate's errors once `step` is executed.
+    pub fn sd_after(&self, step: &Move) -> PoseSd {
+        PoseSd::from_covariance(&self.covariance_after(step))
     }
 
     /// σ of the lateral offset estimate (mm), the larger of the two axes.
     pub fn lateral_sd_mm(&self) -> f64 {
-        self.lateral
-            .iter()
-            .map(|f| f.covariance[(0, 0)].max(0.0).sqrt())
-            .fold(0.0, f64::max)
+        self.sd().lateral_mm
     }
 
     /// σ of the lateral offset (mm, the larger axis) after an axial move of `dz_mm`, from what is
     /// known now of the offset and of the drift.
     pub fn lateral_sd_after_mm(&self, dz_mm: f64) -> f64 {
-        self.lateral
-            .iter()
-            .map(|f| {
-                let p = &f.covariance;
-                (p[(0, 0)] - 2.0 * dz_mm * p[(0, 3)] + dz_mm * dz_mm * p[(3, 3)])
-                    .max(0.0)
-                    .sqrt()
-            })
-            .fold(0.0, f64::max)
+        self.sd_after(&Move::translation(0.0, 0.0, dz_mm))
+            .lateral_mm
     }
 
     /// The learned sideways drift: row i is the extra move of {M} along x (i = 0) or y (i = 1)
     /// per mm commanded along x, y and z of {M}.
     pub fn drift(&self) -> Matrix2x3<f64> {
-        let row = |f: &LateralFilter| RowVector3::new(f.state[1], f.state[2], f.state[3]);
-        Matrix2x3::from_rows(&[row(&self.lateral[0]), row(&self.lateral[1])])
+        let d = &self.drift;
+        Matrix2x3::new(d[0], d[1], d[2], d[3], d[4], d[5])
     }
 
     /// Variances of the estimate's errors, ordered `(δP mm², δO rad²)` per axis of {M}.
     pub fn variances(&self) -> [f64; 6] {
-        [
-            self.lateral[0].covariance[(0, 0)],
-            self.lateral[1].covariance[(0, 0)],
-            self.axial_variance,
-            self.rotation_variance.x,
-            self.rotation_variance.y,
-            self.rotation_variance.z,
-        ]
+        std::array::from_fn(|i| self.covariance[(i, i)])
     }
 
-    /// The normalised estimation error squared against the true {F} in {M} (6 components, the
-    /// cross-axis correlations left out; its mean is 6 when the covariance is right). `None`
-    /// before the first estimate.
+    /// The normalised estimation error squared against the true {F} in {M}, per component
+    /// (its mean is 1 each when the covariance is right). `None` before the first estimate.
     pub fn nees(&self, truth: &Pose) -> Option<[f64; 6]> {
         let error = difference(&self.m_f?, truth);
         let v = self.variances();
         Some(std::array::from_fn(|i| error[i] * error[i] / v[i]))
+    }
+
+    /// The joint normalised estimation error squared, `eᵀ Σ⁻¹ e` over all six components (its
+    /// mean is 6 when the covariance is right). `None` before the first estimate.
+    pub fn joint_nees(&self, truth: &Pose) -> Option<f64> {
+        let error = Vector6::from(difference(&self.m_f?, truth));
+        let inverse = self.covariance().try_inverse()?;
+        Some((error.transpose() * inverse * error)[(0, 0)])
     }
 
     /// The camera's point noise as a multiple of its data sheet, as last learned.
@@ -373,6 +344,14 @@ impl Belief for FilterBelief<'_> {
 
     fn sd_after(&self, step: &Move) -> PoseSd {
         self.filter.sd_after(step)
+    }
+
+    fn covariance(&self) -> Matrix6<f64> {
+        self.filter.covariance()
+    }
+
+    fn covariance_after(&self, step: &Move) -> Matrix6<f64> {
+        self.filter.covariance_after(step)
     }
 }
 

@@ -17,10 +17,10 @@ use super::clearance::{
 use super::obb::Obb;
 use super::risk;
 use crate::config::cell::CellConfig;
-use crate::geometry::{Belief, CellFrames, Move, Pose, PoseSd, pose};
+use crate::geometry::{Belief, CellFrames, Move, Pose, pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
-use nalgebra::Point3;
 use nalgebra::Vector3;
+use nalgebra::{Matrix2, Matrix2x6, Matrix6, Point3};
 
 /// Why a move was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -172,8 +172,8 @@ impl Supervisor {
         }
         let belief = belief.ok_or(VetoReason::StaleMeasurement)?;
         let m_f = belief.m_f();
-        let sd = belief.sd().max(&belief.sd_after(step));
-        if !pose::is_finite(&m_f) || !sd.is_finite() {
+        let covariances = [belief.covariance(), belief.covariance_after(step)];
+        if !pose::is_finite(&m_f) || covariances.iter().flatten().any(|v| !v.is_finite()) {
             return Err(VetoReason::NonFinite {
                 what: "measurement",
             });
@@ -192,7 +192,7 @@ impl Supervisor {
         let from = m_f.inverse();
         let to = from * step_pose;
         let along = self.predicted_clearance(&from, &to)?;
-        let contact_risk = self.judge_risk(&from, &to, &along, &sd)?;
+        let contact_risk = self.judge_risk(&m_f, &to, &along, &covariances)?;
         Ok(Allowed {
             target_platform,
             legs_mm,
@@ -209,15 +209,16 @@ impl Supervisor {
     /// unsure of). Otherwise the move is refused as uncertain.
     fn judge_risk(
         &self,
-        from: &Pose,
+        m_f: &Pose,
         to: &Pose,
         along: &Clearance,
-        sd: &PoseSd,
+        covariances: &[Matrix6<f64>; 2],
     ) -> Result<f64, VetoReason> {
         if along.wall_mm.is_infinite() && along.seat_mm.is_infinite() {
             return Ok(0.0);
         }
-        let spread = self.spread(from, to, sd);
+        let from = &m_f.inverse();
+        let spread = self.spread(m_f, to, covariances);
         let risk = risk::contact_risk(along, &spread);
         let growth = spread.scaled(self.sigmas);
         let grown = swept_clearance_grown(&self.parts, &self.bore_obb, from, to, &growth);
@@ -237,27 +238,42 @@ impl Supervisor {
     }
 
     /// σ of how far any point of Segment I may be from where the estimate puts it, sideways and
-    /// along the bore axis, during the move from `from` to `to` (poses of {M} in {F}), for
-    /// estimate errors of σ `sd` (its own and the move's). A rotation error δθ about the bore's
-    /// entrance moves a point of the shaft that is inside the bore sideways by at most its depth
-    /// below the entrance × δθ, and a point of the shoulder or the tip rim along the axis by at
-    /// most its radius × δθ; a twist about the shaft's own axis maps the shaft onto itself, so it
-    /// only matters through the offset of the axis from the bore's.
-    fn spread(&self, from: &Pose, to: &Pose, sd: &PoseSd) -> risk::Spread {
+    /// along the bore axis, during the move from the estimate `m_f` ({F} in {M}) to `to` ({M} in
+    /// {F} after it), for estimate errors of covariance `covariances` (now and after the move;
+    /// along the move the variance in any direction is convex in the share moved, so these two
+    /// bound it). An error (δP, δθ) moves a point q of the shaft (in {M}, relative to the
+    /// bore's entrance centre P) by δP + δθ × q. Sideways, for a point on the axis inside the
+    /// bore (q = (−P_x, −P_y, z), z from minus the depth to 0) that is a linear function of the
+    /// errors whose 2×2 covariance is computed exactly; it is largest at one end of the axis (it
+    /// is affine in z). A point of the tip rim or the shoulder moves along the axis by at most
+    /// its radius × the tilt error. A twist about the shaft's own axis maps the shaft onto itself.
+    fn spread(&self, m_f: &Pose, to: &Pose, covariances: &[Matrix6<f64>; 2]) -> risk::Spread {
         let parts = &self.parts;
+        let from = m_f.inverse();
         let tip = Point3::new(0.0, 0.0, -parts.shaft_length_mm);
         let depth = |f_m: &Pose| (-(f_m * tip).z).clamp(0.0, parts.shaft_length_mm);
-        let lever_mm = depth(from).max(depth(to));
-        let offset_mm = |f_m: &Pose| f_m.translation.vector.xy().norm();
-        let sideways = sd.lateral_mm
-            + lever_mm * sd.tilt_rad
-            + offset_mm(from).max(offset_mm(to)) * sd.twist_rad;
-        let axial = sd.axial_mm + parts.shaft_radius_mm * sd.tilt_rad;
-        let seat = sd.axial_mm + parts.body_radius_mm.max(parts.shaft_radius_mm) * sd.tilt_rad;
+        let lever_mm = depth(&from).max(depth(to));
+        let (a, b) = (-m_f.translation.vector.x, -m_f.translation.vector.y);
+        let sideways_at = |c: &Matrix6<f64>, z: f64| {
+            let j = Matrix2x6::new(1.0, 0.0, 0.0, 0.0, z, -b, 0.0, 1.0, 0.0, -z, 0.0, a);
+            largest_sd(&(j * c * j.transpose()))
+        };
+        let mut sideways = 0.0f64;
+        let mut axial_sd = 0.0f64;
+        let mut tilt = 0.0f64;
+        for c in covariances {
+            sideways = sideways
+                .max(sideways_at(c, 0.0))
+                .max(sideways_at(c, -lever_mm));
+            axial_sd = axial_sd.max(c[(2, 2)].max(0.0).sqrt());
+            tilt = tilt.max(largest_sd(&c.fixed_view::<2, 2>(3, 3).into_owned()));
+        }
+        let axial = axial_sd + parts.shaft_radius_mm * tilt;
+        let seat = axial_sd + parts.body_radius_mm.max(parts.shaft_radius_mm) * tilt;
         // The estimate's errors are in {M}; the shaft's axis is tilted from the bore's by up to
         // α, which mixes a little of each direction into the other.
         let sin_tilt = |f_m: &Pose| (f_m.rotation * nalgebra::Vector3::z()).xy().norm();
-        let mix = sin_tilt(from).max(sin_tilt(to));
+        let mix = sin_tilt(&from).max(sin_tilt(to));
         risk::Spread {
             sideways_mm: sideways + mix * axial,
             axial_mm: axial + mix * sideways,
@@ -287,6 +303,13 @@ impl Supervisor {
         }
         Ok(along)
     }
+}
+
+/// σ of the worst direction of a 2-D covariance: the square root of its largest eigenvalue.
+fn largest_sd(c: &Matrix2<f64>) -> f64 {
+    let mean = 0.5 * (c[(0, 0)] + c[(1, 1)]);
+    let half_gap = (0.25 * (c[(0, 0)] - c[(1, 1)]).powi(2) + c[(0, 1)] * c[(1, 0)]).max(0.0);
+    (mean + half_gap.sqrt()).max(0.0).sqrt()
 }
 
 /// Clearance of Segment I moving from `from` to `to` (poses of {M} in {F}). Broad phase first: an
@@ -327,7 +350,7 @@ pub fn swept_clearance_grown(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::Exact;
+    use crate::geometry::{Exact, PoseSd};
     use nalgebra::Isometry3;
 
     fn setup() -> (Supervisor, Pose) {
@@ -499,6 +522,20 @@ mod tests {
         fn sd_after(&self, _step: &Move) -> PoseSd {
             self.1
         }
+        fn covariance(&self) -> Matrix6<f64> {
+            let sd = &self.1;
+            Matrix6::from_diagonal(&nalgebra::Vector6::new(
+                sd.lateral_mm.powi(2),
+                sd.lateral_mm.powi(2),
+                sd.axial_mm.powi(2),
+                sd.tilt_rad.powi(2),
+                sd.tilt_rad.powi(2),
+                sd.twist_rad.powi(2),
+            ))
+        }
+        fn covariance_after(&self, _step: &Move) -> Matrix6<f64> {
+            self.covariance()
+        }
     }
 
     #[test]
@@ -521,7 +558,7 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let samples = 20_000;
         let (mut allowed, mut refused) = (0, 0);
-        for offset_mm in [0.0, 0.004, 0.008, 0.012, 0.016, 0.02, 0.03] {
+        for offset_mm in [0.0, 0.008, 0.016, 0.024, 0.028, 0.032, 0.04] {
             let m_f = inserted(30.0, offset_mm);
             let verdict = supervisor.check(&home, Some(&Spread(m_f, sd)), &step);
             let mut contacts = 0;

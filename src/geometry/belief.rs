@@ -3,6 +3,7 @@
 //! it; the collision supervisor judges every move against it (docs/estimation.md).
 
 use super::{Move, Pose};
+use nalgebra::Matrix6;
 
 /// Standard deviations of the errors of an estimate of {F} in {M}, in {M}. The rotation errors
 /// are small rotations applied on the left (about axes of {M}).
@@ -19,6 +20,24 @@ pub struct PoseSd {
 }
 
 impl PoseSd {
+    /// From a covariance ordered `(δP mm, δO rad)`: the sideways position and the tilt take
+    /// the σ of their worst direction (the largest eigenvalue of their 2×2 block).
+    pub fn from_covariance(c: &Matrix6<f64>) -> PoseSd {
+        let largest = |i: usize| {
+            let (a, b, d) = (c[(i, i)], c[(i, i + 1)], c[(i + 1, i + 1)]);
+            let mean = 0.5 * (a + d);
+            (mean + (0.25 * (a - d).powi(2) + b * b).sqrt())
+                .max(0.0)
+                .sqrt()
+        };
+        PoseSd {
+            lateral_mm: largest(0),
+            axial_mm: c[(2, 2)].max(0.0).sqrt(),
+            tilt_rad: largest(3),
+            twist_rad: c[(5, 5)].max(0.0).sqrt(),
+        }
+    }
+
     /// Component-wise maximum.
     pub fn max(&self, other: &PoseSd) -> PoseSd {
         PoseSd {
@@ -52,6 +71,10 @@ pub trait Belief {
     /// is the error now plus a growing share of the move's, so its σ is never above the larger
     /// of [`Belief::sd`] and this (the variance is convex in the share).
     fn sd_after(&self, step: &Move) -> PoseSd;
+    /// Covariance of its errors now, ordered `(δP mm, δO rad)` in {M}, the rotation on the left.
+    fn covariance(&self) -> Matrix6<f64>;
+    /// The same once `step` is executed.
+    fn covariance_after(&self, step: &Move) -> Matrix6<f64>;
 }
 
 /// A pose known exactly (no uncertainty): for tests, and for a supervisor judging geometry alone.
@@ -69,5 +92,13 @@ impl Belief for Exact {
 
     fn sd_after(&self, _step: &Move) -> PoseSd {
         PoseSd::default()
+    }
+
+    fn covariance(&self) -> Matrix6<f64> {
+        Matrix6::zeros()
+    }
+
+    fn covariance_after(&self, _step: &Move) -> Matrix6<f64> {
+        Matrix6::zeros()
     }
 }

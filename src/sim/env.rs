@@ -479,10 +479,10 @@ impl AssemblyEnv {
         if lag.is_some() {
             self.robot.report_lagging_at(&seen);
         }
-        if let Some(command) = pending.commanded_legs_mm {
-            if !arrived(self.robot.encoders_mm(), &command) {
-                self.unarrived = Some(command);
-            }
+        if let Some(command) = pending.commanded_legs_mm
+            && !arrived(self.robot.encoders_mm(), &command)
+        {
+            self.unarrived = Some(command);
         }
         // The part of the commanded move still to come after the capture, in {M}.
         let remaining = (capture_fraction < 1.0).then(|| {
