@@ -45,7 +45,7 @@ impl Default for FusionTuning {
     fn default() -> Self {
         FusionTuning {
             move_error_per_mm: 3e-3,
-            move_error_floor_mm: 1e-3,
+            move_error_floor_mm: 5e-4,
             drift_prior_sd: 0.002,
             rotation_error_per_rad: 5e-3,
             tilt_error_per_mm: 2e-6,
