@@ -395,7 +395,9 @@ mod tests {
 
     /// An episode with `fault`, driven by `moves` (by step) for up to `steps` steps, with the
     /// camera's shots ingested outside the environment (as the cell does), so each delivered
-    /// frame can be looked at. Answers the onset (if any), the encoders after the first
+    /// frame can be looked at. The supervisor is given the true pose instead of the cell's
+    /// estimate, so that what the estimator makes of a fault (or whether it notices it) does not
+    /// change where the robot goes. Answers the onset (if any), the encoders after the first
     /// capture, and each step.
     fn episode(
         cell: &CellConfig,
@@ -408,15 +410,17 @@ mod tests {
         let mut ingest = Ingest::new(cell, &frames);
         let mut env = AssemblyEnv::new(cell, options);
         env.begin_episode(seed, options.initial).unwrap();
-        let Ok(estimate) = first_usable_estimate(|first| {
+        let Ok(mut estimate) = first_usable_estimate(|first| {
             Ok::<_, std::convert::Infallible>(ingest.take(env.capture_still(first)))
         });
+        estimate.m_f = Some(env.true_f_m().inverse());
         env.start_from(&estimate);
         let start_encoders = env.encoders_mm();
         let mut records = Vec::new();
         for step in 1..=steps {
             let shot = env.act(&moves(step)).unwrap().clone();
-            let estimate = ingest.take(&shot);
+            let mut estimate = ingest.take(&shot);
+            estimate.m_f = Some(env.true_f_m().inverse());
             let result = env.settle(&estimate).unwrap();
             assert_eq!(env.encoders_mm(), result.legs_mm);
             let done = result.done;
@@ -466,6 +470,134 @@ mod tests {
     }
 
     const STEPS: u32 = 45;
+
+    /// A frame as if captured at `step`: every point of both fixtures, numbered `step + 1`.
+    fn synthetic_frame(step: u32) -> CameraFrame {
+        let mut points = Vec::new();
+        for fixture in [Fixture::C1, Fixture::C2] {
+            for id in 0..6u16 {
+                let offset = if fixture == Fixture::C1 { 0.0 } else { 500.0 };
+                points.push(crate::camera::CodedPoint {
+                    fixture,
+                    id,
+                    position_mm: nalgebra::Point3::new(
+                        offset + 70.0 * f64::from(id).cos(),
+                        70.0 * f64::from(id).sin() + f64::from(step),
+                        2000.0 + f64::from(id % 2) * 10.0,
+                    ),
+                });
+            }
+        }
+        CameraFrame {
+            points,
+            sequence: u64::from(step) + 1,
+        }
+    }
+
+    /// Each step's frame through `injection`, from step 0 to 60.
+    fn delivered(injection: &mut Injection) -> Vec<CameraFrame> {
+        (0..=60)
+            .map(|step| {
+                let mut frame = synthetic_frame(step);
+                injection.deliver(step, &mut frame);
+                frame
+            })
+            .collect()
+    }
+
+    fn draw(fault: Fault, seed: u64) -> Injection {
+        let frames = CellFrames::from_config(&CellConfig::reference());
+        Injection::draw(fault, seed, c2_centroid_w(&frames), 6)
+    }
+
+    #[test]
+    fn injected_frames_frozen_late_occluded_or_shifted_from_the_onset() {
+        for seed in 0..20 {
+            // Frozen: the frame of the step before the onset, again and again.
+            let mut frozen = draw(Fault::FrozenCamera, seed);
+            let onset = frozen.onset();
+            for (step, frame) in delivered(&mut frozen).iter().enumerate() {
+                let step = step as u32;
+                let expected = synthetic_frame(if step < onset { step } else { onset - 1 });
+                assert!(same_frame(frame, &expected), "seed {seed} step {step}");
+            }
+            // Out of order: every third step from the onset, the frame of two steps before.
+            let mut late = draw(Fault::OutOfOrder, seed);
+            let onset = late.onset();
+            let frames = delivered(&mut late);
+            for (step, frame) in frames.iter().enumerate() {
+                let step = step as u32;
+                let is_late = step >= onset && (step - onset).is_multiple_of(3);
+                let expected = synthetic_frame(if is_late { step - 2 } else { step });
+                assert!(same_frame(frame, &expected), "seed {seed} step {step}");
+                if is_late {
+                    assert!(frame.sequence < frames[step as usize - 1].sequence);
+                }
+            }
+            // Occlusion: one point missing, the rest as captured.
+            let mut occluded = draw(Fault::Occlusion, seed);
+            let onset = occluded.onset();
+            let (fixture, id) = occluded.occluded_point().unwrap();
+            assert!(id < 6);
+            for (step, frame) in delivered(&mut occluded).iter().enumerate() {
+                let step = step as u32;
+                let mut expected = synthetic_frame(step);
+                if step >= onset {
+                    expected
+                        .points
+                        .retain(|p| !(p.fixture == fixture && p.id == id));
+                    assert_eq!(frame.points.len(), 11);
+                }
+                assert!(same_frame(frame, &expected), "seed {seed} step {step}");
+            }
+            // Camera shift: C2's points moved by one rigid transform, C1's left alone.
+            let mut shifted = draw(Fault::CameraShift, seed);
+            let onset = shifted.onset();
+            let shift = shifted.camera_shift().unwrap();
+            for (step, frame) in delivered(&mut shifted).iter().enumerate() {
+                let step = step as u32;
+                let captured = synthetic_frame(step);
+                assert_eq!(frame.sequence, captured.sequence);
+                for (p, q) in captured.points.iter().zip(&frame.points) {
+                    if step >= onset && p.fixture == Fixture::C2 {
+                        assert!((shift * p.position_mm - q.position_mm).norm() < 1e-9);
+                        assert!(p.position_mm != q.position_mm);
+                    } else {
+                        assert_eq!(p.position_mm, q.position_mm);
+                    }
+                }
+            }
+            // The robot faults leave frames alone.
+            for fault in [Fault::RobotLag, Fault::RobotShort] {
+                let mut robot = draw(fault, seed);
+                for (step, frame) in delivered(&mut robot).iter().enumerate() {
+                    assert!(same_frame(frame, &synthetic_frame(step as u32)));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn robot_faults_act_from_the_onset_and_camera_faults_never() {
+        for fault in Fault::ALL {
+            let injection = draw(fault, 3);
+            let onset = injection.onset();
+            assert_eq!(injection.robot_faults(onset - 1), RobotFaults::default());
+            let expected = match fault {
+                Fault::RobotShort => RobotFaults {
+                    short_fraction: Some(0.7),
+                    lag_fraction: None,
+                },
+                Fault::RobotLag => RobotFaults {
+                    short_fraction: None,
+                    lag_fraction: Some(0.5),
+                },
+                _ => RobotFaults::default(),
+            };
+            assert_eq!(injection.robot_faults(onset), expected, "{fault}");
+            assert_eq!(injection.robot_faults(onset + 20), expected, "{fault}");
+        }
+    }
 
     #[test]
     fn names_parse_print_and_serialise_the_same() {

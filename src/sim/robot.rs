@@ -303,4 +303,75 @@ mod tests {
             "truth error {truth_error}"
         );
     }
+
+    /// A robot without execution error, at home, for the fault tests.
+    fn robot_at_home(cell: &CellConfig, scale: f64) -> (TwinRobot, rand_chacha::ChaCha8Rng) {
+        let mut robot = TwinRobot::new(cell).with_calibration_scale(scale);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let home = robot.nominal.home_pose();
+        robot.reset(home, &mut rng).unwrap();
+        (robot, rng)
+    }
+
+    #[test]
+    fn calibration_scale_zero_takes_the_calibration_error_away() {
+        let mut cell = CellConfig::reference();
+        cell.imperfections.execution_error = false;
+        assert!(cell.imperfections.calibration_error);
+        let mut off = [0.0; 3];
+        for (k, scale) in [0.0, 1.0, 3.0].into_iter().enumerate() {
+            let (mut robot, mut rng) = robot_at_home(&cell, scale);
+            let target = robot.nominal.home_pose() * Pose::translation(5.0, -3.0, -40.0);
+            let legs = robot.nominal.leg_lengths_mm(&target);
+            robot.execute(&target, &legs, &mut rng).unwrap();
+            assert_eq!(robot.encoders_mm(), &legs);
+            off[k] = (robot.true_platform().translation.vector - target.translation.vector).norm();
+        }
+        assert!(off[0] < 1e-9, "{off:?}");
+        assert!(off[1] > 1e-3 && off[2] > 2.0 * off[1], "{off:?}");
+    }
+
+    #[test]
+    fn a_short_robot_lands_at_its_fraction_of_each_legs_change() {
+        let mut cell = CellConfig::reference();
+        cell.imperfections.calibration_error = false;
+        cell.imperfections.execution_error = false;
+        let (mut robot, mut rng) = robot_at_home(&cell, 1.0);
+        robot.set_faults(RobotFaults {
+            short_fraction: Some(0.7),
+            lag_fraction: None,
+        });
+        let mut target = robot.nominal.home_pose();
+        for _ in 0..3 {
+            let before = *robot.true_legs_mm();
+            target *= Pose::translation(2.0, 1.0, -3.0);
+            let legs = robot.nominal.leg_lengths_mm(&target);
+            robot.execute(&target, &legs, &mut rng).unwrap();
+            for leg in 0..6 {
+                let expected = before[leg] + 0.7 * (legs[leg] - before[leg]);
+                assert!((robot.true_legs_mm()[leg] - expected).abs() < 1e-12);
+            }
+            assert_eq!(robot.encoders_mm(), robot.true_legs_mm());
+            assert_eq!(robot.commanded_mm(), Some(&legs));
+            assert_eq!(robot.setpoint(), &target);
+        }
+    }
+
+    #[test]
+    fn lagging_encoders_read_the_pose_given_until_the_robot_catches_up() {
+        let mut cell = CellConfig::reference();
+        cell.imperfections.calibration_error = false;
+        cell.imperfections.execution_error = false;
+        let (mut robot, mut rng) = robot_at_home(&cell, 1.0);
+        let home = robot.nominal.home_pose();
+        let target = home * Pose::translation(4.0, 0.0, 0.0);
+        let legs = robot.nominal.leg_lengths_mm(&target);
+        robot.execute(&target, &legs, &mut rng).unwrap();
+        let midway = crate::geometry::pose::interpolate(&home, robot.true_platform(), 0.5);
+        robot.report_lagging_at(&midway);
+        assert_eq!(robot.encoders_mm(), &robot.nominal.leg_lengths_mm(&midway));
+        assert!((0..6).any(|leg| (robot.encoders_mm()[leg] - legs[leg]).abs() > 0.1));
+        robot.catch_up();
+        assert_eq!(robot.encoders_mm(), &legs);
+    }
 }
