@@ -121,6 +121,81 @@ impl FrameWatch {
     }
 }
 
+/// Weight of the newest frame in [`StaticWatch`]'s trend.
+const STATIC_TREND_WEIGHT: f64 = 0.3;
+/// A trend beyond this many σ of one frame (about 7 σ of the trend's own noise) is a shift.
+const STATIC_TREND_LIMIT: f64 = 3.0;
+/// A frame this many σ off in any component is gross.
+const STATIC_GROSS_SIGMAS: f64 = 6.0;
+
+/// Watches Segment II, which does not move: the frame of its fixture {C2} as the camera sees
+/// it must stay where the episode's earlier frames put it. A shift beyond the fits' noise is
+/// the camera (or the fixture) knocked out of calibration; the robot's moves cannot explain it.
+#[derive(Debug, Clone, Default)]
+struct StaticWatch {
+    frames: f64,
+    /// Running mean of {C2}'s origin in {W} (mm) and its orientation.
+    centre_mm: nalgebra::Vector3<f64>,
+    rotation: Option<nalgebra::UnitQuaternion<f64>>,
+    /// Exponentially weighted mean of each component's normalised difference from the mean.
+    trend: [f64; 6],
+    /// The last frame was gross.
+    gross: bool,
+}
+
+impl StaticWatch {
+    /// Takes in {C2}'s fit (its pose in {W}, its centre and covariance at the data sheet's
+    /// noise) and the camera's variance factor; true when {C2} has shifted.
+    fn shifted(
+        &mut self,
+        fit: &Pose,
+        c2: &super::uncertainty::FixtureCovariance,
+        variance_factor: f64,
+    ) -> bool {
+        // The fixture frame's origin: a fixed point of Segment II whichever points were seen
+        // (the centre of the points seen moves when one is dropped). Its error is the fit's
+        // error moved from the centre of the points to it.
+        let origin = fit.translation.vector;
+        let lever = super::uncertainty::cross(&(origin - c2.centre.coords));
+        let mut to_origin = nalgebra::Matrix6::identity();
+        to_origin.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-lever));
+        let covariance = to_origin * c2.covariance * to_origin.transpose();
+        let Some(mean_rotation) = self.rotation else {
+            self.frames = 1.0;
+            self.centre_mm = origin;
+            self.rotation = Some(fit.rotation);
+            return false;
+        };
+        let dt = origin - self.centre_mm;
+        let dr = (fit.rotation * mean_rotation.inverse()).scaled_axis();
+        let difference = [dt.x, dt.y, dt.z, dr.x, dr.y, dr.z];
+        // The mean's own error adds 1/n of a frame's variance.
+        let inflate = variance_factor * (1.0 + 1.0 / self.frames);
+        let z: [f64; 6] =
+            std::array::from_fn(|i| difference[i] / (covariance[(i, i)] * inflate).sqrt());
+        // One gross frame (an outlier the fit let through) is left out; two in a row are a shift.
+        if z.iter().any(|v| !(v.abs() <= STATIC_GROSS_SIGMAS)) {
+            let confirmed = self.gross;
+            self.gross = true;
+            return confirmed;
+        }
+        self.gross = false;
+        let mut worst = 0.0f64;
+        for (mean, z) in self.trend.iter_mut().zip(z) {
+            *mean = (1.0 - STATIC_TREND_WEIGHT) * *mean + STATIC_TREND_WEIGHT * z;
+            worst = worst.max(mean.abs());
+        }
+        if worst > STATIC_TREND_LIMIT {
+            return true;
+        }
+        self.frames += 1.0;
+        let w = 1.0 / self.frames;
+        self.centre_mm += dt * w;
+        self.rotation = Some(nalgebra::UnitQuaternion::from_scaled_axis(dr * w) * mean_rotation);
+        false
+    }
+}
+
 fn fixture_index(fixture: super::Fixture) -> usize {
     match fixture {
         super::Fixture::C1 => 0,
@@ -137,7 +212,8 @@ pub struct Ingest {
     /// How noisy the camera really is, learned from each frame's fit residuals.
     noise: NoiseScale,
     watch: FrameWatch,
-    /// Set when the last fusion was a confirmed jump.
+    still: StaticWatch,
+    /// Set when the last fusion was a confirmed jump, or Segment II's fixture shifted.
     jumped: bool,
     hole_pitch_deg: f64,
     state: [f64; 12],
@@ -152,6 +228,7 @@ impl Ingest {
             filter: StateFilter::new(FusionTuning::default()),
             noise: NoiseScale::default(),
             watch: FrameWatch::default(),
+            still: StaticWatch::default(),
             jumped: false,
             hole_pitch_deg: cell.hole_pitch_deg(),
             state: [0.0; 12],
@@ -197,6 +274,7 @@ impl Ingest {
         self.noise = NoiseScale::default();
         self.filter.set_noise_scale(self.noise.scale());
         self.watch = FrameWatch::default();
+        self.still = StaticWatch::default();
         self.state = [0.0; 12];
         self.raw_state = [0.0; 12];
         self.estimated_m_f = None;
@@ -226,7 +304,16 @@ impl Ingest {
         self.noise
             .add(measurement.residual_squares, measurement.residual_dof);
         self.filter.set_noise_scale(self.noise.scale());
-        let covariance = measurement.covariance * self.noise.cautious_variance_factor();
+        let variance_factor = self.noise.cautious_variance_factor();
+        if self
+            .still
+            .shifted(&measurement.fit_c2.pose, &measurement.c2, variance_factor)
+        {
+            self.jumped = true;
+            self.estimated_m_f = None;
+            return Err(CameraError::Shifted);
+        }
+        let covariance = measurement.covariance * variance_factor;
         match self.filter.update(&measurement.m_f, &covariance) {
             Fusion::HeldBack { sigmas } => {
                 self.estimated_m_f = None;

@@ -68,6 +68,10 @@ pub enum CameraError {
         "the frame is {sigmas:.1} σ from the fused estimate: held back until the next frame confirms it"
     )]
     HeldBack { sigmas: f64 },
+    /// Segment II, which does not move, is seen somewhere else: the camera or its fixture has
+    /// been knocked out of calibration.
+    #[error("Segment II's fixture is seen where it was not: the camera is out of calibration")]
+    Shifted,
 }
 
 fn describe_fit_error(error: &FitError) -> String {

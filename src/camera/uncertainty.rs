@@ -11,7 +11,7 @@ use crate::geometry::Pose;
 use nalgebra::{Matrix3, Matrix6, Point3, Vector3};
 
 /// The cross-product matrix `[v]×` (`[v]× u = v × u`).
-fn cross(v: &Vector3<f64>) -> Matrix3<f64> {
+pub fn cross(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 
