@@ -41,6 +41,8 @@ fn record(job_id: i64, step: u32) -> StepRecord {
         veto_reason: None,
         reward: RewardTerms::default(),
         compute_us: 12.0,
+        uncertainty: Default::default(),
+        detected: None,
     }
 }
 

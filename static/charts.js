@@ -39,7 +39,7 @@ export class StepPlots {
     this.prefix = prefix;
     this.element = h('div', { class: 'stack' },
       h('div', { class: 'grid wide' },
-        chartCard('Pose error (measured)', `chart-${prefix}-errors`, 'Position |P| in mm and orientation |O| in deg, log scale'),
+        chartCard('Pose error (measured)', `chart-${prefix}-errors`, 'Position |P| in mm and orientation |O| in deg, and the σ of the sideways estimate in mm, log scale'),
         chartCard('Leg lengths', `chart-${prefix}-legs`, 'The six SPS legs, mm'),
         chartCard('Actor and step size', `chart-${prefix}-actor`, 'The actor the selector chose at each step; bar height is the step scale ω3 (0–1)'),
         h('section', { class: 'card' },
@@ -61,7 +61,7 @@ export class StepPlots {
     const stepAxis = linearAxis('step', { min: 1, ticks: { precision: 0 } });
     this.errors = new Chart(canvas('errors'), {
       type: 'line',
-      data: { datasets: [lineSet('position mm', COLOURS[0], { yAxisID: 'mm' }), lineSet('orientation deg', COLOURS[1], { yAxisID: 'deg' })] },
+      data: { datasets: [lineSet('position mm', COLOURS[0], { yAxisID: 'mm' }), lineSet('orientation deg', COLOURS[1], { yAxisID: 'deg' }), lineSet('σ sideways mm', COLOURS[3], { yAxisID: 'mm', borderDash: [4, 3] })] },
       options: {
         parsing: false,
         scales: {
@@ -124,6 +124,7 @@ export class StepPlots {
     const floor = (v) => Math.max(v, LOG_FLOOR);
     this.errors.data.datasets[0].data.push({ x, y: floor(Math.hypot(s[6], s[7], s[8])) });
     this.errors.data.datasets[1].data.push({ x, y: floor(Math.hypot(s[9], s[10], s[11])) });
+    if (step.uncertainty) this.errors.data.datasets[2].data.push({ x, y: floor(step.uncertainty.sd_lateral_mm) });
     step.legs_mm.forEach((length, i) => this.legs.data.datasets[i].data.push({ x, y: length }));
     const actor = { position: 0, orientation: 1 }[step.actor] ?? 2;
     this.actor.data.datasets[actor].data.push({ x, y: step.scale ?? 0 });
@@ -131,6 +132,11 @@ export class StepPlots {
       const [trace, ends] = chart.data.datasets;
       trace.data.push(point);
       ends.data = [trace.data[0], point];
+    }
+    if (step.detected) {
+      this.vetoes.append(h('li', {}, `step ${step.step}: noticed ${step.detected.replaceAll('_', ' ')}`));
+      this.vetoCount.textContent = String(this.vetoes.children.length);
+      this.vetoesNone.hidden = true;
     }
     if (step.verdict !== 'allowed') {
       this.vetoes.append(h('li', {}, `step ${step.step}: ${step.verdict}`, step.veto_reason ? ` (${step.veto_reason})` : ''));

@@ -154,6 +154,36 @@ pub struct StepRecord {
     /// Decision + supervision + execution time of this step, µs. Camera ingestion runs on its
     /// own thread while the control thread waits for the next period, so its time is not here.
     pub compute_us: f64,
+    /// How sure the cell was of the state after the step.
+    pub uncertainty: StepUncertainty,
+    /// A fault the cell noticed at this step (`occlusion`, `out_of_order`, `robot_lag`,
+    /// `camera_shift`, `frozen_camera`, `robot_short`).
+    pub detected: Option<String>,
+}
+
+/// How sure the cell was of its state estimate (docs/estimation.md).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, utoipa::ToSchema)]
+pub struct StepUncertainty {
+    /// σ of the sideways position of {F} in {M}, its worst direction (mm).
+    pub sd_lateral_mm: f64,
+    /// σ of the position along the shaft's axis (mm).
+    pub sd_axial_mm: f64,
+    /// σ of the tilt, its worst direction (deg).
+    pub sd_tilt_deg: f64,
+    /// The camera's point noise as a multiple of its data sheet, as learned from the fits.
+    pub noise_scale: f64,
+}
+
+impl StepUncertainty {
+    pub fn of(estimate: &crate::camera::StateFilter) -> Self {
+        let sd = estimate.sd();
+        StepUncertainty {
+            sd_lateral_mm: sd.lateral_mm,
+            sd_axial_mm: sd.axial_mm,
+            sd_tilt_deg: sd.tilt_rad.to_degrees(),
+            noise_scale: estimate.noise_scale(),
+        }
+    }
 }
 
 /// What one call of [`JobRun::step`] produced.
@@ -317,6 +347,8 @@ impl JobRun {
             veto_reason: result.veto.as_ref().map(|v| v.code().to_string()),
             reward: result.reward,
             compute_us: compute_s * 1e6,
+            uncertainty: StepUncertainty::of(&result.observation.estimate),
+            detected: result.detected.map(str::to_string),
         };
         let state_finite = result.observation.state.iter().all(|v| v.is_finite());
         self.observation = result.observation;

@@ -12,5 +12,7 @@ pub mod job;
 pub mod task;
 
 pub use backend::{BackendError, CellBackend, TwinBackend};
-pub use job::{ControllerSource, JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord};
+pub use job::{
+    ControllerSource, JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord, StepUncertainty,
+};
 pub use task::{CellCommand, CellEvent, CellHandle, CellStatus};

@@ -194,6 +194,8 @@ mod tests {
                 ..RewardTerms::default()
             },
             compute_us: 1.0,
+            uncertainty: Default::default(),
+            detected: None,
         }))
     }
 

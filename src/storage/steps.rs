@@ -1,13 +1,13 @@
 //! Step rows: written in batches by the recorder, read back as JSON or CSV.
 
 use super::{Db, DbError};
-use crate::cell::StepRecord;
+use crate::cell::{StepRecord, StepUncertainty};
 use crate::sim::RewardTerms;
 use serde::Serialize;
 use serde_json::Value;
 use sqlx::{QueryBuilder, Sqlite};
 
-/// Rows per INSERT statement (17 values each, well under SQLite's 32766 parameters).
+/// Rows per INSERT statement (22 values each, well under SQLite's 32766 parameters).
 pub const ROWS_PER_STATEMENT: usize = 100;
 
 /// Inserts the records in one transaction.
@@ -30,7 +30,8 @@ pub async fn insert_rows<'e>(
     let mut insert: QueryBuilder<Sqlite> = QueryBuilder::new(
         "INSERT INTO steps (job_id, step, t_s, state, action, actor, scale, legs_mm, verdict,
              veto_reason, reward_global, reward_position, reward_orientation, reward_error,
-             reward_step, reward_total, compute_us) ",
+             reward_step, reward_total, compute_us, sd_lateral_mm, sd_axial_mm, sd_tilt_deg,
+             noise_scale, detected) ",
     );
     insert.push_values(records, |mut row, r| {
         row.push_bind(r.job_id)
@@ -49,7 +50,12 @@ pub async fn insert_rows<'e>(
             .push_bind(r.reward.error)
             .push_bind(r.reward.step)
             .push_bind(r.reward.total)
-            .push_bind(r.compute_us);
+            .push_bind(r.compute_us)
+            .push_bind(r.uncertainty.sd_lateral_mm)
+            .push_bind(r.uncertainty.sd_axial_mm)
+            .push_bind(r.uncertainty.sd_tilt_deg)
+            .push_bind(r.uncertainty.noise_scale)
+            .push_bind(r.detected.clone());
     });
     insert.build().execute(executor).await?;
     Ok(())
@@ -80,6 +86,9 @@ pub struct StoredStep {
     pub veto_reason: Option<String>,
     pub reward: RewardTerms,
     pub compute_us: f64,
+    /// How sure the cell was of the state (none for steps recorded before it said).
+    pub uncertainty: Option<StepUncertainty>,
+    pub detected: Option<String>,
 }
 
 /// A row of `steps` as stored (vectors as JSON text).
@@ -101,6 +110,11 @@ struct StepRow {
     reward_step: f64,
     reward_total: f64,
     compute_us: f64,
+    sd_lateral_mm: Option<f64>,
+    sd_axial_mm: Option<f64>,
+    sd_tilt_deg: Option<f64>,
+    noise_scale: Option<f64>,
+    detected: Option<String>,
 }
 
 impl From<StepRow> for StoredStep {
@@ -125,6 +139,23 @@ impl From<StepRow> for StoredStep {
                 total: row.reward_total,
             },
             compute_us: row.compute_us,
+            uncertainty: match (
+                row.sd_lateral_mm,
+                row.sd_axial_mm,
+                row.sd_tilt_deg,
+                row.noise_scale,
+            ) {
+                (Some(sd_lateral_mm), Some(sd_axial_mm), Some(sd_tilt_deg), Some(noise_scale)) => {
+                    Some(StepUncertainty {
+                        sd_lateral_mm,
+                        sd_axial_mm,
+                        sd_tilt_deg,
+                        noise_scale,
+                    })
+                }
+                _ => None,
+            },
+            detected: row.detected,
         }
     }
 }
@@ -155,6 +186,11 @@ pub fn to_csv(steps: &[StoredStep]) -> String {
             "reward_step",
             "reward_total",
             "compute_us",
+            "sd_lateral_mm",
+            "sd_axial_mm",
+            "sd_tilt_deg",
+            "noise_scale",
+            "detected",
         ]
         .map(String::from),
     );
@@ -188,6 +224,17 @@ pub fn to_csv(steps: &[StoredStep]) -> String {
             ]
             .map(|v| v.to_string()),
         );
+        let u = s.uncertainty;
+        fields.extend(
+            [
+                u.map(|u| u.sd_lateral_mm),
+                u.map(|u| u.sd_axial_mm),
+                u.map(|u| u.sd_tilt_deg),
+                u.map(|u| u.noise_scale),
+            ]
+            .map(|v| v.map(|v| v.to_string()).unwrap_or_default()),
+        );
+        fields.push(s.detected.clone().unwrap_or_default());
         out.push_str(&fields.join(","));
         out.push('\n');
     }
