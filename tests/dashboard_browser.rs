@@ -138,9 +138,10 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     assert_eq!(job["seed"], 7, "the page sent the seed typed in");
     let steps = job["steps"].as_u64().unwrap();
     assert!(steps > 10, "{job}");
-    // Every stored step is on the live plots, inside their plot areas.
+    // Every stored step is on the live plots, inside their plot areas: |P|, |O| and the σ of
+    // the sideways estimate.
     browser.wait_until("the live plots hold every step", WAIT, |b| {
-        chart_points(b, "chart-live-errors").0 == vec![steps, steps]
+        chart_points(b, "chart-live-errors").0 == vec![steps, steps, steps]
     });
     let (legs, inside) = chart_points(&browser, "chart-live-legs");
     assert_eq!(legs, vec![steps; 6]);
@@ -161,7 +162,7 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         chart_points(b, "chart-job-trajectory").0.first() == Some(&steps)
     });
     for (canvas, per_step) in [
-        ("chart-job-errors", 2),
+        ("chart-job-errors", 3),
         ("chart-job-legs", 6),
         ("chart-job-trajectory", 1),
         ("chart-job-trajectory-side", 1),

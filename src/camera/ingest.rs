@@ -174,7 +174,9 @@ impl StaticWatch {
         let z: [f64; 6] =
             std::array::from_fn(|i| difference[i] / (covariance[(i, i)] * inflate).sqrt());
         // One gross frame (an outlier the fit let through) is left out; two in a row are a shift.
-        if z.iter().any(|v| v.is_nan() || v.abs() > STATIC_GROSS_SIGMAS) {
+        if z.iter()
+            .any(|v| v.is_nan() || v.abs() > STATIC_GROSS_SIGMAS)
+        {
             let confirmed = self.gross;
             self.gross = true;
             return confirmed;
