@@ -206,7 +206,8 @@ impl Supervisor {
     /// shaft grown by that much is clear all along the move, the move is allowed. A move that
     /// leaves the grown shaft no nearer Segment II than it is now is allowed too: it adds no risk
     /// to where the cell already stands (this is how the cell backs away from a wall it is
-    /// unsure of). Otherwise the move is refused as uncertain.
+    /// unsure of); it is judged with the move's own error, against the envelope of the estimate
+    /// as it is now. Otherwise the move is refused as uncertain.
     fn judge_risk(
         &self,
         m_f: &Pose,
@@ -225,7 +226,9 @@ impl Supervisor {
         if grown.is_clear() {
             return Ok(risk.min(self.risk_bound));
         }
-        let now = clearance_grown(&self.parts, from, &growth);
+        // Where the cell stands now: the envelope of the estimate now, at the depth it is at.
+        let standing = self.spread(m_f, from, &[covariances[0], covariances[0]]);
+        let now = clearance_grown(&self.parts, from, &standing.scaled(self.sigmas));
         let no_nearer = |after: f64, before: f64| after >= before - GAP_ROUNDING_MM;
         if no_nearer(grown.wall_mm, now.wall_mm) && no_nearer(grown.seat_mm, now.seat_mm) {
             return Ok(risk);
