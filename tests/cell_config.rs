@@ -95,6 +95,41 @@ fn a_wall_margin_must_fit_in_the_clearance_and_may_be_left_out() {
     without.replace_range(start..end, "");
     let cell = CellConfig::parse(&without, "test.toml").unwrap();
     assert_eq!(cell.supervisor.wall_margin_mm, 0.0);
+    // Without the section, the bound on contact and the holds keep their defaults.
+    assert_eq!(cell.supervisor.contact_risk_per_move, 1e-4);
+    assert_eq!(cell.supervisor.max_uncertain_holds, 150);
+}
+
+#[test]
+fn the_bound_on_contact_and_the_holds_are_checked() {
+    let with = |from: &str, to: &str| reference_text().replace(from, to);
+    for bad in ["0", "-1e-4", "0.5", "nan"] {
+        let message = refused(&with(
+            "contact_risk_per_move = 1e-4",
+            &format!("contact_risk_per_move = {bad}"),
+        ));
+        assert!(
+            message.contains("supervisor.contact_risk_per_move"),
+            "{bad}: {message}"
+        );
+    }
+    let message = refused(&with(
+        "max_uncertain_holds = 150",
+        "max_uncertain_holds = 0",
+    ));
+    assert!(
+        message.contains("supervisor.max_uncertain_holds"),
+        "{message}"
+    );
+    let cell = CellConfig::parse(
+        &with(
+            "contact_risk_per_move = 1e-4",
+            "contact_risk_per_move = 1e-6",
+        ),
+        "test.toml",
+    )
+    .unwrap();
+    assert_eq!(cell.supervisor.contact_risk_per_move, 1e-6);
 }
 
 #[test]
