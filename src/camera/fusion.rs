@@ -338,14 +338,6 @@ impl Belief for FilterBelief<'_> {
         self.m_f
     }
 
-    fn sd(&self) -> PoseSd {
-        self.filter.sd()
-    }
-
-    fn sd_after(&self, step: &Move) -> PoseSd {
-        self.filter.sd_after(step)
-    }
-
     fn covariance(&self) -> Matrix6<f64> {
         self.filter.covariance()
     }

@@ -17,10 +17,11 @@ use super::clearance::{
 use super::obb::Obb;
 use super::risk;
 use crate::config::cell::CellConfig;
+use crate::geometry::belief::largest_sd;
 use crate::geometry::{Belief, CellFrames, Move, Pose, pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
 use nalgebra::Vector3;
-use nalgebra::{Matrix2, Matrix2x6, Matrix6, Point3};
+use nalgebra::{Matrix2x6, Matrix6, Point3};
 
 /// Why a move was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -308,13 +309,6 @@ impl Supervisor {
     }
 }
 
-/// σ of the worst direction of a 2-D covariance: the square root of its largest eigenvalue.
-fn largest_sd(c: &Matrix2<f64>) -> f64 {
-    let mean = 0.5 * (c[(0, 0)] + c[(1, 1)]);
-    let half_gap = (0.25 * (c[(0, 0)] - c[(1, 1)]).powi(2) + c[(0, 1)] * c[(1, 0)]).max(0.0);
-    (mean + half_gap.sqrt()).max(0.0).sqrt()
-}
-
 /// Clearance of Segment I moving from `from` to `to` (poses of {M} in {F}). Broad phase first: an
 /// OBB of the shaft at the end of the move, grown by how far any of its points can travel during
 /// the move, against Segment II's OBB; only if they overlap is the exact clearance along the move
@@ -518,12 +512,6 @@ mod tests {
     impl Belief for Spread {
         fn m_f(&self) -> Pose {
             self.0
-        }
-        fn sd(&self) -> PoseSd {
-            self.1
-        }
-        fn sd_after(&self, _step: &Move) -> PoseSd {
-            self.1
         }
         fn covariance(&self) -> Matrix6<f64> {
             let sd = &self.1;
