@@ -688,7 +688,8 @@ impl AssemblyEnv {
     }
 }
 
-fn random_unit(rng: &mut impl Rng) -> Vector3<f64> {
+/// A direction drawn uniformly on the unit sphere.
+pub(crate) fn random_unit(rng: &mut impl Rng) -> Vector3<f64> {
     loop {
         let v = Vector3::<f64>::from_fn(|_, _| rng.sample(StandardNormal));
         let norm = v.norm();

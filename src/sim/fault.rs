@@ -11,11 +11,11 @@
 //! environment calls after every capture; robot faults are [`RobotFaults`] the environment hands
 //! to the twin's robot (`sim::robot::TwinRobot::set_faults`) at every step.
 
+use super::env::random_unit;
 use crate::camera::{CameraFrame, Fixture};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::ops::RangeInclusive;
 
@@ -364,16 +364,6 @@ pub fn c2_centroid_w(frames: &crate::geometry::CellFrames) -> Point3<f64> {
         sum + (w_f * frames.f_c2 * p).coords
     });
     Point3::from(sum / n)
-}
-
-fn random_unit(rng: &mut impl Rng) -> Vector3<f64> {
-    loop {
-        let v = Vector3::<f64>::from_fn(|_, _| rng.sample(StandardNormal));
-        let norm = v.norm();
-        if norm > 1e-9 {
-            return v / norm;
-        }
-    }
 }
 
 #[cfg(test)]
