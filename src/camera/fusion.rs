@@ -79,6 +79,8 @@ pub struct StateFilter {
     /// Exponentially weighted mean of each component's normalised innovation: near 0 while the
     /// frames agree with the moves, drifting to the size of a bias that no move explains.
     innovation_trend: [f64; 6],
+    /// Frames blended in since the estimate last started from a frame.
+    blended: u32,
 }
 
 /// Weight of the newest frame in [`StateFilter`]'s innovation trend.
@@ -92,7 +94,8 @@ const TREND_LIMIT: f64 = 3.0;
 pub enum Fusion {
     /// Blended into the estimate.
     Blended,
-    /// The estimate starts from this frame: the first of an episode.
+    /// The estimate starts from this frame: the first of an episode, or one confirmed by the
+    /// next when the estimate rested on a single (gross) frame.
     Reset,
     /// Held back: its innovation is this many σ (the largest component), and no earlier frame
     /// confirms it.
@@ -114,6 +117,7 @@ impl StateFilter {
             noise_scale: 1.0,
             last_nis: None,
             innovation_trend: [0.0; 6],
+            blended: 0,
         };
         filter.reset();
         filter
@@ -182,8 +186,14 @@ impl StateFilter {
                 (0..6).all(|i| gap[i].abs() <= gross * (2.0 * covariance[(i, i)]).sqrt())
             });
             if confirmed {
+                // Resting on a single frame, the estimate was the odd one out, not the frames.
+                let settled = self.blended > 0;
                 self.set_to(*measured, covariance);
-                return Fusion::Jumped { sigmas };
+                return if settled {
+                    Fusion::Jumped { sigmas }
+                } else {
+                    Fusion::Reset
+                };
             }
             self.held_back = Some(*measured);
             return Fusion::HeldBack { sigmas };
@@ -220,6 +230,7 @@ impl StateFilter {
                 * predicted.rotation;
         self.drift += correction.fixed_rows::<6>(6);
         self.m_f = Some(fused);
+        self.blended += 1;
         Fusion::Blended
     }
 
@@ -236,6 +247,7 @@ impl StateFilter {
         self.m_f = Some(measured);
         self.held_back = None;
         self.innovation_trend = [0.0; 6];
+        self.blended = 0;
     }
 
     /// The estimate of {F} in {M}, once there is one.
@@ -441,18 +453,27 @@ mod tests {
         // robot then moves 1 mm in x, and the next frame confirms it where the first one says it
         // should be now.
         let r = covariance(0.03, 0.013);
-        let mut filter = StateFilter::new(FusionTuning::default());
-        filter.update(&measured([0.0, 0.0, -10.0]), &r);
-        assert!(matches!(
-            filter.update(&measured([2.0, 0.0, -10.0]), &r),
-            Fusion::HeldBack { .. }
-        ));
-        filter.predict(&Move::translation(1.0, 0.0, 0.0));
-        assert!(matches!(
-            filter.update(&measured([1.0, 0.0, -10.0]), &r),
-            Fusion::Jumped { .. }
-        ));
-        assert!((filter.m_f().unwrap().translation.vector.x - 1.0).abs() < 1e-12);
+        for settled in [false, true] {
+            let mut filter = StateFilter::new(FusionTuning::default());
+            filter.update(&measured([0.0, 0.0, -10.0]), &r);
+            if settled {
+                filter.update(&measured([0.0, 0.0, -10.0]), &r);
+            }
+            assert!(matches!(
+                filter.update(&measured([2.0, 0.0, -10.0]), &r),
+                Fusion::HeldBack { .. }
+            ));
+            filter.predict(&Move::translation(1.0, 0.0, 0.0));
+            let verdict = filter.update(&measured([1.0, 0.0, -10.0]), &r);
+            // Resting on one frame, that frame was the odd one: the estimate starts again
+            // without a fault. Settled on two, the parts moved in a way no move explains.
+            if settled {
+                assert!(matches!(verdict, Fusion::Jumped { .. }), "{verdict:?}");
+            } else {
+                assert_eq!(verdict, Fusion::Reset);
+            }
+            assert!((filter.m_f().unwrap().translation.vector.x - 1.0).abs() < 1e-12);
+        }
     }
 
     #[test]
