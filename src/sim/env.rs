@@ -2,13 +2,16 @@
 //!
 //! Each step is one camera cycle (4 Hz): the move goes to the imperfect robot through the
 //! supervisor ([`Supervised`], which checks it against the cell's fused estimate of the relative
-//! pose and the robot's setpoint); an allowed move is predicted by the state filter; the camera
-//! captures (possibly while the robot is still moving, when the move takes longer than the cycle
-//! minus the latency); camera ingestion ([`Ingest`]) fits the frame and fuses it into the state;
-//! the reward is computed from that state. The outcome is
-//! judged on the true pose: success when the true insertion depth and hole alignment are within
-//! tolerance, failure on true contact (the robot's protective stop), on too many vetoes in a row,
-//! on leaving the workspace, or on running out of steps.
+//! pose, its uncertainty and the robot's setpoint, and shortens or holds a move it is not sure
+//! of); an allowed move is predicted by the state filter; the camera captures (possibly while
+//! the robot is still moving, when the move takes longer than the cycle minus the latency);
+//! camera ingestion ([`Ingest`]) fits the frame and fuses it into the state; the reward is
+//! computed from that state. A robot whose encoders had not reached the last command at the
+//! capture is given a step to arrive (a hold). The outcome is judged on the true pose: success
+//! when the true insertion depth and hole alignment are within tolerance, failure on true
+//! contact (the robot's protective stop), on too many vetoes or uncertain holds in a row, on a
+//! fault the cell cannot work around (docs/estimation.md §5), on leaving the workspace, or on
+//! running out of steps.
 
 use super::fault::{Fault, Injection};
 use super::reward::{Ending, RewardTerms, RewardTracker};
