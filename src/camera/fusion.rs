@@ -81,7 +81,16 @@ pub struct StateFilter {
     innovation_trend: [f64; 6],
     /// Frames blended in since the estimate last started from a frame.
     blended: u32,
+    /// Exponentially weighted mean of the sideways components' normalised innovation squared:
+    /// 1 while the covariance is right; above [`NIS_INFLATE`] the moves do worse than the filter
+    /// allows for (a drift larger than its prior), and the drift's covariance is widened.
+    sideways_nis: f64,
 }
+
+/// Weight of the newest frame in the sideways NIS mean.
+const NIS_WEIGHT: f64 = 0.1;
+/// A sideways NIS mean above this (about 3 σ of its own noise) widens the drift's covariance.
+const NIS_INFLATE: f64 = 2.0;
 
 /// Weight of the newest frame in [`StateFilter`]'s innovation trend.
 const TREND_WEIGHT: f64 = 0.3;
@@ -118,6 +127,7 @@ impl StateFilter {
             last_nis: None,
             innovation_trend: [0.0; 6],
             blended: 0,
+            sideways_nis: 1.0,
         };
         filter.reset();
         filter
@@ -128,6 +138,7 @@ impl StateFilter {
         self.held_back = None;
         self.last_nis = None;
         self.innovation_trend = [0.0; 6];
+        self.sideways_nis = 1.0;
         self.drift = SVector::zeros();
         self.covariance = Covariance::zeros();
         let drift_variance = self.tuning.drift_prior_sd.powi(2);
@@ -213,6 +224,28 @@ impl StateFilter {
         if trend > TREND_LIMIT {
             self.set_to(*measured, covariance);
             return Fusion::Jumped { sigmas: trend };
+        }
+        let sideways = 0.5
+            * (0..2)
+                .map(|i| innovation[i].powi(2) / spread[(i, i)])
+                .sum::<f64>();
+        self.sideways_nis = (1.0 - NIS_WEIGHT) * self.sideways_nis + NIS_WEIGHT * sideways;
+        if self.sideways_nis > NIS_INFLATE {
+            // Widen the drift's σ by √2 (its variance and its covariances with the pose alike).
+            for i in 6..12 {
+                for j in 0..12 {
+                    let factor = if j >= 6 {
+                        2.0
+                    } else {
+                        std::f64::consts::SQRT_2
+                    };
+                    self.covariance[(i, j)] *= factor;
+                    if j < 6 {
+                        self.covariance[(j, i)] *= factor;
+                    }
+                }
+            }
+            self.sideways_nis = 1.0;
         }
         // Kalman gain K = P Hᵀ S⁻¹ with H = [I₆ 0]; Joseph form for the covariance.
         let gain: SMatrix<f64, 12, 6> = self.covariance.fixed_view::<12, 6>(0, 0) * spread_inverse;
@@ -513,7 +546,12 @@ mod tests {
     fn its_covariance_matches_the_spread_of_its_errors() {
         // A still part seen through frames of known noise, and a part moved by a drifting robot:
         // over many runs the estimate's error has the variance the filter claims, per axis.
-        for (sd_mm, sd_deg, drift) in [(0.01, 0.005, 0.0), (0.1, 0.05, 0.0015)] {
+        // The last: a drift four times the prior's σ, seen through noisy frames.
+        for (sd_mm, sd_deg, drift) in [
+            (0.01, 0.005, 0.0),
+            (0.1, 0.05, 0.0015),
+            (0.01, 0.005, 0.006),
+        ] {
             let r = covariance(sd_mm, sd_deg);
             let mut rng = ChaCha8Rng::seed_from_u64(5);
             let runs = 4000;
