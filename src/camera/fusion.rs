@@ -74,8 +74,6 @@ pub struct StateFilter {
     held_back: Option<Pose>,
     /// The camera's point noise as a multiple of its data sheet, as ingestion last learned it.
     noise_scale: f64,
-    /// Normalised innovation squared of the last frame blended in (6 components).
-    last_nis: Option<f64>,
     /// Exponentially weighted mean of each component's normalised innovation: near 0 while the
     /// frames agree with the moves, drifting to the size of a bias that no move explains.
     innovation_trend: [f64; 6],
@@ -124,7 +122,6 @@ impl StateFilter {
             covariance: Covariance::zeros(),
             held_back: None,
             noise_scale: 1.0,
-            last_nis: None,
             innovation_trend: [0.0; 6],
             blended: 0,
             sideways_nis: 1.0,
@@ -136,7 +133,6 @@ impl StateFilter {
     pub fn reset(&mut self) {
         self.m_f = None;
         self.held_back = None;
-        self.last_nis = None;
         self.innovation_trend = [0.0; 6];
         self.sideways_nis = 1.0;
         self.drift = SVector::zeros();
@@ -214,7 +210,6 @@ impl StateFilter {
             self.held_back = Some(*measured);
             return Fusion::HeldBack { sigmas };
         };
-        self.last_nis = Some((innovation.transpose() * spread_inverse * innovation)[(0, 0)]);
         let mut trend = 0.0f64;
         for (i, mean) in self.innovation_trend.iter_mut().enumerate() {
             *mean =
@@ -231,20 +226,12 @@ impl StateFilter {
                 .sum::<f64>();
         self.sideways_nis = (1.0 - NIS_WEIGHT) * self.sideways_nis + NIS_WEIGHT * sideways;
         if self.sideways_nis > NIS_INFLATE {
-            // Widen the drift's σ by √2 (its variance and its covariances with the pose alike).
-            for i in 6..12 {
-                for j in 0..12 {
-                    let factor = if j >= 6 {
-                        2.0
-                    } else {
-                        std::f64::consts::SQRT_2
-                    };
-                    self.covariance[(i, j)] *= factor;
-                    if j < 6 {
-                        self.covariance[(j, i)] *= factor;
-                    }
-                }
-            }
+            // Widen the drift's σ by √2: its variance doubles, its covariances with the pose grow
+            // by √2.
+            let widen = Covariance::from_diagonal(&SVector::<f64, 12>::from_fn(|i, _| {
+                if i < 6 { 1.0 } else { std::f64::consts::SQRT_2 }
+            }));
+            self.covariance = widen * self.covariance * widen;
             self.sideways_nis = 1.0;
         }
         // Kalman gain K = P Hᵀ S⁻¹ with H = [I₆ 0]; Joseph form for the covariance.
@@ -315,13 +302,13 @@ impl StateFilter {
         PoseSd::from_covariance(&self.covariance_after(step))
     }
 
-    /// σ of the lateral offset estimate (mm), the larger of the two axes.
+    /// σ of the lateral offset estimate in its worst direction (mm).
     pub fn lateral_sd_mm(&self) -> f64 {
         self.sd().lateral_mm
     }
 
-    /// σ of the lateral offset (mm, the larger axis) after an axial move of `dz_mm`, from what is
-    /// known now of the offset and of the drift.
+    /// σ of the lateral offset in its worst direction (mm) after an axial move of `dz_mm`, from
+    /// what is known now of the offset and of the drift.
     pub fn lateral_sd_after_mm(&self, dz_mm: f64) -> f64 {
         self.sd_after(&Move::translation(0.0, 0.0, dz_mm))
             .lateral_mm
@@ -362,12 +349,6 @@ impl StateFilter {
 
     pub fn set_noise_scale(&mut self, scale: f64) {
         self.noise_scale = scale;
-    }
-
-    /// Normalised innovation squared of the last frame blended in (6 components; its mean is
-    /// 6 when the filter's covariance is right).
-    pub fn last_nis(&self) -> Option<f64> {
-        self.last_nis
     }
 }
 
