@@ -8,6 +8,7 @@ use super::{
 };
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
+use nalgebra::Point3;
 
 /// What ingestion is given after each move: the capture and what the robot did before it.
 #[derive(Debug, Clone, Default)]
@@ -153,13 +154,9 @@ impl StaticWatch {
         variance_factor: f64,
     ) -> bool {
         // The fixture frame's origin: a fixed point of Segment II whichever points were seen
-        // (the centre of the points seen moves when one is dropped). Its error is the fit's
-        // error moved from the centre of the points to it.
+        // (the centre of the points seen moves when one is dropped).
         let origin = fit.translation.vector;
-        let lever = super::uncertainty::cross(&(origin - c2.centre.coords));
-        let mut to_origin = nalgebra::Matrix6::identity();
-        to_origin.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-lever));
-        let covariance = to_origin * c2.covariance * to_origin.transpose();
+        let covariance = c2.about(&Point3::from(origin));
         let Some(mean_rotation) = self.rotation else {
             self.frames = 1.0;
             self.centre_mm = origin;
@@ -221,8 +218,6 @@ pub struct Ingest {
     noise: NoiseScale,
     watch: FrameWatch,
     still: StaticWatch,
-    /// Set when the last fusion was a confirmed jump, or Segment II's fixture shifted.
-    jumped: bool,
     hole_pitch_deg: f64,
     state: [f64; 12],
     raw_state: [f64; 12],
@@ -237,7 +232,6 @@ impl Ingest {
             noise: NoiseScale::default(),
             watch: FrameWatch::default(),
             still: StaticWatch::default(),
-            jumped: false,
             hole_pitch_deg: cell.hole_pitch_deg(),
             state: [0.0; 12],
             raw_state: [0.0; 12],
@@ -259,12 +253,11 @@ impl Ingest {
                 self.estimated_m_f = None;
                 (false, fault)
             }
-            Ok(noticed) => {
-                self.jumped = false;
-                let fresh = self.ingest(&shot.frame, shot.remaining.as_ref()).is_ok();
-                let shifted = self.jumped.then_some(Detected::CameraShift);
-                (fresh, shifted.or(noticed))
-            }
+            Ok(noticed) => match self.ingest(&shot.frame, shot.remaining.as_ref()) {
+                Ok(shifted) => (true, shifted.or(noticed)),
+                Err(CameraError::Shifted) => (false, Some(Detected::CameraShift)),
+                Err(_) => (false, noticed),
+            },
         };
         Estimate {
             state: self.state,
@@ -296,8 +289,13 @@ impl Ingest {
     /// Takes in one capture. `remaining` is the part of the commanded move still to come after
     /// the exposure, in {M} (none when the robot had stopped). On success the fused estimate
     /// and the state move on; on failure (no fit, or a frame the filter holds back) the state
-    /// stays as it was and the estimate is stale (the supervisor then vetoes every move).
-    fn ingest(&mut self, frame: &CameraFrame, remaining: Option<&Pose>) -> Result<(), CameraError> {
+    /// stays as it was and the estimate is stale (the supervisor then vetoes every move). A jump
+    /// the moves do not explain is answered as a camera shift.
+    fn ingest(
+        &mut self,
+        frame: &CameraFrame,
+        remaining: Option<&Pose>,
+    ) -> Result<Option<Detected>, CameraError> {
         let mut measurement = match self.estimator.estimate(frame, self.noise.scale()) {
             Ok(measurement) => measurement,
             Err(error) => {
@@ -317,24 +315,23 @@ impl Ingest {
             .still
             .shifted(&measurement.fit_c2.pose, &measurement.c2, variance_factor)
         {
-            self.jumped = true;
             self.estimated_m_f = None;
             return Err(CameraError::Shifted);
         }
         let covariance = measurement.covariance * variance_factor;
-        match self.filter.update(&measurement.m_f, &covariance) {
+        let shifted = match self.filter.update(&measurement.m_f, &covariance) {
             Fusion::HeldBack { sigmas } => {
                 self.estimated_m_f = None;
                 return Err(CameraError::HeldBack { sigmas });
             }
-            Fusion::Jumped { .. } => self.jumped = true,
-            Fusion::Blended | Fusion::Reset => {}
-        }
+            Fusion::Jumped { .. } => Some(Detected::CameraShift),
+            Fusion::Blended | Fusion::Reset => None,
+        };
         self.raw_state = measurement.state(self.hole_pitch_deg);
         let fused = self.filter.m_f().unwrap_or(measurement.m_f);
         self.state = state_vector(&measurement.w_m, &fused, self.hole_pitch_deg);
         self.estimated_m_f = Some(fused);
-        Ok(())
+        Ok(shifted)
     }
 }
 

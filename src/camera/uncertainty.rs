@@ -11,7 +11,7 @@ use crate::geometry::Pose;
 use nalgebra::{Matrix3, Matrix6, Point3, Vector3};
 
 /// The cross-product matrix `[v]×` (`[v]× u = v × u`).
-pub fn cross(v: &Vector3<f64>) -> Matrix3<f64> {
+fn cross(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }
 
@@ -54,22 +54,25 @@ pub fn fit_covariance(
         .then(|| (covariance + covariance.transpose()) * 0.5)
 }
 
-/// Moves a small motion about `centre` to the same motion written about the origin of {W}:
-/// `δt₀ = δt + centre × δθ`.
-fn about_origin(centre: &Point3<f64>) -> Matrix6<f64> {
-    blocks(
-        Matrix3::identity(),
-        cross(&centre.coords),
-        Matrix3::zeros(),
-        Matrix3::identity(),
-    )
-}
-
 /// One fixture's fit: its covariance about `centre` (see [`fit_covariance`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FixtureCovariance {
     pub covariance: Matrix6<f64>,
     pub centre: Point3<f64>,
+}
+
+impl FixtureCovariance {
+    /// The same covariance for the fit's small motion written about `point` instead of the
+    /// centre: `δt_point = δt + (centre − point) × δθ`, the rotation unchanged.
+    pub fn about(&self, point: &Point3<f64>) -> Matrix6<f64> {
+        let moved = blocks(
+            Matrix3::identity(),
+            cross(&(self.centre - point)),
+            Matrix3::zeros(),
+            Matrix3::identity(),
+        );
+        moved * self.covariance * moved.transpose()
+    }
 }
 
 /// Covariance of the errors of {F} in {M}, ordered `(δP mm, δO rad)` in {M}, with the rotation
@@ -101,11 +104,9 @@ pub fn relative_covariance(
         Matrix3::identity(),
     );
     let to_relative = on_p * in_m;
-    let world = |f: &FixtureCovariance| {
-        let a = about_origin(&f.centre);
-        a * f.covariance * a.transpose()
-    };
-    let covariance = to_relative * (world(c1) + world(c2)) * to_relative.transpose();
+    let origin = Point3::origin();
+    let world = c1.about(&origin) + c2.about(&origin);
+    let covariance = to_relative * world * to_relative.transpose();
     (covariance + covariance.transpose()) * 0.5
 }
 
