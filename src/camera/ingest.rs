@@ -79,8 +79,8 @@ pub struct Estimate {
 /// What ingestion remembers of the frames to notice faults.
 #[derive(Debug, Clone, Default)]
 struct FrameWatch {
-    last_sequence: Option<u64>,
-    last_points: Vec<super::CodedPoint>,
+    /// The last frame taken in.
+    last: Option<CameraFrame>,
     repeats: u32,
     /// Frames in a row each coded point of {C1} and {C2} has been missing.
     missing: [[u32; TRACKED_POINTS]; 2],
@@ -90,21 +90,22 @@ impl FrameWatch {
     /// Screens a frame before it is used: `Err` for a frame that must not be used, with the
     /// fault it shows once it is one; `Ok` with anything noticed about a usable one.
     fn screen(&mut self, frame: &CameraFrame) -> Result<Option<Detected>, Option<Detected>> {
-        if self.last_sequence.is_some_and(|last| frame.sequence < last) {
+        if self
+            .last
+            .as_ref()
+            .is_some_and(|last| frame.sequence < last.sequence)
+        {
             return Err(Some(Detected::OutOfOrder));
         }
-        let same = self.last_sequence == Some(frame.sequence)
-            && frame.points.len() == self.last_points.len()
-            && frame.points.iter().zip(&self.last_points).all(|(a, b)| {
-                a.fixture == b.fixture && a.id == b.id && a.position_mm == b.position_mm
-            });
-        if same && !frame.points.is_empty() {
+        if self.last.as_ref() == Some(frame) && !frame.points.is_empty() {
             self.repeats += 1;
             return Err((self.repeats + 1 >= FROZEN_FRAMES).then_some(Detected::FrozenCamera));
         }
         self.repeats = 0;
-        self.last_sequence = Some(frame.sequence);
-        self.last_points.clone_from(&frame.points);
+        match &mut self.last {
+            Some(last) => last.clone_from(frame),
+            none => *none = Some(frame.clone()),
+        }
         let mut seen = [[false; TRACKED_POINTS]; 2];
         for point in &frame.points {
             if let Some(slot) = seen[fixture_index(point.fixture)].get_mut(usize::from(point.id)) {

@@ -35,7 +35,7 @@ impl std::fmt::Display for Fixture {
 }
 
 /// One decoded coded point.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CodedPoint {
     pub fixture: Fixture,
     /// Index of the point in its fixture's layout (`CellFrames::c1_points_mm` / `c2_points_mm`).
@@ -46,7 +46,7 @@ pub struct CodedPoint {
 
 /// One capture: the coded points the camera decoded (dropped points absent). Reuse its buffer
 /// between captures ([`SimCamera::capture_into`] clears it).
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct CameraFrame {
     pub points: Vec<CodedPoint>,
     /// The capture's number within its episode: 1 for the episode's first capture, +1 per

@@ -443,14 +443,6 @@ mod tests {
         }
     }
 
-    fn same_frame(a: &CameraFrame, b: &CameraFrame) -> bool {
-        a.sequence == b.sequence
-            && a.points.len() == b.points.len()
-            && a.points.iter().zip(&b.points).all(|(p, q)| {
-                p.fixture == q.fixture && p.id == q.id && p.position_mm == q.position_mm
-            })
-    }
-
     /// A robot without calibration or execution error: it goes exactly where it is sent.
     fn perfect_robot_cell() -> CellConfig {
         let mut cell = CellConfig::reference();
@@ -509,7 +501,7 @@ mod tests {
             for (step, frame) in delivered(&mut frozen).iter().enumerate() {
                 let step = step as u32;
                 let expected = synthetic_frame(if step < onset { step } else { onset - 1 });
-                assert!(same_frame(frame, &expected), "seed {seed} step {step}");
+                assert!(frame == &expected, "seed {seed} step {step}");
             }
             // Out of order: every third step from the onset, the frame of two steps before.
             let mut late = draw(Fault::OutOfOrder, seed);
@@ -519,7 +511,7 @@ mod tests {
                 let step = step as u32;
                 let is_late = step >= onset && (step - onset).is_multiple_of(3);
                 let expected = synthetic_frame(if is_late { step - 2 } else { step });
-                assert!(same_frame(frame, &expected), "seed {seed} step {step}");
+                assert!(frame == &expected, "seed {seed} step {step}");
                 if is_late {
                     assert!(frame.sequence < frames[step as usize - 1].sequence);
                 }
@@ -538,7 +530,7 @@ mod tests {
                         .retain(|p| !(p.fixture == fixture && p.id == id));
                     assert_eq!(frame.points.len(), 11);
                 }
-                assert!(same_frame(frame, &expected), "seed {seed} step {step}");
+                assert!(frame == &expected, "seed {seed} step {step}");
             }
             // Camera shift: C2's points moved by one rigid transform, C1's left alone.
             let mut shifted = draw(Fault::CameraShift, seed);
@@ -561,7 +553,7 @@ mod tests {
             for fault in [Fault::RobotLag, Fault::RobotShort] {
                 let mut robot = draw(fault, seed);
                 for (step, frame) in delivered(&mut robot).iter().enumerate() {
-                    assert!(same_frame(frame, &synthetic_frame(step as u32)));
+                    assert!(*frame == synthetic_frame(step as u32));
                 }
             }
         }
@@ -648,7 +640,7 @@ mod tests {
         let (_, again_start, again) = episode(&cell, with_fault(&cell, None), seed, zigzag, STEPS);
         assert_eq!(none_start, again_start);
         for (a, b) in clean.iter().zip(&again) {
-            assert!(same_frame(&a.frame, &b.frame));
+            assert!(a.frame == b.frame);
             assert_eq!(a.result, b.result);
         }
         // Sequence numbers count captures from 1 within the episode.
@@ -663,7 +655,7 @@ mod tests {
             let onset = onset.unwrap();
             assert_eq!(start, none_start, "{fault}");
             for (a, b) in clean.iter().zip(&faulty).filter(|(a, _)| a.step < onset) {
-                assert!(same_frame(&a.frame, &b.frame), "{fault} at step {}", a.step);
+                assert!(a.frame == b.frame, "{fault} at step {}", a.step);
                 assert_eq!(a.result, b.result, "{fault} at step {}", a.step);
                 assert_eq!(a.true_f_m, b.true_f_m, "{fault} at step {}", a.step);
             }
@@ -698,11 +690,7 @@ mod tests {
             ))
         );
         for record in after {
-            assert!(
-                same_frame(&record.frame, &last_before.frame),
-                "step {}",
-                record.step
-            );
+            assert!(record.frame == last_before.frame, "step {}", record.step);
         }
     }
 
@@ -724,7 +712,7 @@ mod tests {
                 assert_eq!(record.frame.sequence, captured - 2, "step {}", record.step);
                 assert_eq!(record.frame.sequence, earlier.frame.sequence);
                 assert!(record.frame.sequence < records[i - 1].frame.sequence);
-                assert!(same_frame(&record.frame, &earlier.frame));
+                assert!(record.frame == earlier.frame);
             } else {
                 assert_eq!(record.frame.sequence, captured, "step {}", record.step);
             }
@@ -766,9 +754,9 @@ mod tests {
                 let mut rest = a.frame.clone();
                 rest.points
                     .retain(|p| !(p.fixture == fixture && p.id == id));
-                assert!(same_frame(&rest, &b.frame), "step {}", b.step);
+                assert!(rest == b.frame, "step {}", b.step);
             } else {
-                assert!(same_frame(&a.frame, &b.frame));
+                assert!(a.frame == b.frame);
             }
         }
     }
@@ -931,7 +919,7 @@ mod tests {
                 .map(|leg| (b.result.legs_mm[leg] - commanded[leg]).abs())
                 .fold(0.0, f64::max);
             if b.step < onset {
-                assert!(same_frame(&a.frame, &b.frame));
+                assert!(a.frame == b.frame);
                 assert!(gap < 1e-9);
             } else if !b.step.is_multiple_of(2) {
                 // A move: seen and read half-way.
