@@ -113,7 +113,7 @@ pub struct Supervisor {
     wall_margin_mm: f64,
     /// The bound on the probability of contact per move.
     risk_bound: f64,
-    /// How many σ of each error the envelope of [`Supervisor::growth`] spans for that bound.
+    /// How many σ of each error the envelope of `Supervisor::spread` spans for that bound.
     sigmas: f64,
 }
 
@@ -202,7 +202,7 @@ impl Supervisor {
         })
     }
 
-    /// The chance constraint. Every point of Segment I lies within [`Supervisor::growth`] of
+    /// The chance constraint. Every point of Segment I lies within `sigmas` × `Supervisor::spread` of
     /// where the mean estimate puts it, except with probability below the bound; so if the
     /// shaft grown by that much is clear all along the move, the move is allowed. A move that
     /// leaves the grown shaft no nearer Segment II than it is now is allowed too: it adds no risk

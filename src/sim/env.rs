@@ -433,13 +433,11 @@ impl AssemblyEnv {
         );
         let belief = self.belief.as_ref().and_then(StateFilter::belief);
         robot.observe(belief.as_ref().map(|b| b as &dyn Belief));
-        let verdict = if hold {
-            Err(RobotError::Vetoed(VetoReason::StaleMeasurement))
-        } else {
-            robot.execute_cautiously(action)
-        };
+        // A hold sends the robot nothing.
+        let verdict = (!hold).then(|| robot.execute_cautiously(action));
         match verdict {
-            Ok(step) => {
+            None => {}
+            Some(Ok(step)) => {
                 executed = step;
                 self.consecutive_vetoes = 0;
                 self.uncertain_holds = 0;
@@ -457,17 +455,16 @@ impl AssemblyEnv {
                 }
                 capture_fraction = self.capture_fraction(&executed);
             }
-            Err(RobotError::Vetoed(_)) if hold => {}
-            Err(RobotError::Vetoed(reason @ VetoReason::Uncertain { .. })) => {
+            Some(Err(RobotError::Vetoed(reason @ VetoReason::Uncertain { .. }))) => {
                 self.uncertain_holds += 1;
                 pending.veto = Some(reason);
             }
-            Err(RobotError::Vetoed(reason)) => {
+            Some(Err(RobotError::Vetoed(reason))) => {
                 self.consecutive_vetoes += 1;
                 self.uncertain_holds = 0;
                 pending.veto = Some(reason);
             }
-            Err(RobotError::Fault(_)) => {
+            Some(Err(RobotError::Fault(_))) => {
                 self.consecutive_vetoes = 0;
                 pending.failure = Some(FailureReason::RobotFault);
             }
