@@ -2,7 +2,7 @@
 
 use super::sim::nominal_point_sigma_mm;
 use super::uncertainty::{FixtureCovariance, fit_covariance, relative_covariance};
-use super::{CameraError, CameraFrame, Fixture, wrap_deg};
+use super::{CameraError, CameraFrame, Fixture, PointNoise, wrap_deg};
 use crate::config::cell::CellConfig;
 use crate::geometry::fit::{FitError, FrameFit, MAX_FIT_POINTS, fit_frame};
 use crate::geometry::pose::{is_finite, rotation_vector_deg};
@@ -23,9 +23,8 @@ pub struct StateEstimator {
     c2_f: Pose,
     /// Rejection threshold at the data sheet's noise, mm.
     reject_above_mm: f64,
-    /// The data sheet's per-axis point σ: `noise_base_mm + noise_per_m_mm × range (m)`.
-    noise_base_mm: f64,
-    noise_per_m_mm: f64,
+    /// The data sheet's point noise.
+    sheet: PointNoise,
 }
 
 /// One state estimate.
@@ -73,19 +72,13 @@ impl StateEstimator {
             c1_m: frames.m_c1.inverse(),
             c2_f: frames.f_c2.inverse(),
             reject_above_mm: (cell.camera.outlier_rejection_sigmas * sigma).max(MIN_REJECTION_MM),
-            noise_base_mm: cell.camera.noise_base_mm,
-            noise_per_m_mm: cell.camera.noise_per_m_mm,
+            sheet: PointNoise::of(&cell.camera),
         }
     }
 
     /// The residual above which a coded point is rejected at the data sheet's noise, mm.
     pub fn rejection_threshold_mm(&self) -> f64 {
         self.reject_above_mm
-    }
-
-    /// The data sheet's per-axis σ of a point at `position` in {W}, mm.
-    fn sheet_sigma_mm(&self, position: &Point3<f64>) -> f64 {
-        self.noise_base_mm + self.noise_per_m_mm * position.coords.norm() / 1000.0
     }
 
     /// Estimates the segment poses from one capture. `noise_scale` is how noisy the camera is
@@ -169,7 +162,7 @@ impl StateEstimator {
         let mut residual_squares = 0.0;
         for i in (0..usable).filter(|i| fit.inliers & (1u64 << i) != 0) {
             fitted[count] = fit.pose * model[i];
-            sigmas[count] = self.sheet_sigma_mm(&fitted[count]);
+            sigmas[count] = self.sheet.at_mm(&fitted[count]);
             residual_squares +=
                 (measured[i] - fitted[count]).norm_squared() / sigmas[count].powi(2);
             count += 1;

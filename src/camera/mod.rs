@@ -18,6 +18,34 @@ pub use sim::{SimCamera, nominal_point_sigma_mm};
 use crate::geometry::fit::FitError;
 use nalgebra::Point3;
 
+/// The camera's data-sheet noise: per-axis σ = `noise_base_mm` + `noise_per_m_mm` × the range
+/// from the camera in metres. The twin's camera draws its noise from it (times its noise
+/// scale); the estimator weighs the points and normalises their residuals by it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PointNoise {
+    base_mm: f64,
+    per_m_mm: f64,
+}
+
+impl PointNoise {
+    pub fn of(camera: &crate::config::cell::CameraConfig) -> Self {
+        PointNoise {
+            base_mm: camera.noise_base_mm,
+            per_m_mm: camera.noise_per_m_mm,
+        }
+    }
+
+    /// σ per axis (mm) of a point `range_m` metres from the camera.
+    pub fn at_range_mm(&self, range_m: f64) -> f64 {
+        self.base_mm + self.per_m_mm * range_m
+    }
+
+    /// σ per axis (mm) of a point at `position` in the camera frame {W}.
+    pub fn at_mm(&self, position: &Point3<f64>) -> f64 {
+        self.at_range_mm(position.coords.norm() / 1000.0)
+    }
+}
+
 /// The fixture a coded point sits on: {C1} on Segment I, {C2} on Segment II.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Fixture {

@@ -1,6 +1,6 @@
 //! The simulated binocular camera.
 
-use super::{CameraFrame, CodedPoint, Fixture};
+use super::{CameraFrame, CodedPoint, Fixture, PointNoise};
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Pose};
 use nalgebra::{Point3, Vector3};
@@ -22,8 +22,7 @@ pub struct SimCamera {
     /// {C2}'s coded points in {F} coordinates, mm.
     c2_in_f: Vec<Point3<f64>>,
     noise: bool,
-    noise_base_mm: f64,
-    noise_per_m_mm: f64,
+    sheet: PointNoise,
     noise_scale: f64,
     /// 0 when dropped points are switched off.
     dropout_probability: f64,
@@ -52,8 +51,7 @@ impl SimCamera {
                 .map(|p| frames.f_c2 * p)
                 .collect(),
             noise: switches.camera_noise,
-            noise_base_mm: camera.noise_base_mm,
-            noise_per_m_mm: camera.noise_per_m_mm,
+            sheet: PointNoise::of(camera),
             noise_scale,
             dropout_probability: if switches.dropped_points {
                 camera.dropout_probability
@@ -126,8 +124,7 @@ impl SimCamera {
     /// Per-axis noise σ (mm) of a point at `position` in {W}, `noise_scale` included, whether
     /// or not camera noise is switched on.
     pub fn sigma_at_mm(&self, position: &Point3<f64>) -> f64 {
-        let range_m = position.coords.norm() / 1000.0;
-        (self.noise_base_mm + self.noise_per_m_mm * range_m) * self.noise_scale
+        self.sheet.at_mm(position) * self.noise_scale
     }
 
     /// The expected per-axis σ (mm) of a coded point at the docked pose (mean over both
@@ -154,5 +151,5 @@ pub fn nominal_point_sigma_mm(cell: &CellConfig, frames: &CellFrames) -> f64 {
         (s + p.coords.norm() / 1000.0, n + 1)
     });
     let mean_range_m = if count > 0 { sum / count as f64 } else { 0.0 };
-    cell.camera.noise_base_mm + cell.camera.noise_per_m_mm * mean_range_m
+    PointNoise::of(&cell.camera).at_range_mm(mean_range_m)
 }
