@@ -364,72 +364,60 @@ mod tests {
 
     /// The bundled default's first-start activation must never retire a policy an operator
     /// activated while the default was being evaluated (it raced once on a slow CI machine).
-    #[test]
-    fn activating_only_when_none_is_active_leaves_an_operators_choice_alone() {
+    #[tokio::test]
+    async fn activating_only_when_none_is_active_leaves_an_operators_choice_alone() {
         let dir = tempfile::tempdir().unwrap();
-        tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .unwrap()
-            .block_on(async {
-                let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
-                let (bundled, chosen) = (store(&db, "bundled").await, store(&db, "chosen").await);
-                assert_eq!(activate(&db, chosen).await.unwrap(), None);
-                assert!(!activate_if_none_active(&db, bundled).await.unwrap());
-                assert_eq!(status(&db, chosen).await, "active");
-                assert_eq!(status(&db, bundled).await, "candidate");
+        let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
+        let (bundled, chosen) = (store(&db, "bundled").await, store(&db, "chosen").await);
+        assert_eq!(activate(&db, chosen).await.unwrap(), None);
+        assert!(!activate_if_none_active(&db, bundled).await.unwrap());
+        assert_eq!(status(&db, chosen).await, "active");
+        assert_eq!(status(&db, bundled).await, "candidate");
 
-                assert_eq!(activate(&db, bundled).await.unwrap(), Some(chosen));
-                assert_eq!(status(&db, chosen).await, "retired");
-                let fresh = store(&db, "fresh").await;
-                assert!(!activate_if_none_active(&db, fresh).await.unwrap());
+        assert_eq!(activate(&db, bundled).await.unwrap(), Some(chosen));
+        assert_eq!(status(&db, chosen).await, "retired");
+        let fresh = store(&db, "fresh").await;
+        assert!(!activate_if_none_active(&db, fresh).await.unwrap());
 
-                let empty = Db::open(&dir.path().join("empty.db")).await.unwrap();
-                let only = store(&empty, "only").await;
-                assert!(activate_if_none_active(&empty, only).await.unwrap());
-                assert_eq!(status(&empty, only).await, "active");
-            });
+        let empty = Db::open(&dir.path().join("empty.db")).await.unwrap();
+        let only = store(&empty, "only").await;
+        assert!(activate_if_none_active(&empty, only).await.unwrap());
+        assert_eq!(status(&empty, only).await, "active");
     }
 
     /// The activation gate reads only evaluations under the twin as the cell file says.
-    #[test]
-    fn the_gate_reads_no_evaluation_under_a_mismatch() {
+    #[tokio::test]
+    async fn the_gate_reads_no_evaluation_under_a_mismatch() {
         let dir = tempfile::tempdir().unwrap();
-        tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
+        let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
+        let id = store(&db, "policy").await;
+        let nominal = start_evaluation(&db, id, 10, 1, "cell", &Mismatch::NONE, "test")
+            .await
+            .unwrap();
+        assert_eq!(nominal.noise_scale, 1.0);
+        assert_eq!(nominal.fault, None);
+        finish_evaluation(&db, nominal.id, Ok((0.99, Some(40.0), json!({}))))
+            .await
+            .unwrap();
+        let faulty = Mismatch {
+            noise_scale: 2.0,
+            calibration_scale: 3.0,
+            fault: Some(crate::sim::Fault::FrozenCamera),
+        };
+        let mismatched = start_evaluation(&db, id, 10, 1, "cell", &faulty, "test")
+            .await
+            .unwrap();
+        finish_evaluation(&db, mismatched.id, Ok((0.5, None, json!({}))))
+            .await
+            .unwrap();
+        let latest = latest_evaluation(&db, id).await.unwrap().unwrap();
+        assert_eq!(latest.id, mismatched.id);
+        assert_eq!((latest.noise_scale, latest.calibration_scale), (2.0, 3.0));
+        assert_eq!(latest.fault.as_deref(), Some("frozen_camera"));
+        let gate = latest_evaluation_on(&db, id, "cell")
+            .await
             .unwrap()
-            .block_on(async {
-                let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
-                let id = store(&db, "policy").await;
-                let nominal = start_evaluation(&db, id, 10, 1, "cell", &Mismatch::NONE, "test")
-                    .await
-                    .unwrap();
-                assert_eq!(nominal.noise_scale, 1.0);
-                assert_eq!(nominal.fault, None);
-                finish_evaluation(&db, nominal.id, Ok((0.99, Some(40.0), json!({}))))
-                    .await
-                    .unwrap();
-                let faulty = Mismatch {
-                    noise_scale: 2.0,
-                    calibration_scale: 3.0,
-                    fault: Some(crate::sim::Fault::FrozenCamera),
-                };
-                let mismatched = start_evaluation(&db, id, 10, 1, "cell", &faulty, "test")
-                    .await
-                    .unwrap();
-                finish_evaluation(&db, mismatched.id, Ok((0.5, None, json!({}))))
-                    .await
-                    .unwrap();
-                let latest = latest_evaluation(&db, id).await.unwrap().unwrap();
-                assert_eq!(latest.id, mismatched.id);
-                assert_eq!((latest.noise_scale, latest.calibration_scale), (2.0, 3.0));
-                assert_eq!(latest.fault.as_deref(), Some("frozen_camera"));
-                let gate = latest_evaluation_on(&db, id, "cell")
-                    .await
-                    .unwrap()
-                    .unwrap();
-                assert_eq!(gate.id, nominal.id);
-            });
+            .unwrap();
+        assert_eq!(gate.id, nominal.id);
     }
 }
