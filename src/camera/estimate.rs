@@ -48,6 +48,8 @@ pub struct Measurement {
     pub residual_squares: f64,
     /// Degrees of freedom of those residuals (`3n − 6` per fixture).
     pub residual_dof: usize,
+    /// {C1}'s fit covariance at the data sheet's noise, about the centre of its points.
+    pub c1: FixtureCovariance,
     /// {C2}'s fit (on the static Segment II) with its covariance at the data sheet's noise,
     /// about the centre of its points: a pose that must not move.
     pub c2: FixtureCovariance,
@@ -112,6 +114,7 @@ impl StateEstimator {
             covariance,
             residual_squares: c1.residual_squares + c2.residual_squares,
             residual_dof: c1.residual_dof + c2.residual_dof,
+            c1: c1.covariance,
             c2: c2.covariance,
         })
     }
@@ -260,6 +263,10 @@ mod tests {
             covariance: Matrix6::identity(),
             residual_squares: 0.0,
             residual_dof: 24,
+            c1: FixtureCovariance {
+                covariance: Matrix6::identity(),
+                centre: Point3::origin(),
+            },
             c2: FixtureCovariance {
                 covariance: Matrix6::identity(),
                 centre: Point3::origin(),

@@ -16,6 +16,7 @@
 //! second frame that agrees with the held one is a confirmed jump: the estimate starts again
 //! from it and the caller is told ([`Fusion::Jumped`]), for the robot did not move that way.
 
+use super::uncertainty::segment_two_in_m;
 use crate::geometry::pose::Pose;
 use crate::geometry::{Belief, Move, PoseSd};
 use nalgebra::{Matrix2x3, Matrix6, SMatrix, SVector, UnitQuaternion, Vector3, Vector6};
@@ -26,17 +27,24 @@ use nalgebra::{Matrix2x3, Matrix6, SMatrix, SVector, UnitQuaternion, Vector3, Ve
 pub struct FusionTuning {
     /// Relative error of an executed move along the shaft's axis (σ per mm moved).
     pub move_error_per_mm: f64,
-    /// Position error of any executed move that no drift explains (σ per axis, mm): the legs'
-    /// resolution and random error.
-    pub move_error_floor_mm: f64,
+    /// Sideways error of an executed move that the learned drift does not explain (σ per mm
+    /// moved): the calibration error bends moves the same way only locally.
+    pub sideways_error_per_mm: f64,
+    /// σ per axis (mm) of where an executed move lands around its setpoint: the legs'
+    /// resolution and random error. A position-controlled robot lands every move at its
+    /// commanded leg lengths, so this error does not add up from move to move: it is part of
+    /// each frame's error and of the next move's, never of the filter's memory.
+    pub landing_error_mm: f64,
     /// Prior σ of the sideways drift per mm commanded.
     pub drift_prior_sd: f64,
-    /// Rotation error of an executed move: σ (rad) per rad turned, per mm moved (tilt about x
-    /// and y of {M}; twist about z), and per move.
+    /// Rotation error of an executed move: σ (rad) per rad turned and per mm moved (tilt about
+    /// x and y of {M}; twist about z).
     pub rotation_error_per_rad: f64,
     pub tilt_error_per_mm: f64,
     pub twist_error_per_mm: f64,
-    pub rotation_error_floor_rad: f64,
+    /// σ per axis (rad) of the rotation a move lands with around its setpoint; like
+    /// `landing_error_mm`, it does not add up.
+    pub landing_error_rad: f64,
     /// A frame whose innovation is beyond this many σ in any component is held back.
     pub gross_sigmas: f64,
 }
@@ -45,12 +53,13 @@ impl Default for FusionTuning {
     fn default() -> Self {
         FusionTuning {
             move_error_per_mm: 3e-3,
-            move_error_floor_mm: 5e-4,
+            sideways_error_per_mm: 1e-4,
+            landing_error_mm: 5e-4,
             drift_prior_sd: 0.002,
             rotation_error_per_rad: 5e-3,
             tilt_error_per_mm: 2e-6,
             twist_error_per_mm: 1e-5,
-            rotation_error_floor_rad: 5e-6,
+            landing_error_rad: 5e-6,
             gross_sigmas: 6.0,
         }
     }
@@ -68,8 +77,14 @@ pub struct StateFilter {
     /// The learned sideways drift: the extra move of {M} along x (first three) and y (last
     /// three) per mm commanded along x, y and z of {M}.
     drift: SVector<f64, 6>,
-    /// Joint covariance of the errors of the pose and of the drift.
+    /// Joint covariance of the errors of the pose and of the drift that Segment I's frames and
+    /// the robot's moves leave: the frames blended in are built on Segment II's estimate as it
+    /// stands, whose own error is kept apart (`segment_two`).
     covariance: Covariance,
+    /// Covariance of the error of Segment II's pose estimate, a small motion of {F} in its own
+    /// axes (`uncertainty::FixtureCovariance::in_frame`). Segment II does not move: the cell
+    /// averages its fixture over every frame of the episode, and no move adds to this error.
+    segment_two: Matrix6<f64>,
     /// The last frame that disagreed with the estimate, carried along by the moves since.
     held_back: Option<Pose>,
     /// The camera's point noise as a multiple of its data sheet, as ingestion last learned it.
@@ -120,6 +135,7 @@ impl StateFilter {
             m_f: None,
             drift: SVector::zeros(),
             covariance: Covariance::zeros(),
+            segment_two: Matrix6::zeros(),
             held_back: None,
             noise_scale: 1.0,
             innovation_trend: [0.0; 6],
@@ -137,6 +153,7 @@ impl StateFilter {
         self.sideways_nis = 1.0;
         self.drift = SVector::zeros();
         self.covariance = Covariance::zeros();
+        self.segment_two = Matrix6::zeros();
         let drift_variance = self.tuning.drift_prior_sd.powi(2);
         for i in 6..12 {
             self.covariance[(i, i)] = drift_variance;
@@ -162,12 +179,12 @@ impl StateFilter {
             f[(0, 6 + k)] = -c[k];
             f[(1, 9 + k)] = -c[k];
         }
-        let floor = t.move_error_floor_mm.powi(2);
         let turn = rotation_error_sd(&t, executed).map(|sd| sd * sd);
         let mut q = SVector::<f64, 12>::repeat(1e-12);
-        q[0] = floor;
-        q[1] = floor;
-        q[2] = (t.move_error_per_mm * c.norm()).powi(2) + floor;
+        let sideways = (t.sideways_error_per_mm * c.norm()).powi(2);
+        q[0] = sideways;
+        q[1] = sideways;
+        q[2] = (t.move_error_per_mm * c.norm()).powi(2);
         q.fixed_rows_mut::<3>(3).copy_from(&turn);
         self.covariance = f * self.covariance * f.transpose() + Covariance::from_diagonal(&q);
     }
@@ -176,6 +193,9 @@ impl StateFilter {
     /// `(δP mm, δO rad)` (the camera's noise already applied): blends it in, starts again from
     /// it, or holds it back (see the module's comment).
     pub fn update(&mut self, measured: &Pose, covariance: &Matrix6<f64>) -> Fusion {
+        // The frame sees the robot where this move landed it, around the setpoint the filter
+        // follows.
+        let covariance = &(covariance + self.landing());
         let Some(predicted) = self.m_f else {
             self.set_to(*measured, covariance);
             return Fusion::Reset;
@@ -254,6 +274,29 @@ impl StateFilter {
         Fusion::Blended
     }
 
+    /// Covariance of where the last move landed around its setpoint (`landing_error_mm`,
+    /// `landing_error_rad`).
+    fn landing(&self) -> Matrix6<f64> {
+        let (p, o) = (
+            self.tuning.landing_error_mm.powi(2),
+            self.tuning.landing_error_rad.powi(2),
+        );
+        Matrix6::from_diagonal(&Vector6::new(p, p, p, o, o, o))
+    }
+
+    /// Segment II's estimate has moved by `shift` (in {F}'s axes: new = old · shift) and its
+    /// error now has covariance `covariance` (ε in {F}'s axes, the camera's noise applied). What
+    /// the frames say of Segment I stays; {F} in {M} follows Segment II's estimate.
+    pub fn move_segment_two(&mut self, shift: &Pose, covariance: &Matrix6<f64>) {
+        if let Some(m_f) = self.m_f.as_mut() {
+            *m_f *= shift;
+        }
+        if let Some(held) = self.held_back.as_mut() {
+            *held *= shift;
+        }
+        self.segment_two = *covariance;
+    }
+
     /// Starts again from a measurement, keeping the learned drift.
     fn set_to(&mut self, measured: Pose, covariance: &Matrix6<f64>) {
         let drift = self.covariance.fixed_view::<6, 6>(6, 6).into_owned();
@@ -280,9 +323,15 @@ impl StateFilter {
         self.m_f.map(|m_f| FilterBelief { filter: self, m_f })
     }
 
-    /// Covariance of the estimate's errors, ordered `(δP mm, δO rad)` in {M}.
+    /// Covariance of the estimate's errors, ordered `(δP mm, δO rad)` in {M}: what Segment I's
+    /// frames and moves leave, and the error of Segment II's estimate (independent of it: the
+    /// two fixtures' points are).
     pub fn covariance(&self) -> Matrix6<f64> {
-        self.covariance.fixed_view::<6, 6>(0, 0).into_owned()
+        let segment_one = self.covariance.fixed_view::<6, 6>(0, 0) + self.landing();
+        match &self.m_f {
+            Some(m_f) => segment_one + segment_two_in_m(m_f, &self.segment_two),
+            None => segment_one,
+        }
     }
 
     /// The same once `step` is executed (the filter's prediction, leaving the filter as it is).
@@ -323,7 +372,8 @@ impl StateFilter {
 
     /// Variances of the estimate's errors, ordered `(δP mm², δO rad²)` per axis of {M}.
     pub fn variances(&self) -> [f64; 6] {
-        std::array::from_fn(|i| self.covariance[(i, i)])
+        let covariance = self.covariance();
+        std::array::from_fn(|i| covariance[(i, i)])
     }
 
     /// The normalised estimation error squared against the true {F} in {M}, per component
@@ -375,8 +425,7 @@ impl Belief for FilterBelief<'_> {
 
 /// σ (rad) of the rotation error an executed move adds about x, y and z of {M}.
 fn rotation_error_sd(t: &FusionTuning, step: &Move) -> Vector3<f64> {
-    let turned = t.rotation_error_per_rad * step.rotation_deg.norm().to_radians()
-        + t.rotation_error_floor_rad;
+    let turned = t.rotation_error_per_rad * step.rotation_deg.norm().to_radians();
     let moved = step.translation_mm.norm();
     let tilt = turned + t.tilt_error_per_mm * moved;
     Vector3::new(tilt, tilt, turned + t.twist_error_per_mm * moved)
@@ -416,7 +465,10 @@ mod tests {
             filter.update(&measured([1.0, 0.0, -10.0]), &r),
             Fusion::Reset
         );
-        assert!((filter.sd().lateral_mm - 0.03).abs() < 1e-12);
+        // The frame's σ, and where the robot landed twice: in the frame and now.
+        let landing = FusionTuning::default().landing_error_mm;
+        let first = (0.03f64.powi(2) + 2.0 * landing * landing).sqrt();
+        assert!((filter.sd().lateral_mm - first).abs() < 1e-12);
         // Move 1 mm in x: predicted P_x = 0; a measurement of 0.1 pulls the estimate part-way.
         filter.predict(&Move::translation(1.0, 0.0, 0.0));
         assert_eq!(
@@ -457,8 +509,11 @@ mod tests {
         }
         assert_eq!(disturbed.m_f(), clean.m_f());
         assert_eq!(disturbed.sd(), clean.sd());
-        // Twenty frames of σ 0.03 mm: σ 0.03/√20.
-        assert!((clean.lateral_sd_mm() - 0.03 / 20f64.sqrt()).abs() < 1e-6);
+        // Twenty frames of σ 0.03 mm (and the landing error in each): σ 0.03/√20, and the
+        // landing error once.
+        let landing = FusionTuning::default().landing_error_mm.powi(2);
+        let expected = ((0.03f64.powi(2) + landing) / 20.0 + landing).sqrt();
+        assert!((clean.lateral_sd_mm() - expected).abs() < 1e-9);
     }
 
     #[test]

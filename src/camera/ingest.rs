@@ -2,13 +2,13 @@
 //! sees, one [`Shot`] in and one [`Estimate`] out. The twin's environment calls it inline; the
 //! service runs it on a thread of its own (`cell::ingestion`).
 
-use super::uncertainty::NoiseScale;
+use super::uncertainty::{NoiseScale, relative_covariance_of};
 use super::{
     CameraError, CameraFrame, Fusion, FusionTuning, StateEstimator, StateFilter, state_vector,
 };
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
-use nalgebra::Point3;
+use nalgebra::Matrix6;
 
 /// What ingestion is given after each move: the capture and what the robot did before it.
 #[derive(Debug, Clone, Default)]
@@ -130,60 +130,69 @@ const STATIC_TREND_LIMIT: f64 = 3.0;
 /// A frame this many σ off in any component is gross.
 const STATIC_GROSS_SIGMAS: f64 = 6.0;
 
-/// Watches Segment II, which does not move: the frame of its fixture {C2} as the camera sees
-/// it must stay where the episode's earlier frames put it. A shift beyond the fits' noise is
-/// the camera (or the fixture) knocked out of calibration; the robot's moves cannot explain it.
+/// Segment II does not move, so the cell keeps one estimate of it for the whole episode: the
+/// mean of its fixture's frames ({F} in {W}), whose error shrinks with every frame and grows
+/// with none of the robot's moves. Each frame of Segment I is then compared with that mean
+/// instead of with its own noisy view of Segment II (docs/estimation.md).
+///
+/// It is also a watch: Segment II's frame as the camera sees it must stay where the episode's
+/// earlier frames put it. A shift beyond the fits' noise is the camera (or the fixture) knocked
+/// out of calibration; the robot's moves cannot explain it.
 #[derive(Debug, Clone, Default)]
-struct StaticWatch {
+struct StaticSegment {
+    /// The mean of the frames' {F} in {W}.
+    mean: Option<Pose>,
     frames: f64,
-    /// Running mean of {C2}'s origin in {W} (mm) and its orientation.
-    centre_mm: nalgebra::Vector3<f64>,
-    rotation: Option<nalgebra::UnitQuaternion<f64>>,
+    /// Sum of the frames' covariances at the data sheet's noise, as motions of {F} in its own
+    /// axes (`FixtureCovariance::in_frame`): the mean's is this over frames².
+    covariance_sum: Matrix6<f64>,
     /// Exponentially weighted mean of each component's normalised difference from the mean.
     trend: [f64; 6],
     /// The last frame was gross.
     gross: bool,
 }
 
-impl StaticWatch {
-    /// Takes in {C2}'s fit (its pose in {W}, its centre and covariance at the data sheet's
-    /// noise) and the camera's variance factor; true when {C2} has shifted.
-    fn shifted(
-        &mut self,
-        fit: &Pose,
-        c2: &super::uncertainty::FixtureCovariance,
-        variance_factor: f64,
-    ) -> bool {
-        // The fixture frame's origin: a fixed point of Segment II whichever points were seen
-        // (the centre of the points seen moves when one is dropped).
-        let origin = fit.translation.vector;
-        let covariance = c2.about(&Point3::from(origin));
-        let Some(mean_rotation) = self.rotation else {
-            self.frames = 1.0;
-            self.centre_mm = origin;
-            self.rotation = Some(fit.rotation);
-            return false;
+/// What [`StaticSegment::take`] made of a frame of Segment II.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum StaticFrame {
+    /// Averaged in: the mean moved by this (in {F}'s axes).
+    Taken { shift: Pose },
+    /// Left out: one gross frame (an outlier the fit let through).
+    Gross,
+    /// Segment II has moved in the camera's view: the camera was knocked.
+    Shifted,
+}
+
+impl StaticSegment {
+    /// Takes in one frame of Segment II's {F} in {W}, with its covariance at the data sheet's
+    /// noise in {F}'s axes and the camera's variance factor.
+    fn take(&mut self, w_f: &Pose, covariance: &Matrix6<f64>, variance_factor: f64) -> StaticFrame {
+        let Some(mean) = self.mean else {
+            return self.start_from(w_f, covariance);
         };
-        let dt = origin - self.centre_mm;
-        let dr = (fit.rotation * mean_rotation.inverse()).scaled_axis();
+        let to_frame = mean.inverse() * *w_f;
+        let dt = to_frame.translation.vector;
+        let dr = to_frame.rotation.scaled_axis();
         let difference = [dt.x, dt.y, dt.z, dr.x, dr.y, dr.z];
         // The mean's own error adds 1/n of a frame's variance.
         let inflate = variance_factor * (1.0 + 1.0 / self.frames);
         let z: [f64; 6] =
             std::array::from_fn(|i| difference[i] / (covariance[(i, i)] * inflate).sqrt());
-        // One gross frame (an outlier the fit let through) is left out; two in a row are a shift,
-        // unless the mean rests on one frame: then that frame was the odd one, and the mean
-        // starts again.
+        // One gross frame is left out; two in a row are a shift, unless the mean rests on one
+        // frame: then that frame was the odd one, and the mean starts again from this one.
         if z.iter()
             .any(|v| v.is_nan() || v.abs() > STATIC_GROSS_SIGMAS)
         {
             let confirmed = self.gross;
             self.gross = true;
             if confirmed && self.frames < 2.0 {
-                *self = StaticWatch::default();
-                return false;
+                return self.start_from(w_f, covariance);
             }
-            return confirmed;
+            return if confirmed {
+                StaticFrame::Shifted
+            } else {
+                StaticFrame::Gross
+            };
         }
         self.gross = false;
         let mut worst = 0.0f64;
@@ -192,13 +201,36 @@ impl StaticWatch {
             worst = worst.max(mean.abs());
         }
         if worst > STATIC_TREND_LIMIT {
-            return true;
+            return StaticFrame::Shifted;
         }
         self.frames += 1.0;
+        self.covariance_sum += covariance;
         let w = 1.0 / self.frames;
-        self.centre_mm += dt * w;
-        self.rotation = Some(nalgebra::UnitQuaternion::from_scaled_axis(dr * w) * mean_rotation);
-        false
+        let shift = Pose::from_parts(
+            (dt * w).into(),
+            nalgebra::UnitQuaternion::from_scaled_axis(dr * w),
+        );
+        self.mean = Some(mean * shift);
+        StaticFrame::Taken { shift }
+    }
+
+    /// The mean starts from this frame (the first, or after an odd first one).
+    fn start_from(&mut self, w_f: &Pose, covariance: &Matrix6<f64>) -> StaticFrame {
+        let shift = self
+            .mean
+            .map_or(Pose::identity(), |mean| mean.inverse() * *w_f);
+        *self = StaticSegment {
+            mean: Some(*w_f),
+            frames: 1.0,
+            covariance_sum: *covariance,
+            ..StaticSegment::default()
+        };
+        StaticFrame::Taken { shift }
+    }
+
+    /// Covariance of the mean's error at the data sheet's noise, in {F}'s axes.
+    fn mean_covariance(&self) -> Matrix6<f64> {
+        self.covariance_sum / (self.frames * self.frames).max(1.0)
     }
 }
 
@@ -218,7 +250,7 @@ pub struct Ingest {
     /// How noisy the camera really is, learned from each frame's fit residuals.
     noise: NoiseScale,
     watch: FrameWatch,
-    still: StaticWatch,
+    segment_two: StaticSegment,
     hole_pitch_deg: f64,
     state: [f64; 12],
     raw_state: [f64; 12],
@@ -232,7 +264,7 @@ impl Ingest {
             filter: StateFilter::new(FusionTuning::default()),
             noise: NoiseScale::default(),
             watch: FrameWatch::default(),
-            still: StaticWatch::default(),
+            segment_two: StaticSegment::default(),
             hole_pitch_deg: cell.hole_pitch_deg(),
             state: [0.0; 12],
             raw_state: [0.0; 12],
@@ -276,7 +308,7 @@ impl Ingest {
         self.noise = NoiseScale::default();
         self.filter.set_noise_scale(self.noise.scale());
         self.watch = FrameWatch::default();
-        self.still = StaticWatch::default();
+        self.segment_two = StaticSegment::default();
         self.state = [0.0; 12];
         self.raw_state = [0.0; 12];
         self.estimated_m_f = None;
@@ -312,15 +344,28 @@ impl Ingest {
             .add(measurement.residual_squares, measurement.residual_dof);
         self.filter.set_noise_scale(self.noise.scale());
         let variance_factor = self.noise.cautious_variance_factor();
-        if self
-            .still
-            .shifted(&measurement.fit_c2.pose, &measurement.c2, variance_factor)
+        // Segment II from the episode's mean, not from this frame alone; this frame's view of
+        // it goes into the mean unless it is gross.
+        let c2 = measurement.c2.in_frame(&measurement.w_f);
+        match self
+            .segment_two
+            .take(&measurement.w_f, &c2, variance_factor)
         {
-            self.estimated_m_f = None;
-            return Err(CameraError::Shifted);
+            StaticFrame::Shifted => {
+                self.estimated_m_f = None;
+                return Err(CameraError::Shifted);
+            }
+            StaticFrame::Taken { shift } => self.filter.move_segment_two(
+                &shift,
+                &(self.segment_two.mean_covariance() * variance_factor),
+            ),
+            StaticFrame::Gross => {}
         }
-        let covariance = measurement.covariance * variance_factor;
-        let shifted = match self.filter.update(&measurement.m_f, &covariance) {
+        let w_f = self.segment_two.mean.unwrap_or(measurement.w_f);
+        let m_f = measurement.w_m.inverse() * w_f;
+        let covariance =
+            relative_covariance_of(&measurement.w_m, &m_f, &measurement.c1) * variance_factor;
+        let shifted = match self.filter.update(&m_f, &covariance) {
             Fusion::HeldBack { sigmas } => {
                 self.estimated_m_f = None;
                 return Err(CameraError::HeldBack { sigmas });
@@ -329,7 +374,7 @@ impl Ingest {
             Fusion::Blended | Fusion::Reset => None,
         };
         self.raw_state = measurement.state(self.hole_pitch_deg);
-        let fused = self.filter.m_f().unwrap_or(measurement.m_f);
+        let fused = self.filter.m_f().unwrap_or(m_f);
         self.state = state_vector(&measurement.w_m, &fused, self.hole_pitch_deg);
         self.estimated_m_f = Some(fused);
         Ok(shifted)
@@ -339,9 +384,8 @@ impl Ingest {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::uncertainty::FixtureCovariance;
     use crate::geometry::pose::pose_from_mm_deg;
-    use nalgebra::{Matrix6, Point3, Vector3, Vector6};
+    use nalgebra::{Vector3, Vector6};
     use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
 
@@ -351,7 +395,7 @@ mod tests {
         let truth = pose_from_mm_deg(Vector3::new(0.0, -2000.0, 100.0), Vector3::zeros());
         let covariance = Matrix6::from_diagonal(&Vector6::new(1e-4, 1e-4, 1e-4, 1e-8, 1e-8, 1e-8));
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
-        let mut still = StaticWatch::default();
+        let mut still = StaticSegment::default();
         for k in 0..frames {
             let n: [f64; 6] = std::array::from_fn(|_| StandardNormal.sample(&mut rng));
             // Errors about the fixture's own origin, as the covariance says.
@@ -366,11 +410,7 @@ mod tests {
             if gross.contains(&k) {
                 seen.translation.vector.x += 0.5;
             }
-            let c2 = FixtureCovariance {
-                covariance,
-                centre: Point3::from(seen.translation.vector),
-            };
-            if still.shifted(&seen, &c2, 1.0) {
+            if still.take(&seen, &covariance, 1.0) == StaticFrame::Shifted {
                 return Some(k);
             }
         }
@@ -392,5 +432,50 @@ mod tests {
         let nudged = pose_from_mm_deg(Vector3::new(0.0, 0.05, 0.0), Vector3::zeros());
         let seen = watch(&nudged, 50, &[], 100).expect("a 5 σ shift is noticed");
         assert!((50..56).contains(&seen), "{seen}");
+    }
+
+    #[test]
+    fn segment_twos_mean_has_the_error_its_covariance_claims() {
+        // Frames of a still Segment II with errors of a known covariance in {F}'s axes: over
+        // many runs the mean's error after n frames has the variance `mean_covariance` claims
+        // (a frame's over n), per component.
+        let truth = pose_from_mm_deg(
+            Vector3::new(30.0, -2000.0, 100.0),
+            Vector3::new(2.0, -1.0, 60.0),
+        );
+        let sd = [0.02, 0.01, 0.03, 2e-4, 1e-4, 3e-4];
+        let covariance = Matrix6::from_diagonal(&Vector6::from_fn(|i, _| sd[i] * sd[i]));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let (runs, frames) = (2000, 25);
+        let mut squares = [0.0; 6];
+        let mut claimed = [0.0; 6];
+        for _ in 0..runs {
+            let mut still = StaticSegment::default();
+            for _ in 0..frames {
+                let n: [f64; 6] = std::array::from_fn(|i| {
+                    let z: f64 = StandardNormal.sample(&mut rng);
+                    z * sd[i]
+                });
+                let error = Pose::from_parts(
+                    Vector3::new(n[0], n[1], n[2]).into(),
+                    nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(n[3], n[4], n[5])),
+                );
+                let verdict = still.take(&(truth * error), &covariance, 1.0);
+                assert!(matches!(verdict, StaticFrame::Taken { .. }), "{verdict:?}");
+            }
+            let off = truth.inverse() * still.mean.unwrap();
+            let (dt, dr) = (off.translation.vector, off.rotation.scaled_axis());
+            let error = [dt.x, dt.y, dt.z, dr.x, dr.y, dr.z];
+            let mean_covariance = still.mean_covariance();
+            for i in 0..6 {
+                squares[i] += error[i] * error[i];
+                claimed[i] += mean_covariance[(i, i)];
+            }
+        }
+        for i in 0..6 {
+            let ratio = squares[i] / claimed[i];
+            // 2000 runs resolve the ratio to about ±6 % (two standard errors).
+            assert!((0.9..1.1).contains(&ratio), "component {i}: {ratio:.3}");
+        }
     }
 }

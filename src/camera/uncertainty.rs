@@ -3,7 +3,9 @@
 //! - [`fit_covariance`]: the covariance of a least-squares rigid fit of a fixture's frame to its
 //!   coded points, from each point's noise σ (first order: the fit is linear in small errors).
 //! - [`relative_covariance`]: carries the two fixtures' fit covariances through Eq. 1 to the
-//!   errors of {F} in {M} (position mm, rotation rad).
+//!   errors of {F} in {M} (position mm, rotation rad); [`relative_covariance_of`] one fixture's
+//!   part, and [`segment_two_in_m`] the part of Segment II's pose estimate, whose fixture does
+//!   not move.
 //! - [`NoiseScale`]: how noisy the camera really is, as a multiple of its data sheet, learned
 //!   from the fit residuals (six points per fixture over-determine each frame).
 
@@ -73,6 +75,30 @@ impl FixtureCovariance {
         );
         moved * self.covariance * moved.transpose()
     }
+
+    /// The covariance of the same errors as a small motion ε of `frame` (a pose in {W} rigidly
+    /// attached to the fixture) written in that frame's own axes, on the right:
+    /// `frame_true ≈ frame · exp(ε)`, ordered `(ε_t mm, ε_θ rad)`. A motion (δt at the frame's
+    /// origin, δθ) in {W} is `ε = (Rᵀ δt, Rᵀ δθ)`. In these axes Segment II's error does not
+    /// depend on where Segment I is: it moves {F} in {M} by `(R_mf ε_t, R_mf ε_θ)`.
+    pub fn in_frame(&self, frame: &Pose) -> Matrix6<f64> {
+        let rt = frame.rotation.to_rotation_matrix().matrix().transpose();
+        let to_frame = blocks(rt, Matrix3::zeros(), Matrix3::zeros(), rt);
+        let covariance =
+            to_frame * self.about(&Point3::from(frame.translation.vector)) * to_frame.transpose();
+        (covariance + covariance.transpose()) * 0.5
+    }
+}
+
+/// How an error ε of Segment II's {F}, written in {F}'s axes (see
+/// [`FixtureCovariance::in_frame`]), moves {F} in {M}: `(δP, δO) = (R ε_t, R ε_θ)` with R the
+/// rotation of `m_f`. Returns the covariance of `(δP mm, δO rad)` for ε of covariance
+/// `in_f`.
+pub fn segment_two_in_m(m_f: &Pose, in_f: &Matrix6<f64>) -> Matrix6<f64> {
+    let r = *m_f.rotation.to_rotation_matrix().matrix();
+    let rotate = blocks(r, Matrix3::zeros(), Matrix3::zeros(), r);
+    let covariance = rotate * in_f * rotate.transpose();
+    (covariance + covariance.transpose()) * 0.5
 }
 
 /// Covariance of the errors of {F} in {M}, ordered `(δP mm, δO rad)` in {M}, with the rotation
@@ -90,6 +116,11 @@ pub fn relative_covariance(
     c1: &FixtureCovariance,
     c2: &FixtureCovariance,
 ) -> Matrix6<f64> {
+    relative_covariance_of(w_m, m_f, c1) + relative_covariance_of(w_m, m_f, c2)
+}
+
+/// The part of [`relative_covariance`] that one fixture's fit contributes.
+pub fn relative_covariance_of(w_m: &Pose, m_f: &Pose, fixture: &FixtureCovariance) -> Matrix6<f64> {
     let rt = w_m.rotation.to_rotation_matrix().matrix().transpose();
     let in_m = blocks(
         rt,
@@ -104,8 +135,7 @@ pub fn relative_covariance(
         Matrix3::identity(),
     );
     let to_relative = on_p * in_m;
-    let origin = Point3::origin();
-    let world = c1.about(&origin) + c2.about(&origin);
+    let world = fixture.about(&Point3::origin());
     let covariance = to_relative * world * to_relative.transpose();
     (covariance + covariance.transpose()) * 0.5
 }
@@ -285,6 +315,41 @@ mod tests {
             })
             .collect();
         assert_variances_match(&predicted, &sample_covariance(&samples), 0.05);
+    }
+
+    #[test]
+    fn segment_twos_part_written_in_f_is_the_same_as_through_eq_1() {
+        // Two derivations of how {C2}'s fit error moves {F} in {M}: about the origin of {W}
+        // through Eq. 1, and as a motion of {F} in its own axes. They must agree entry by entry,
+        // wherever Segment I is.
+        let model = fixture(Vector3::zeros());
+        let w_f = pose_from_mm_deg(
+            Vector3::new(40.0, -2050.0, 90.0),
+            Vector3::new(-2.0, 1.0, 75.0),
+        );
+        let f_c2 = pose_from_mm_deg(Vector3::new(0.0, 0.0, -90.0), Vector3::new(0.0, 0.0, 10.0));
+        let points: Vec<Point3<f64>> = model.iter().map(|p| w_f * f_c2 * p).collect();
+        let centre = Point3::from(points.iter().map(|p| p.coords).sum::<Vector3<f64>>() / 6.0);
+        let sigmas = [0.03, 0.04, 0.05, 0.03, 0.04, 0.05];
+        let c2 = FixtureCovariance {
+            covariance: fit_covariance(&points, &sigmas, &centre).unwrap(),
+            centre,
+        };
+        let in_f = c2.in_frame(&w_f);
+        for (p, o) in [
+            ([0.0, 0.0, -30.0], [0.1, -0.2, 3.0]),
+            ([25.0, -40.0, -80.0], [1.0, 0.5, -20.0]),
+        ] {
+            let m_f = pose_from_mm_deg(Vector3::from(p), Vector3::from(o));
+            let w_m = w_f * m_f.inverse();
+            let through_eq_1 = relative_covariance_of(&w_m, &m_f, &c2);
+            let in_m = segment_two_in_m(&m_f, &in_f);
+            let scale = through_eq_1.amax();
+            assert!(
+                (through_eq_1 - in_m).amax() < 1e-9 * scale,
+                "{through_eq_1} against {in_m}"
+            );
+        }
     }
 
     #[test]

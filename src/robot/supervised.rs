@@ -35,12 +35,24 @@ impl<'s, R: Robot> Supervised<'s, R> {
 
     /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
     /// of its half and quarter that it is sure of instead: the cell slows down rather than
-    /// holds. Answers the move executed; the first refusal when none is allowed.
+    /// holds. If none is, and the move goes deeper along the shaft's axis, its sideways and
+    /// turning part alone: the cell centres the shaft before it goes on, rather than holding
+    /// off-centre while the controller keeps asking to go in. Answers the move executed; the
+    /// first refusal when none is allowed.
     pub fn execute_cautiously(&mut self, step: &Move) -> Result<Move, RobotError> {
         let setpoint = self.inner.setpoint();
         let mut refusal = None;
-        for factor in CAUTIOUS_FACTORS {
-            let candidate = step.scaled(factor);
+        let shortened = CAUTIOUS_FACTORS.map(|factor| step.scaled(factor));
+        // Deeper is −z of {M}: Segment I's tip leads along −z.
+        let sideways = (step.translation_mm.z < 0.0).then(|| Move {
+            translation_mm: nalgebra::Vector3::new(
+                step.translation_mm.x,
+                step.translation_mm.y,
+                0.0,
+            ),
+            rotation_deg: step.rotation_deg,
+        });
+        for candidate in shortened.into_iter().chain(sideways) {
             match self.supervisor.check(&setpoint, self.belief, &candidate) {
                 Ok(_) => {
                     self.inner.execute(&candidate)?;
@@ -148,5 +160,46 @@ mod tests {
         robot.hold();
         assert_eq!(recorder.executed, vec![towards_axis]);
         assert_eq!(recorder.holds, 1, "hold goes straight through");
+    }
+
+    /// A belief with σ `sd_mm` sideways (x and y of {M}) and a well-known rest.
+    struct Unsure(Pose, f64);
+
+    impl Belief for Unsure {
+        fn m_f(&self) -> Pose {
+            self.0
+        }
+        fn covariance(&self) -> nalgebra::Matrix6<f64> {
+            let v = self.1 * self.1;
+            nalgebra::Matrix6::from_diagonal(&nalgebra::Vector6::new(
+                v, v, 1e-8, 1e-12, 1e-12, 1e-12,
+            ))
+        }
+        fn covariance_after(&self, _step: &Move) -> nalgebra::Matrix6<f64> {
+            self.covariance()
+        }
+    }
+
+    #[test]
+    fn an_uncertain_move_deeper_is_shortened_or_else_only_centres() {
+        let supervisor = Supervisor::new(&CellConfig::reference());
+        let mut recorder = Recorder::default();
+        let mut robot = Supervised::new(&supervisor, &mut recorder);
+        // 0.04 mm off the axis with σ 0.004 mm sideways: 0.01 mm from the wall is 2.5 σ, too
+        // little for 1e-4. Going deeper, even by a quarter, keeps the shaft that near the wall;
+        // centring takes it away.
+        let belief = Unsure(inserted_off_axis(), 0.004);
+        robot.observe(Some(&belief));
+        let centre_and_go_in = Move::translation(-0.04, 0.0, -4.0);
+        let executed = robot.execute_cautiously(&centre_and_go_in);
+        assert_eq!(executed, Ok(Move::translation(-0.04, 0.0, 0.0)));
+        // Coming back out towards the wall is never cut down to its sideways part: it is
+        // judged as it is, and refused.
+        let out_towards_wall = Move::translation(0.005, 0.0, 1.0);
+        assert!(matches!(
+            robot.execute_cautiously(&out_towards_wall),
+            Err(RobotError::Vetoed(_))
+        ));
+        assert_eq!(recorder.executed, vec![Move::translation(-0.04, 0.0, 0.0)]);
     }
 }
