@@ -57,7 +57,7 @@ impl Default for FusionTuning {
             landing_error_mm: 5e-4,
             drift_prior_sd: 0.002,
             rotation_error_per_rad: 5e-3,
-            tilt_error_per_mm: 2e-6,
+            tilt_error_per_mm: 4e-6,
             twist_error_per_mm: 1e-5,
             landing_error_rad: 5e-6,
             gross_sigmas: 6.0,
@@ -420,6 +420,12 @@ impl Belief for FilterBelief<'_> {
 
     fn covariance_after(&self, step: &Move) -> Matrix6<f64> {
         self.filter.covariance_after(step)
+    }
+
+    fn m_f_after(&self, step: &Move) -> Pose {
+        let mut after = *self.filter;
+        after.predict(step);
+        after.m_f().unwrap_or(self.m_f)
     }
 }
 

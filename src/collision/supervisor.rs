@@ -191,7 +191,10 @@ impl Supervisor {
             .inverse_checked(&target_platform)
             .map_err(VetoReason::Kinematics)?;
         let from = m_f.inverse();
-        let to = from * step_pose;
+        // Where the move really takes Segment I by the estimate: the command bent by the drift
+        // the cell has learned (a controller that does not steer against it is judged on where
+        // it will really go).
+        let to = belief.m_f_after(step).inverse();
         let along = self.predicted_clearance(&from, &to)?;
         let contact_risk = self.judge_risk(&m_f, &to, &along, &covariances)?;
         Ok(Allowed {
@@ -384,6 +387,58 @@ mod tests {
         assert!(
             matches!(veto, VetoReason::Collision { kind: ContactKind::Wall, clearance_mm } if clearance_mm < 0.0)
         );
+    }
+
+    /// A pose known exactly, on a robot that drifts `drift` mm along x of {M} per mm moved
+    /// along its z: a calibration error the estimate has learned.
+    struct Drifting {
+        m_f: Pose,
+        drift: f64,
+    }
+
+    impl Belief for Drifting {
+        fn m_f(&self) -> Pose {
+            self.m_f
+        }
+        fn covariance(&self) -> Matrix6<f64> {
+            Matrix6::zeros()
+        }
+        fn covariance_after(&self, _step: &Move) -> Matrix6<f64> {
+            Matrix6::zeros()
+        }
+        fn m_f_after(&self, step: &Move) -> Pose {
+            let sideways = self.drift * step.translation_mm.z;
+            let bent = Move::translation(
+                step.translation_mm.x + sideways,
+                step.translation_mm.y,
+                step.translation_mm.z,
+            );
+            bent.as_pose().inverse() * self.m_f
+        }
+    }
+
+    #[test]
+    fn a_move_is_judged_where_the_learned_drift_takes_it() {
+        let (supervisor, home) = setup();
+        // Centred 10 mm in. 5 mm deeper on a robot that drifts 0.012 mm per mm moves the shaft
+        // 0.06 mm sideways, beyond the 0.05 mm radial clearance: the command alone would be
+        // clear, where the robot really goes is not. Steering against the drift is allowed.
+        let drifting = Drifting {
+            m_f: inserted(10.0, 0.0),
+            drift: 0.012,
+        };
+        let deeper = Move::translation(0.0, 0.0, -5.0);
+        assert!(
+            supervisor
+                .check(&home, Some(&Exact(drifting.m_f)), &deeper)
+                .is_ok()
+        );
+        let veto = supervisor
+            .check(&home, Some(&drifting), &deeper)
+            .unwrap_err();
+        assert_eq!(veto.code(), "collision");
+        let steered = Move::translation(0.06, 0.0, -5.0);
+        assert!(supervisor.check(&home, Some(&drifting), &steered).is_ok());
     }
 
     #[test]

@@ -50,6 +50,11 @@ pub trait Belief {
     /// error now plus a growing share of the move's; its variance in any direction is convex in
     /// that share, so it is never above the larger of the two.
     fn covariance_after(&self, step: &Move) -> Matrix6<f64>;
+    /// The mean estimate of {F} in {M} once `step` is executed: the command, and whatever the
+    /// estimate knows of how the robot really moves (a learned calibration drift).
+    fn m_f_after(&self, step: &Move) -> Pose {
+        step.as_pose().inverse() * self.m_f()
+    }
 }
 
 /// A pose known exactly (no uncertainty): for tests, and for a supervisor judging geometry alone.

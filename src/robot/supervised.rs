@@ -36,28 +36,30 @@ impl<'s, R: Robot> Supervised<'s, R> {
     /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
     /// of its half and quarter that it is sure of instead: the cell slows down rather than
     /// holds. If none is, and the move goes deeper along the shaft's axis, its sideways and
-    /// turning part alone: the cell centres the shaft before it goes on, rather than holding
-    /// off-centre while the controller keeps asking to go in. Answers the move executed; the
-    /// first refusal when none is allowed.
+    /// turning part alone, provided its probability of contact is within the bound: the cell
+    /// centres the shaft before it goes on, rather than holding off-centre while the
+    /// controller keeps asking to go in. (A move the supervisor allows only because it leaves
+    /// the cell no nearer the wall is not good enough here: the controller did not ask for it.)
+    /// Answers the move executed; the first refusal when none is allowed.
     pub fn execute_cautiously(&mut self, step: &Move) -> Result<Move, RobotError> {
         let setpoint = self.inner.setpoint();
         let mut refusal = None;
-        let shortened = CAUTIOUS_FACTORS.map(|factor| step.scaled(factor));
+        let shortened = CAUTIOUS_FACTORS.map(|factor| (step.scaled(factor), false));
         // Deeper is −z of {M}: Segment I's tip leads along −z.
-        let sideways = (step.translation_mm.z < 0.0).then(|| Move {
-            translation_mm: nalgebra::Vector3::new(
-                step.translation_mm.x,
-                step.translation_mm.y,
-                0.0,
-            ),
-            rotation_deg: step.rotation_deg,
+        let sideways = (step.translation_mm.z < 0.0).then(|| {
+            let mut centring = *step;
+            centring.translation_mm.z = 0.0;
+            (centring, true)
         });
-        for candidate in shortened.into_iter().chain(sideways) {
+        for (candidate, must_be_sure) in shortened.into_iter().chain(sideways) {
             match self.supervisor.check(&setpoint, self.belief, &candidate) {
-                Ok(_) => {
+                Ok(allowed)
+                    if !must_be_sure || allowed.contact_risk <= self.supervisor.risk_bound() =>
+                {
                     self.inner.execute(&candidate)?;
                     return Ok(candidate);
                 }
+                Ok(_) => {}
                 Err(reason @ VetoReason::Uncertain { .. }) => {
                     refusal.get_or_insert(reason);
                 }
