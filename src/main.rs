@@ -43,6 +43,8 @@ enum Command {
     Report(cli::report::ReportArgs),
     /// Run the cell service: dashboard, jobs, telemetry and history over HTTP (the default).
     Serve(cli::serve::ServeArgs),
+    /// Serve the digital twin as a GCS hexapod controller and an OpenIGTLink camera.
+    TwinServer(cli::twin_server::TwinServerArgs),
     /// Manage API tokens.
     #[command(subcommand)]
     Token(cli::serve::TokenCommand),
@@ -139,7 +141,7 @@ fn main() -> ExitCode {
     let command = Cli::parse()
         .command
         .unwrap_or_else(|| Command::Serve(Default::default()));
-    if !matches!(command, Command::Serve(_)) {
+    if !matches!(command, Command::Serve(_) | Command::TwinServer(_)) {
         stop_quietly_when_stdout_closes();
     }
     let result = match command {
@@ -149,6 +151,7 @@ fn main() -> ExitCode {
         Command::Report(args) => cli::report::run(args),
         Command::Serve(args) => cli::serve::serve(args),
         Command::Token(command) => cli::serve::token(command),
+        Command::TwinServer(args) => cli::twin_server::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

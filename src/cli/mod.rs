@@ -4,3 +4,4 @@ pub mod report;
 pub mod serve;
 pub mod svg;
 pub mod train;
+pub mod twin_server;

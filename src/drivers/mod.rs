@@ -1,6 +1,8 @@
-//! Drivers for a real cell: the hexapod controller over PI's GCS 2.0 protocol ([`gcs`]) and the
-//! protocol modules are pure (text in, typed values out); the clients use std TCP and threads,
-//! since the control loop is a plain thread.
+//! Drivers for a real cell: the hexapod controller over PI's GCS 2.0 protocol ([`gcs`]) and
+//! the measuring camera over OpenIGTLink ([`igtl`]). The protocol modules are pure (bytes and
+//! text in, typed values out); the clients use std TCP and threads, since the control loop
+//! is a plain thread. docs/integration.md describes the wiring.
 
 pub mod gcs;
 pub mod igtl;
+pub mod twin_server;
