@@ -19,6 +19,12 @@ pub enum BackendError {
     Twin(#[from] EnvError),
     #[error(transparent)]
     Ingestion(#[from] IngestionStopped),
+    /// The hexapod controller's driver.
+    #[error("robot: {0}")]
+    Drive(#[from] crate::drivers::gcs::GcsError),
+    /// The camera's driver.
+    #[error(transparent)]
+    Camera(#[from] crate::drivers::igtl::camera::FrameError),
 }
 
 /// A cell the control loop can drive: start an episode, execute supervised moves, hold.
@@ -40,6 +46,11 @@ pub trait CellBackend: Send {
     fn settle(&mut self) -> Result<StepResult, BackendError>;
     /// Stops motion at once and keeps the robot where it is (protective stop).
     fn hold(&mut self);
+    /// The operator's reset (after an e-stop): a driver that lost its hardware reconnects
+    /// and checks it here, and moves nothing until it has. The twin has nothing to reset.
+    fn reset(&mut self) -> Result<(), BackendError> {
+        Ok(())
+    }
 }
 
 /// The digital twin as a cell backend, its camera's shots ingested on their own thread.

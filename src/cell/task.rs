@@ -264,6 +264,9 @@ impl ControlLoop {
                 let _ = reply.send(());
             }
             CellCommand::Reset { reply } => {
+                if let Err(error) = self.backend.reset() {
+                    tracing::warn!(%error, "reset: the backend is not ready; jobs fail until it is");
+                }
                 self.status.send_modify(|s| s.estop_latched = false);
                 (self.sink)(CellEvent::EStop { latched: false });
                 let _ = reply.send(());

@@ -4,6 +4,7 @@
 //! Layers, later wins: built-in defaults, a TOML file (`--config`), `CELLD_*` environment
 //! variables, command-line flags. Every key is documented in `deploy/celld.example.toml`.
 
+use super::drivers::{CameraDriver, CameraDriverConfig, RobotDriver, RobotDriverConfig};
 use serde::Deserialize;
 use std::fmt;
 use std::net::SocketAddr;
@@ -42,6 +43,10 @@ pub struct ServiceConfig {
     pub control: ControlConfig,
     pub http: HttpConfig,
     pub policies: PolicyConfig,
+    /// The hexapod controller's driver (`twin` or `gcs`).
+    pub robot: RobotDriverConfig,
+    /// The camera's driver (`twin` or `igtl`).
+    pub camera: CameraDriverConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -160,6 +165,8 @@ impl Default for ServiceConfig {
             control: ControlConfig::default(),
             http: HttpConfig::default(),
             policies: PolicyConfig::default(),
+            robot: RobotDriverConfig::default(),
+            camera: CameraDriverConfig::default(),
         }
     }
 }
@@ -267,6 +274,36 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|_| invalid("CELLD_EVALUATION_EPISODES", "not a whole number"))?
                 }
+                "ROBOT_DRIVER" => {
+                    self.robot.driver = match value.as_str() {
+                        "twin" => RobotDriver::Twin,
+                        "gcs" => RobotDriver::Gcs,
+                        _ => return Err(invalid("CELLD_ROBOT_DRIVER", "expected twin or gcs")),
+                    }
+                }
+                "ROBOT_ADDRESS" => self.robot.address = value.clone(),
+                "ROBOT_PORT" => {
+                    self.robot.port = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_ROBOT_PORT", "not a port number"))?
+                }
+                "ROBOT_REHEARSAL" => {
+                    self.robot.rehearsal = parse_bool(&value)
+                        .ok_or_else(|| invalid("CELLD_ROBOT_REHEARSAL", "expected true or false"))?
+                }
+                "CAMERA_DRIVER" => {
+                    self.camera.driver = match value.as_str() {
+                        "twin" => CameraDriver::Twin,
+                        "igtl" => CameraDriver::Igtl,
+                        _ => return Err(invalid("CELLD_CAMERA_DRIVER", "expected twin or igtl")),
+                    }
+                }
+                "CAMERA_ADDRESS" => self.camera.address = value.clone(),
+                "CAMERA_PORT" => {
+                    self.camera.port = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_CAMERA_PORT", "not a port number"))?
+                }
                 // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
                 _ => {}
             }
@@ -308,6 +345,9 @@ impl ServiceConfig {
                 "0".into(),
                 "must be ≥ 1",
             ));
+        }
+        if let Some((key, value, reason)) = super::drivers::check(&self.robot, &self.camera) {
+            return Err(invalid(key, value, reason));
         }
         let threshold = self.policies.activation_threshold;
         if !(0.0..=1.0).contains(&threshold) {
@@ -418,6 +458,24 @@ mod tests {
         std::fs::write(&path, "listen_on = \"x\"\n").unwrap();
         let error = ServiceConfig::load(Some(&path)).unwrap_err().to_string();
         assert!(error.contains("listen_on"), "{error}");
+
+        let error = ServiceConfig::default()
+            .apply_env(vars(&[("CELLD_ROBOT_DRIVER", "kuka")]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("CELLD_ROBOT_DRIVER") && error.contains("kuka"),
+            "{error}"
+        );
+        config = ServiceConfig::default();
+        config.robot.driver = RobotDriver::Gcs;
+        let error = config.validate().unwrap_err().to_string();
+        assert!(error.contains("camera.driver"), "{error}");
+        config.camera.driver = CameraDriver::Igtl;
+        config.validate().unwrap();
+        config.camera.frame_timeout_ms = 0;
+        let error = config.validate().unwrap_err().to_string();
+        assert!(error.contains("camera.frame_timeout_ms"), "{error}");
 
         config = ServiceConfig::default();
         config.control.deadline_ms = 0.0;

@@ -53,6 +53,7 @@ fn lock(twin: &Shared) -> std::sync::MutexGuard<'_, Twin> {
 pub struct TwinServer {
     pub gcs: SocketAddr,
     pub igtl: SocketAddr,
+    twin: Shared,
 }
 
 impl TwinServer {
@@ -82,6 +83,7 @@ impl TwinServer {
         let server = TwinServer {
             gcs: gcs.local_addr()?,
             igtl: igtl.local_addr()?,
+            twin: twin.clone(),
         };
         let shared = twin.clone();
         spawn("celld-gcs", move || {
@@ -95,6 +97,13 @@ impl TwinServer {
             accept(igtl, twin, move |stream, twin| camera.serve(stream, &twin))
         });
         Ok(server)
+    }
+}
+
+impl TwinServer {
+    /// The true pose of {M} in {F} now (the twin's ground truth, which no client can ask for).
+    pub fn true_f_m(&self) -> crate::geometry::Pose {
+        lock(&self.twin).rig.true_f_m()
     }
 }
 

@@ -1,5 +1,6 @@
-//! Helpers for the driver tests: `celld twin-server` as a child process on free loopback
-//! ports, and the Python peers' availability.
+//! Helpers for the driver tests: `celld twin-server` as a child process on loopback ports,
+//! and the Python peers' availability.
+#![allow(dead_code)] // not every test binary that includes this module uses all of it
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
@@ -16,8 +17,14 @@ pub struct TwinServer {
 impl TwinServer {
     /// Starts `celld twin-server` on free loopback ports with `args` added.
     pub fn start(args: &[&str]) -> TwinServer {
+        TwinServer::start_on(0, 0, args)
+    }
+
+    /// Starts `celld twin-server` on these loopback ports (0: a free one) with `args` added.
+    pub fn start_on(gcs_port: u16, igtl_port: u16, args: &[&str]) -> TwinServer {
         let mut child = Command::new(env!("CARGO_BIN_EXE_celld"))
-            .args(["twin-server", "--gcs-port", "0", "--igtl-port", "0"])
+            .args(["twin-server", "--gcs-port", &gcs_port.to_string()])
+            .args(["--igtl-port", &igtl_port.to_string()])
             .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())

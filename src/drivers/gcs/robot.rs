@@ -14,6 +14,7 @@ use super::errors::{GcsError, STOPPED};
 use super::protocol::{
     AXES, axes_to_pose, axis_flags, axis_values, command_with_values, pose_to_axes,
 };
+use super::twin::EPISODE;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
 use crate::kinematics::StewartGeometry;
@@ -91,6 +92,37 @@ impl GcsRobot {
         self.setpoint = self.read_position()?;
         self.latched = None;
         Ok(())
+    }
+
+    /// Takes the platform's position (`POS?`) as the setpoint, as at an episode's start when
+    /// someone else may have moved it.
+    pub fn refresh(&mut self) -> Result<(), GcsError> {
+        let result = self.read_position();
+        match result {
+            Ok(pose) => {
+                self.setpoint = pose;
+                Ok(())
+            }
+            Err(error) => Err(self.note(error)),
+        }
+    }
+
+    /// Asks `celld twin-server` to draw the episode of `seed` (its own `EPISODE` command, which
+    /// a PI controller refuses with error 2), then takes the platform's new position.
+    pub fn rehearse(
+        &mut self,
+        seed: u64,
+        offset_mm: f64,
+        orientation_deg: f64,
+    ) -> Result<(), GcsError> {
+        let command = format!("{EPISODE} {seed} {offset_mm} {orientation_deg}");
+        let result = self
+            .client_mut()
+            .and_then(|client| client.command(&command));
+        if let Err(error) = result {
+            return Err(self.note(error));
+        }
+        self.refresh()
     }
 
     /// The controller's `*IDN?` answer.

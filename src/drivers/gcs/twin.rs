@@ -21,6 +21,10 @@ pub const MOTION_STATUS_CHAR: u8 = 5;
 /// A single-character query: controller ready (answers 0xB1 when ready).
 pub const READY_CHAR: u8 = 7;
 
+/// The twin's own command (no PI controller has it): `EPISODE SEED OFFSET_MM ORIENTATION_DEG`
+/// draws a new episode, as the in-process twin does at a job's start.
+pub const EPISODE: &str = "EPISODE";
+
 /// Velocity limits accepted by `VLS`, mm/s.
 const MAX_VELOCITY_MM_S: f64 = 50.0;
 
@@ -135,6 +139,10 @@ impl TwinController {
                 self.set_pivot(&request);
                 None
             }
+            EPISODE => {
+                self.episode(&request, rig);
+                None
+            }
             _ => {
                 self.fail(errors::UNKNOWN_COMMAND);
                 None
@@ -231,6 +239,29 @@ impl TwinController {
             Ok(()) => self.target = target,
             Err(_) => self.fail(errors::POSITION_OUT_OF_LIMITS),
         }
+    }
+
+    fn episode(&mut self, request: &Request, rig: &mut TwinRig) {
+        let [seed, offset, orientation] = request.args.as_slice() else {
+            return self.fail(errors::WRONG_PARAMETER_COUNT);
+        };
+        let (Ok(seed), Ok(offset_mm), Ok(orientation_deg)) = (
+            seed.parse(),
+            offset.parse::<f64>(),
+            orientation.parse::<f64>(),
+        ) else {
+            return self.fail(errors::PARAMETER_SYNTAX);
+        };
+        let initial = crate::sim::InitialConditions {
+            offset_mm,
+            orientation_deg,
+        };
+        if !(offset_mm.is_finite() && orientation_deg.is_finite())
+            || rig.begin_episode(seed, initial).is_err()
+        {
+            return self.fail(errors::PARAMETER_OUT_OF_RANGE);
+        }
+        self.follow(rig);
     }
 
     fn set_pivot(&mut self, request: &Request) {

@@ -1,0 +1,92 @@
+//! `celld serve` with the real drivers against `celld twin-server`: a job runs end to end;
+//! the controller going away mid-job ends it in a hold with a named reason, keeps every step
+//! stored and the service serving; the robot moves again only after an operator reset.
+
+mod drivers_support;
+mod serve_support;
+
+use drivers_support::TwinServer;
+use serde_json::{Value, json};
+use serve_support::Server;
+use std::time::Duration;
+
+fn id(job: &Value) -> i64 {
+    job["id"].as_i64().unwrap()
+}
+
+#[test]
+fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_reset() {
+    let twin = TwinServer::start(&[]);
+    let (gcs_port, igtl_port) = (twin.gcs.port(), twin.igtl.port());
+    let (gcs, igtl) = (gcs_port.to_string(), igtl_port.to_string());
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_ROBOT_DRIVER", "gcs"),
+            ("CELLD_ROBOT_PORT", &gcs),
+            ("CELLD_ROBOT_REHEARSAL", "true"),
+            ("CELLD_CAMERA_DRIVER", "igtl"),
+            ("CELLD_CAMERA_PORT", &igtl),
+            ("CELLD_STEP_PERIOD_MS", "20"),
+        ],
+    );
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(cell["backend"], "drivers", "{cell}");
+    let operator = server.token("operator");
+
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 2}));
+    let done = server.wait_final(id(&job));
+    assert_eq!(done["status"], "succeeded", "{done}");
+
+    // The controller goes away mid-job.
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 3}));
+    let steps_path = format!("/api/jobs/{}/steps", id(&job));
+    server.poll(
+        &steps_path,
+        "took 5 steps",
+        Duration::from_secs(60),
+        |body| {
+            body["items"]
+                .as_array()
+                .is_some_and(|items| items.len() >= 5)
+        },
+    );
+    drop(twin);
+    let failed = server.wait_final(id(&job));
+    assert_eq!(failed["status"], "failed", "{failed}");
+    assert_eq!(failed["failure_reason"], "robot_fault", "{failed}");
+    let steps = server.steps(id(&job));
+    assert_eq!(steps.len() as i64, failed["steps"].as_i64().unwrap());
+    let named: Vec<&str> = steps
+        .iter()
+        .filter_map(|step| step["detected"].as_str())
+        .collect();
+    assert!(
+        named
+            .iter()
+            .any(|d| matches!(*d, "controller_dropped" | "controller_timeout")),
+        "{named:?}"
+    );
+
+    // The service keeps serving; a job cannot start until an operator resets the cell.
+    let (status, _) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(status, 200);
+    let refused = server.create_job(&operator, json!({"controller": "expert", "seed": 4}));
+    let refused = server.wait_final(id(&refused));
+    assert_eq!(refused["status"], "failed");
+    let reason = refused["failure_reason"].as_str().unwrap();
+    assert!(reason.contains("operator reset"), "{reason}");
+
+    // The controller is back; still nothing moves until the reset.
+    let _twin = TwinServer::start_on(gcs_port, igtl_port, &[]);
+    let waiting = server.create_job(&operator, json!({"controller": "expert", "seed": 5}));
+    let waiting = server.wait_final(id(&waiting));
+    assert_eq!(waiting["status"], "failed", "{waiting}");
+    assert_eq!(waiting["steps"], 0);
+    let (status, _) = server.post("/api/cell/reset", Some(&operator), None);
+    assert_eq!(status, 200);
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 6}));
+    let done = server.wait_final(id(&job));
+    assert_eq!(done["status"], "succeeded", "{done}");
+}
