@@ -92,6 +92,8 @@ enum Reply {
     Late(u64),
     /// Answers `ONT?` with every axis off target.
     NeverOnTarget,
+    /// Answers `SPI?` with a pivot point 10 mm up the platform's axis.
+    OffPivot,
 }
 
 /// A hexapod controller on a loopback port that does what a ready one does unless `script`
@@ -150,7 +152,7 @@ fn serve(
             Reply::Close => return,
             Reply::Late(ms) => std::thread::sleep(Duration::from_millis(ms)),
             Reply::Error(code) => error = code,
-            Reply::Normal | Reply::NeverOnTarget => {}
+            Reply::Normal | Reply::NeverOnTarget | Reply::OffPivot => {}
         }
         let flags = |on: u8| format!("X={on} \nY={on} \nZ={on} \nU={on} \nV={on} \nW={on}\n");
         let answer = match mnemonic.as_str() {
@@ -158,6 +160,8 @@ fn serve(
             "SVO?" | "FRF?" => Some(flags(1)),
             "ONT?" if matches!(reply, Reply::NeverOnTarget) => Some(flags(0)),
             "ONT?" => Some(flags(1)),
+            "SPI?" if matches!(reply, Reply::OffPivot) => Some("R=0 \nS=0 \nT=10\n".into()),
+            "SPI?" => Some("R=0 \nS=0 \nT=0\n".into()),
             "ERR?" => Some(format!("{}\n", std::mem::take(&mut error))),
             "POS?" => Some(position.lock().unwrap().clone()),
             "MOV" if matches!(reply, Reply::Normal) => {
@@ -304,4 +308,27 @@ fn a_platform_that_never_arrives_is_stopped_at_the_deadline() {
     let stop = log.iter().position(|c| c == "STP").expect("STP sent");
     assert!(log[..stop].iter().any(|c| c.starts_with("MOV")));
     assert_eq!(robot.latched(), None);
+}
+
+#[test]
+fn a_pivot_point_off_the_origin_is_refused_with_its_coordinates() {
+    let controller = Scripted::start(|command, _| match command {
+        "SPI?" => Reply::OffPivot,
+        _ => Reply::Normal,
+    });
+    let error = GcsRobot::connect(
+        &controller.address.to_string(),
+        quick(),
+        &CellConfig::reference(),
+    )
+    .err()
+    .expect("refused");
+    assert_eq!(
+        error,
+        GcsError::Pivot {
+            r_mm: 0.0,
+            s_mm: 0.0,
+            t_mm: 10.0
+        }
+    );
 }

@@ -11,7 +11,7 @@
 //! garbage gives a frame with no points (the supervisor then vetoes every move, and the job
 //! ends `stale_camera`), named the same way (`camera_silent`, `camera_garbage`, …).
 
-use super::backend::{BackendError, CellBackend};
+use super::backend::{BackendError, CellBackend, EmergencyStop};
 use super::ingestion::Ingestion;
 use crate::camera::ingest::{Detected, Estimate, Ingest, Shot};
 use crate::camera::{CameraFrame, StateFilter};
@@ -320,6 +320,15 @@ impl CellBackend for DriverBackend {
 
     fn hold(&mut self) {
         self.robot.hold();
+    }
+
+    fn emergency_stop(&self) -> Option<EmergencyStop> {
+        let stop = self.robot.emergency_stop();
+        Some(std::sync::Arc::new(move || {
+            if !stop() {
+                tracing::warn!("e-stop: STP could not be written; the control thread holds");
+            }
+        }))
     }
 
     /// The operator's reset: the robot driver reconnects if it must, checks the controller

@@ -93,6 +93,12 @@ pub enum GcsError {
         axis: &'static str,
         what: &'static str,
     },
+    /// The controller turns U V W about a pivot point other than the platform's origin; the
+    /// driver commands poses about the origin.
+    #[error(
+        "the pivot point is R={r_mm} S={s_mm} T={t_mm} mm; celld commands poses about 0 0 0: send SPI R 0 S 0 T 0 with U V W at 0"
+    )]
+    Pivot { r_mm: f64, s_mm: f64, t_mm: f64 },
     /// The driver lost the controller since the last operator reset: it moves nothing until
     /// the next one.
     #[error(
@@ -125,7 +131,7 @@ impl GcsError {
             GcsError::Dropped { .. } => "controller_dropped",
             GcsError::Answer { .. } => "controller_answer",
             GcsError::Deadline { .. } => "on_target_deadline",
-            GcsError::NotReady { .. } => "controller_not_ready",
+            GcsError::NotReady { .. } | GcsError::Pivot { .. } => "controller_not_ready",
             GcsError::AwaitingReset { .. } => "awaiting_reset",
         }
     }

@@ -12,13 +12,14 @@
 use super::client::{GcsClient, GcsSettings, Stopper};
 use super::errors::{GcsError, STOPPED};
 use super::protocol::{
-    AXES, axes_to_pose, axis_flags, axis_values, command_with_values, pose_to_axes,
+    AXES, PIVOT_AXES, axes_to_pose, axis_flags, axis_values, command_with_values, pose_to_axes,
 };
 use super::twin::EPISODE;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
 use crate::kinematics::StewartGeometry;
 use crate::robot::{Robot, RobotError, RobotFault};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 /// A hexapod behind a GCS 2.0 controller.
@@ -26,7 +27,8 @@ pub struct GcsRobot {
     address: String,
     settings: GcsSettings,
     client: Option<GcsClient>,
-    stopper: Option<Stopper>,
+    /// The connection's `STP` handle, shared with [`GcsRobot::emergency_stop`]'s callers.
+    stopper: Arc<Mutex<Option<Stopper>>>,
     identity: String,
     /// The cell's nominal kinematics: leg lengths of a pose, to refuse unreachable moves
     /// before the controller sees them and to report the legs.
@@ -54,7 +56,7 @@ impl GcsRobot {
             address: address.to_string(),
             settings,
             client: None,
-            stopper: None,
+            stopper: Arc::default(),
             identity: String::new(),
             encoders_mm: nominal.leg_lengths_mm(&home),
             setpoint: home,
@@ -87,6 +89,16 @@ impl GcsRobot {
                 axis,
                 what: "referenced (FRF?)",
             });
+        }
+        let answer = client.query("SPI?")?;
+        let pivot = axis_values(&answer, &PIVOT_AXES).map_err(|problem| GcsError::Answer {
+            command: "SPI?".into(),
+            answer: answer.clone(),
+            problem,
+        })?;
+        if pivot != [0.0; 3] {
+            let [r_mm, s_mm, t_mm] = pivot;
+            return Err(GcsError::Pivot { r_mm, s_mm, t_mm });
         }
         self.identity = identity;
         self.setpoint = self.read_position()?;
@@ -135,9 +147,15 @@ impl GcsRobot {
         self.latched.as_ref()
     }
 
-    /// A handle that writes `STP` from another thread (the e-stop's), while this one waits.
-    pub fn stopper(&self) -> Option<&Stopper> {
-        self.stopper.as_ref()
+    /// Writes `STP` on the wire from any thread (the e-stop's), even while this driver waits
+    /// for an answer; answers whether it was written. The error code it leaves is read by
+    /// the next command.
+    pub fn emergency_stop(&self) -> impl Fn() -> bool + Send + Sync + 'static {
+        let stopper = self.stopper.clone();
+        move || {
+            let guard = stopper.lock().unwrap_or_else(PoisonError::into_inner);
+            guard.as_ref().is_some_and(|stopper| stopper.stop().is_ok())
+        }
     }
 
     /// Moves the platform to `target` (in {O}) and waits until it is on target.
@@ -184,7 +202,7 @@ impl GcsRobot {
 
     fn reconnect(&mut self) -> Result<(), GcsError> {
         let client = GcsClient::connect(&self.address, self.settings)?;
-        self.stopper = client.stopper().ok();
+        *self.stopper.lock().unwrap_or_else(PoisonError::into_inner) = client.stopper().ok();
         self.client = Some(client);
         Ok(())
     }
@@ -204,7 +222,7 @@ impl GcsRobot {
     fn note(&mut self, error: GcsError) -> GcsError {
         if error.is_connection_lost() {
             self.client = None;
-            self.stopper = None;
+            *self.stopper.lock().unwrap_or_else(PoisonError::into_inner) = None;
             self.latched.get_or_insert(error.clone());
         }
         error
