@@ -43,6 +43,8 @@ enum Command {
     Report(cli::report::ReportArgs),
     /// Run the cell service: dashboard, jobs, telemetry and history over HTTP (the default).
     Serve(cli::serve::ServeArgs),
+    /// Time the drivers on this machine: move round trip, ingestion, e-stop to STP.
+    Latency(cli::latency::LatencyArgs),
     /// Serve the digital twin as a GCS hexapod controller and an OpenIGTLink camera.
     TwinServer(cli::twin_server::TwinServerArgs),
     /// Manage API tokens.
@@ -152,6 +154,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => cli::serve::serve(args),
         Command::Token(command) => cli::serve::token(command),
         Command::TwinServer(args) => cli::twin_server::run(args),
+        Command::Latency(args) => cli::latency::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

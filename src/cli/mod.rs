@@ -1,5 +1,6 @@
 //! Subcommands of `celld` beyond `eval` and `policy`.
 
+pub mod latency;
 pub mod report;
 pub mod serve;
 pub mod svg;
