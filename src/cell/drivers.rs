@@ -143,16 +143,10 @@ impl DriverBackend {
             }
             Err(error) => {
                 tracing::warn!(%error, "camera");
-                let code = error.code();
-                if matches!(code, "camera_dropped" | "camera_garbage")
-                    && !matches!(
-                        error,
-                        crate::drivers::igtl::camera::FrameError::UnknownPoint { .. }
-                    )
-                {
+                if error.ends_connection() {
                     self.camera = None;
                 }
-                (self.empty_frame(), Some(code))
+                (self.empty_frame(), Some(error.code()))
             }
         }
     }

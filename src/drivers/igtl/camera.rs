@@ -31,7 +31,12 @@ pub enum FrameError {
     Timeout { waited_ms: u64 },
     #[error("the camera connection dropped ({reason})")]
     Dropped { reason: String },
-    #[error("the camera sent garbage: {0}")]
+    /// A message header that is not one: the stream cannot be followed past it, so the
+    /// connection is closed.
+    #[error("the camera sent a garbage header: {0}")]
+    BadHeader(IgtlError),
+    /// A message whose body is damaged or not its type's; it is skipped.
+    #[error("the camera sent a garbage message: {0}")]
     Garbage(#[from] IgtlError),
     #[error("a frame {age_ms:.1} ms old (at most {max_ms} ms accepted)")]
     Stale { age_ms: f64, max_ms: u64 },
@@ -44,13 +49,21 @@ pub enum FrameError {
 }
 
 impl FrameError {
+    /// Whether the connection is gone: the next capture must connect again.
+    pub fn ends_connection(&self) -> bool {
+        matches!(
+            self,
+            FrameError::Connect { .. } | FrameError::Dropped { .. } | FrameError::BadHeader(_)
+        )
+    }
+
     /// A short stable name for telemetry and hold reasons.
     pub fn code(&self) -> &'static str {
         match self {
             FrameError::Connect { .. } => "camera_unreachable",
             FrameError::Timeout { .. } => "camera_silent",
             FrameError::Dropped { .. } => "camera_dropped",
-            FrameError::Garbage(_) => "camera_garbage",
+            FrameError::BadHeader(_) | FrameError::Garbage(_) => "camera_garbage",
             FrameError::Stale { .. } => "camera_stale",
             FrameError::UnknownPoint { .. } | FrameError::BadTransform { .. } => "camera_garbage",
         }
@@ -342,15 +355,15 @@ impl Drop for IgtlCamera {
 }
 
 /// Reads one message from `reader` (`body`: a buffer to reuse). A garbage header is an error
-/// after which the stream cannot be followed; a body with a bad CRC or content is read whole,
-/// so the next message can be.
+/// after which the stream cannot be followed ([`FrameError::BadHeader`]); a body with a bad
+/// CRC or content is read whole, so the next message can be ([`FrameError::Garbage`]).
 pub fn read_message<R: Read>(reader: &mut R, body: &mut Vec<u8>) -> Result<Message, FrameError> {
     let dropped = |e: std::io::Error| FrameError::Dropped {
         reason: e.to_string(),
     };
     let mut header = [0u8; HEADER_BYTES];
     reader.read_exact(&mut header).map_err(dropped)?;
-    let parsed = Header::decode(&header)?;
+    let parsed = Header::decode(&header).map_err(FrameError::BadHeader)?;
     body.resize(parsed.body_size as usize, 0);
     reader.read_exact(body).map_err(dropped)?;
     Ok(Message::decode(&parsed, body)?)
@@ -362,11 +375,7 @@ fn read_messages(mut stream: TcpStream, sender: &mpsc::Sender<Result<Message, Fr
     let mut body = Vec::new();
     loop {
         let message = read_message(&mut stream, &mut body);
-        let fatal = match &message {
-            Err(FrameError::Garbage(IgtlError::Crc { .. } | IgtlError::Content { .. })) => false,
-            Err(_) => true,
-            Ok(_) => false,
-        };
+        let fatal = message.as_ref().is_err_and(FrameError::ends_connection);
         if sender.send(message).is_err() || fatal {
             let _ = stream.shutdown(std::net::Shutdown::Both);
             return;

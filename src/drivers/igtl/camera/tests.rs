@@ -157,3 +157,34 @@ fn a_trackers_two_fixture_transforms_make_one_frame_of_layout_points() {
         })
     );
 }
+
+#[test]
+fn a_damaged_body_is_skipped_and_a_garbage_header_ends_the_stream() {
+    let good = points(1.0, &[("C1", "0", [1.0, 2.0, 3.0])]).encode();
+    let mut damaged = good.clone();
+    let last = damaged.len() - 1;
+    damaged[last] ^= 0xFF;
+    let mut stream = Vec::new();
+    stream.extend_from_slice(&damaged);
+    stream.extend_from_slice(&good);
+    stream.extend_from_slice(&[0xEE; HEADER_BYTES]);
+    let mut reader = std::io::Cursor::new(stream);
+    let mut body = Vec::new();
+    let first = read_message(&mut reader, &mut body).unwrap_err();
+    assert!(
+        matches!(first, FrameError::Garbage(IgtlError::Crc { .. })),
+        "{first:?}"
+    );
+    assert!(!first.ends_connection());
+    assert_eq!(read_message(&mut reader, &mut body).unwrap().encode(), good);
+    let third = read_message(&mut reader, &mut body).unwrap_err();
+    assert_eq!(
+        third,
+        FrameError::BadHeader(IgtlError::Version { version: 0xEEEE })
+    );
+    assert!(third.ends_connection() && third.code() == "camera_garbage");
+    assert!(matches!(
+        read_message(&mut reader, &mut body),
+        Err(FrameError::Dropped { .. })
+    ));
+}
