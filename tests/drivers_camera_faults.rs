@@ -2,66 +2,18 @@
 //! relay that goes silent, repeats a frame, or sends garbage. Each ends the job with a named
 //! reason and names the fault at each step it shows in.
 
+mod drivers_support;
+
 use assembly_cell::cell::job::{ControllerSource, JobEnd, JobRun, JobSpec, SafetyLimits};
 use assembly_cell::cell::{DriverBackend, DriverSettings};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::drivers::gcs::GcsSettings;
 use assembly_cell::drivers::igtl::camera::CameraSettings;
-use assembly_cell::drivers::igtl::codec::{HEADER_BYTES, Header};
 use assembly_cell::drivers::twin_server::{TwinServer, TwinServerOptions};
 use assembly_cell::sim::InitialConditions;
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use drivers_support::{GARBAGE, PASS, REPEAT, SILENT, camera_relay};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
-
-const PASS: u8 = 0;
-const SILENT: u8 = 1;
-const REPEAT: u8 = 2;
-const GARBAGE: u8 = 3;
-
-/// A relay in front of the camera that passes its messages on, or misbehaves as `mode` says.
-fn relay(upstream: SocketAddr, mode: Arc<AtomicU8>) -> SocketAddr {
-    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
-    let address = listener.local_addr().unwrap();
-    std::thread::spawn(move || {
-        for client in listener.incoming() {
-            let mut client = client.unwrap();
-            let mut camera = TcpStream::connect(upstream).unwrap();
-            let mut queries = client.try_clone().unwrap();
-            let mut to_camera = camera.try_clone().unwrap();
-            std::thread::spawn(move || std::io::copy(&mut queries, &mut to_camera));
-            let mode = mode.clone();
-            std::thread::spawn(move || {
-                let mut last: Option<Vec<u8>> = None;
-                loop {
-                    let mut message = vec![0u8; HEADER_BYTES];
-                    if camera.read_exact(&mut message).is_err() {
-                        return;
-                    }
-                    let header = Header::decode(message[..].try_into().unwrap()).unwrap();
-                    let mut body = vec![0u8; header.body_size as usize];
-                    camera.read_exact(&mut body).unwrap();
-                    message.extend_from_slice(&body);
-                    let sent = match mode.load(Ordering::SeqCst) {
-                        PASS => {
-                            let sent = client.write_all(&message);
-                            last = Some(message);
-                            sent
-                        }
-                        SILENT => Ok(()),
-                        REPEAT => client.write_all(last.as_ref().unwrap_or(&message)),
-                        _ => client.write_all(&[0xEE; 80]),
-                    };
-                    if sent.is_err() {
-                        return;
-                    }
-                }
-            });
-        }
-    });
-    address
-}
 
 /// A job through the drivers whose camera misbehaves (`fault`) from its sixth step on:
 /// its end, and the `detected` of each step.
@@ -82,9 +34,9 @@ fn job_with(fault: u8) -> (JobEnd, Vec<Option<String>>) {
     let settings = DriverSettings {
         robot_address: server.gcs.to_string(),
         robot: GcsSettings::default(),
-        camera_address: relay(server.igtl, mode.clone()).to_string(),
+        camera_address: camera_relay(server.igtl, mode.clone()).to_string(),
         camera: CameraSettings {
-            frame_timeout_ms: 50,
+            frame_timeout_ms: 200,
             ..CameraSettings::default()
         },
         rehearsal: true,

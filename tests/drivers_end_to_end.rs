@@ -69,9 +69,16 @@ fn a_job_through_the_drivers_ends_as_in_the_in_process_twin() {
     .unwrap();
     let settings = DriverSettings {
         robot_address: server.gcs.to_string(),
-        robot: GcsSettings::default(),
+        // Generous waits: a loaded machine must not make a late answer part of the comparison.
+        robot: GcsSettings {
+            answer_timeout_ms: 2000,
+            ..GcsSettings::default()
+        },
         camera_address: server.igtl.to_string(),
-        camera: CameraSettings::default(),
+        camera: CameraSettings {
+            frame_timeout_ms: 2000,
+            ..CameraSettings::default()
+        },
         rehearsal: true,
     };
     let mut drivers = DriverBackend::connect(&cell, settings, None).unwrap();

@@ -349,6 +349,18 @@ impl ServiceConfig {
         if let Some((key, value, reason)) = super::drivers::check(&self.robot, &self.camera) {
             return Err(invalid(key, value, reason));
         }
+        let waits_ms = self.robot.on_target_deadline_ms + self.camera.frame_timeout_ms;
+        if self.robot.driver == RobotDriver::Gcs && waits_ms as f64 > self.control.deadline_ms {
+            return Err(invalid(
+                "robot.on_target_deadline_ms",
+                self.robot.on_target_deadline_ms.to_string(),
+                &format!(
+                    "with camera.frame_timeout_ms ({} ms) it must not exceed control.deadline_ms \
+                     ({} ms): raise the deadline for a hexapod whose moves take longer",
+                    self.camera.frame_timeout_ms, self.control.deadline_ms
+                ),
+            ));
+        }
         let threshold = self.policies.activation_threshold;
         if !(0.0..=1.0).contains(&threshold) {
             return Err(invalid(
@@ -472,6 +484,14 @@ mod tests {
         let error = config.validate().unwrap_err().to_string();
         assert!(error.contains("camera.driver"), "{error}");
         config.camera.driver = CameraDriver::Igtl;
+        config.validate().unwrap();
+        config.robot.on_target_deadline_ms = 40;
+        let error = config.validate().unwrap_err().to_string();
+        assert!(
+            error.contains("robot.on_target_deadline_ms") && error.contains("control.deadline_ms"),
+            "{error}"
+        );
+        config.control.deadline_ms = 100.0;
         config.validate().unwrap();
         config.camera.frame_timeout_ms = 0;
         let error = config.validate().unwrap_err().to_string();

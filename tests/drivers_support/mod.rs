@@ -2,10 +2,13 @@
 //! and the Python peers' availability.
 #![allow(dead_code)] // not every test binary that includes this module uses all of it
 
-use std::io::{BufRead, BufReader};
-use std::net::SocketAddr;
+use assembly_cell::drivers::igtl::codec::{HEADER_BYTES, Header};
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU8, Ordering};
 
 /// A running `celld twin-server`, killed when dropped.
 pub struct TwinServer {
@@ -80,4 +83,60 @@ pub fn python_has(module: &str, package: &str) -> bool {
         eprintln!("{package} is not installed: this peer test is skipped");
     }
     found
+}
+
+/// [`camera_relay`] passes the camera's messages on.
+pub const PASS: u8 = 0;
+/// [`camera_relay`] swallows them.
+pub const SILENT: u8 = 1;
+/// [`camera_relay`] sends the last message passed on again instead (the same bytes).
+pub const REPEAT: u8 = 2;
+/// [`camera_relay`] sends 80 bytes of garbage instead.
+pub const GARBAGE: u8 = 3;
+
+/// A relay in front of the camera at `upstream`, on a free loopback port: queries go through;
+/// the camera's messages are passed on, or not, as `mode` says at each message.
+pub fn camera_relay(upstream: SocketAddr, mode: Arc<AtomicU8>) -> SocketAddr {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = listener.local_addr().unwrap();
+    std::thread::spawn(move || {
+        for client in listener.incoming() {
+            let Ok(mut client) = client else { return };
+            let Ok(mut camera) = TcpStream::connect(upstream) else {
+                return;
+            };
+            let mut queries = client.try_clone().unwrap();
+            let mut to_camera = camera.try_clone().unwrap();
+            std::thread::spawn(move || std::io::copy(&mut queries, &mut to_camera));
+            let mode = mode.clone();
+            std::thread::spawn(move || {
+                let mut last: Option<Vec<u8>> = None;
+                loop {
+                    let mut message = vec![0u8; HEADER_BYTES];
+                    if camera.read_exact(&mut message).is_err() {
+                        return;
+                    }
+                    let header = Header::decode(message[..].try_into().unwrap()).unwrap();
+                    let mut body = vec![0u8; header.body_size as usize];
+                    if camera.read_exact(&mut body).is_err() {
+                        return;
+                    }
+                    message.extend_from_slice(&body);
+                    let sent = match mode.load(Ordering::SeqCst) {
+                        PASS => client.write_all(&message),
+                        SILENT => Ok(()),
+                        REPEAT => client.write_all(last.get_or_insert(message.clone())),
+                        _ => client.write_all(&[0xEE; 80]),
+                    };
+                    if sent.is_err() {
+                        return;
+                    }
+                    if mode.load(Ordering::SeqCst) == PASS {
+                        last = Some(message);
+                    }
+                }
+            });
+        }
+    });
+    address
 }

@@ -26,7 +26,7 @@ impl Default for GcsSettings {
         GcsSettings {
             connect_timeout_ms: 1000,
             answer_timeout_ms: 100,
-            on_target_deadline_ms: 200,
+            on_target_deadline_ms: 20,
             poll_interval_ms: 0,
         }
     }

@@ -236,7 +236,7 @@ impl Default for CameraSettings {
     fn default() -> Self {
         CameraSettings {
             connect_timeout_ms: 1000,
-            frame_timeout_ms: 200,
+            frame_timeout_ms: 25,
             max_age_ms: 500,
             triggered: true,
         }
