@@ -1,6 +1,6 @@
 //! OpenIGTLink messages as bytes, pure. Every number is big-endian.
 //!
-//! A message is a 58-byte header (version u16, type char[12], device name char[20],
+//! A message is a 58-byte header (version `u16`, type `char[12]`, device name `char[20]`,
 //! timestamp u64, body size u64, CRC-64 of the body u64) and its body. In header version 2
 //! the body starts with a 12-byte extended header (its own size u16, metadata header size
 //! u16, metadata size u32, message id u32) and ends with the metadata. The CRC is ECMA-182's
@@ -13,7 +13,8 @@ use crc::{CRC_64_ECMA_182, Crc};
 pub const HEADER_BYTES: usize = 58;
 /// Bytes in header version 2's extended header.
 pub const EXTENDED_HEADER_BYTES: usize = 12;
-/// Bytes of one POINT element: name[64], group[32], RGBA, x y z, diameter (f32), owner[20].
+/// Bytes of one POINT element: `name[64]`, `group[32]`, RGBA, x y z, diameter (f32),
+/// `owner[20]`.
 pub const POINT_ELEMENT_BYTES: usize = 136;
 /// Bytes of a TRANSFORM body: a 3×4 matrix of f32, column by column.
 pub const TRANSFORM_BYTES: usize = 48;
