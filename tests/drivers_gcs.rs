@@ -5,7 +5,7 @@
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::drivers::gcs::protocol::{AXES, pose_to_axes};
-use assembly_cell::drivers::gcs::{GcsError, GcsRobot, GcsSettings};
+use assembly_cell::drivers::gcs::{GcsClient, GcsError, GcsRobot, GcsSettings};
 use assembly_cell::drivers::twin_server::{TwinServer, TwinServerOptions};
 use assembly_cell::geometry::Move;
 use assembly_cell::kinematics::StewartGeometry;
@@ -58,6 +58,31 @@ fn the_driver_moves_the_twin_servers_platform_where_the_step_leads() {
     let difference = again.setpoint().translation.vector - robot.setpoint().translation.vector;
     assert!(difference.norm() < 1e-9, "{difference}");
     assert_eq!(again.encoders_mm(), robot.encoders_mm());
+}
+
+#[test]
+fn the_driver_sets_the_velocity_it_is_given_and_names_one_the_controller_refuses() {
+    let server = twin_server(true);
+    let cell = CellConfig::reference();
+    let settings = GcsSettings {
+        velocity_mm_s: Some(4.5),
+        ..GcsSettings::default()
+    };
+    GcsRobot::connect(&server.gcs.to_string(), settings, &cell).unwrap();
+    let mut client = GcsClient::connect(&server.gcs.to_string(), settings).unwrap();
+    assert_eq!(client.query("VLS?").unwrap(), "4.5\n");
+    let too_fast = GcsSettings {
+        velocity_mm_s: Some(500.0),
+        ..settings
+    };
+    let error = GcsRobot::connect(&server.gcs.to_string(), too_fast, &cell)
+        .err()
+        .expect("refused");
+    assert_eq!(error, GcsError::controller(8, "VLS 500"));
+    assert_eq!(
+        error.to_string(),
+        "controller error 8 after `VLS 500`: velocity out of limits"
+    );
 }
 
 #[test]
@@ -193,6 +218,7 @@ fn quick() -> GcsSettings {
         answer_timeout_ms: 100,
         on_target_deadline_ms: 50,
         poll_interval_ms: 1,
+        velocity_mm_s: None,
     }
 }
 

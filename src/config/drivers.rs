@@ -39,6 +39,9 @@ pub struct RobotDriverConfig {
     pub on_target_deadline_ms: u64,
     /// Pause between `ONT?` polls, ms (0: back to back).
     pub poll_interval_ms: u64,
+    /// The platform's velocity, set with `VLS` at connection and reset, mm/s; none leaves
+    /// the controller's own.
+    pub velocity_mm_s: Option<f64>,
     /// The controller is `celld twin-server`: each job's start asks it to draw the job's
     /// episode. Leave false for a real controller.
     pub rehearsal: bool,
@@ -55,6 +58,7 @@ impl Default for RobotDriverConfig {
             answer_timeout_ms: gcs.answer_timeout_ms,
             on_target_deadline_ms: gcs.on_target_deadline_ms,
             poll_interval_ms: gcs.poll_interval_ms,
+            velocity_mm_s: gcs.velocity_mm_s,
             rehearsal: false,
         }
     }
@@ -67,6 +71,7 @@ impl RobotDriverConfig {
             answer_timeout_ms: self.answer_timeout_ms,
             on_target_deadline_ms: self.on_target_deadline_ms,
             poll_interval_ms: self.poll_interval_ms,
+            velocity_mm_s: self.velocity_mm_s,
         }
     }
 
@@ -157,6 +162,15 @@ pub fn check(
                 "camera.driver = \"igtl\" needs robot.driver = \"gcs\": a real camera sees a real robot",
             ));
         }
+    }
+    if let Some(velocity) = robot.velocity_mm_s
+        && !(velocity.is_finite() && velocity > 0.0)
+    {
+        return Some((
+            "robot.velocity_mm_s",
+            velocity.to_string(),
+            "must be a number > 0",
+        ));
     }
     for (key, value) in [
         ("robot.connect_timeout_ms", robot.connect_timeout_ms),

@@ -8,7 +8,7 @@ use std::net::{TcpStream, ToSocketAddrs};
 use std::time::{Duration, Instant};
 
 /// The driver's timing, all in milliseconds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct GcsSettings {
     /// Longest wait for the TCP connection, ms.
     pub connect_timeout_ms: u64,
@@ -19,6 +19,9 @@ pub struct GcsSettings {
     pub on_target_deadline_ms: u64,
     /// Pause between two `ONT?` polls, ms (0: poll back to back).
     pub poll_interval_ms: u64,
+    /// The platform's velocity set with `VLS` at connection and reset, mm/s (none: the
+    /// controller's own).
+    pub velocity_mm_s: Option<f64>,
 }
 
 impl Default for GcsSettings {
@@ -28,6 +31,7 @@ impl Default for GcsSettings {
             answer_timeout_ms: 100,
             on_target_deadline_ms: 20,
             poll_interval_ms: 0,
+            velocity_mm_s: None,
         }
     }
 }

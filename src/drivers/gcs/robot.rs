@@ -69,11 +69,13 @@ impl GcsRobot {
     }
 
     /// The operator's reset: reconnects when the connection is gone, checks the controller
-    /// is ready again, takes the platform's position as the setpoint and unlatches.
+    /// is ready again (and sets the velocity, when the settings give one), takes the
+    /// platform's position as the setpoint and unlatches.
     pub fn reset(&mut self) -> Result<(), GcsError> {
         if self.client.is_none() {
             self.reconnect()?;
         }
+        let velocity = self.settings.velocity_mm_s;
         let client = self.client_mut()?;
         let identity = client.query("*IDN?")?.trim().to_string();
         let servo = read_flags(client, "SVO?")?;
@@ -89,6 +91,9 @@ impl GcsRobot {
                 axis,
                 what: "referenced (FRF?)",
             });
+        }
+        if let Some(velocity) = velocity {
+            client.command(&format!("VLS {velocity}"))?;
         }
         let answer = client.query("SPI?")?;
         let pivot = axis_values(&answer, &PIVOT_AXES).map_err(|problem| GcsError::Answer {
