@@ -33,10 +33,15 @@ fn job_with(fault: u8) -> (JobEnd, Vec<Option<String>>) {
     let mode = Arc::new(AtomicU8::new(PASS));
     let settings = DriverSettings {
         robot_address: server.gcs.to_string(),
-        robot: GcsSettings::default(),
+        robot: GcsSettings {
+            answer_timeout_ms: 2000,
+            ..GcsSettings::default()
+        },
         camera_address: camera_relay(server.igtl, mode.clone()).to_string(),
         camera: CameraSettings {
-            frame_timeout_ms: 200,
+            // Generous, but for the silent camera's test: a loaded test machine must not
+            // make a late frame a fault.
+            frame_timeout_ms: if fault == SILENT { 200 } else { 2000 },
             ..CameraSettings::default()
         },
         rehearsal: true,

@@ -32,6 +32,9 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
             ("CELLD_CAMERA_DRIVER", "igtl"),
             ("CELLD_CAMERA_PORT", &igtl),
             ("CELLD_STEP_PERIOD_MS", "20"),
+            // Generous waits: a loaded test machine must not make a late answer a fault.
+            ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
+            ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
         ],
     );
     let (_, cell) = server.get("/api/cell", Some(&server.admin));
@@ -120,6 +123,9 @@ fn camera_faults_mid_job_end_it_named_with_every_step_stored_and_the_next_job_ru
             ("CELLD_CAMERA_DRIVER", "igtl"),
             ("CELLD_CAMERA_PORT", &igtl),
             ("CELLD_STEP_PERIOD_MS", "20"),
+            // Generous waits: a loaded test machine must not make a late answer a fault.
+            ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
+            ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
         ],
     );
     let operator = server.token("operator");

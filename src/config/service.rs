@@ -287,6 +287,21 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|_| invalid("CELLD_ROBOT_PORT", "not a port number"))?
                 }
+                "ROBOT_ANSWER_TIMEOUT_MS" => {
+                    self.robot.answer_timeout_ms = value.parse().map_err(|_| {
+                        invalid("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "not a whole number")
+                    })?
+                }
+                "ROBOT_ON_TARGET_DEADLINE_MS" => {
+                    self.robot.on_target_deadline_ms = value.parse().map_err(|_| {
+                        invalid("CELLD_ROBOT_ON_TARGET_DEADLINE_MS", "not a whole number")
+                    })?
+                }
+                "CAMERA_FRAME_TIMEOUT_MS" => {
+                    self.camera.frame_timeout_ms = value.parse().map_err(|_| {
+                        invalid("CELLD_CAMERA_FRAME_TIMEOUT_MS", "not a whole number")
+                    })?
+                }
                 "ROBOT_REHEARSAL" => {
                     self.robot.rehearsal = parse_bool(&value)
                         .ok_or_else(|| invalid("CELLD_ROBOT_REHEARSAL", "expected true or false"))?
