@@ -11,8 +11,11 @@
 
 use crate::cell::cpu::{self, CpuPlan};
 use crate::cell::task::{self, CellEvent, LoopSettings};
-use crate::cell::{CellCommand, JobStatus, SafetyLimits, TwinBackend};
+use crate::cell::{
+    CellBackend, CellCommand, DriverBackend, DriverSettings, JobStatus, SafetyLimits, TwinBackend,
+};
 use crate::config::cell::CellConfig;
+use crate::config::drivers::RobotDriver;
 use crate::config::service::ServiceConfig;
 use crate::http;
 use crate::metrics::Metrics;
@@ -103,15 +106,24 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         estop_latched,
         cpu: placement.as_ref().map(|p| p.control),
     };
-    let (cell_handle, control_thread) = task::spawn(
-        cell.clone(),
-        Box::new(TwinBackend::new(
-            &cell,
-            placement.as_ref().map(|p| p.control),
-        )),
-        loop_settings,
-        sink,
-    );
+    let cpu = placement.as_ref().map(|p| p.control);
+    let backend: Box<dyn CellBackend> = match settings.robot.driver {
+        RobotDriver::Twin => Box::new(TwinBackend::new(&cell, cpu)),
+        RobotDriver::Gcs => {
+            let drivers = DriverSettings {
+                robot_address: settings.robot.endpoint(),
+                robot: settings.robot.gcs_settings(),
+                camera_address: settings.camera.endpoint(),
+                camera: settings.camera.camera_settings(),
+                rehearsal: settings.robot.rehearsal,
+            };
+            Box::new(
+                DriverBackend::connect(&cell, drivers, cpu)
+                    .context("connecting the cell's drivers ([robot] and [camera] settings)")?,
+            )
+        }
+    };
+    let (cell_handle, control_thread) = task::spawn(cell.clone(), backend, loop_settings, sink);
 
     let (stop_streams, shutdown) = watch::channel(false);
     let accepting = Arc::new(AtomicBool::new(true));

@@ -11,6 +11,7 @@ pub mod camera;
 pub mod cell;
 pub mod collision;
 pub mod config;
+pub mod drivers;
 pub mod files;
 pub mod geometry;
 pub mod http;

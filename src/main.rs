@@ -43,6 +43,10 @@ enum Command {
     Report(cli::report::ReportArgs),
     /// Run the cell service: dashboard, jobs, telemetry and history over HTTP (the default).
     Serve(cli::serve::ServeArgs),
+    /// Time the drivers on this machine: move round trip, ingestion, e-stop to STP.
+    Latency(cli::latency::LatencyArgs),
+    /// Serve the digital twin as a GCS hexapod controller and an OpenIGTLink camera.
+    TwinServer(cli::twin_server::TwinServerArgs),
     /// Manage API tokens.
     #[command(subcommand)]
     Token(cli::serve::TokenCommand),
@@ -139,7 +143,7 @@ fn main() -> ExitCode {
     let command = Cli::parse()
         .command
         .unwrap_or_else(|| Command::Serve(Default::default()));
-    if !matches!(command, Command::Serve(_)) {
+    if !matches!(command, Command::Serve(_) | Command::TwinServer(_)) {
         stop_quietly_when_stdout_closes();
     }
     let result = match command {
@@ -149,6 +153,8 @@ fn main() -> ExitCode {
         Command::Report(args) => cli::report::run(args),
         Command::Serve(args) => cli::serve::serve(args),
         Command::Token(command) => cli::serve::token(command),
+        Command::TwinServer(args) => cli::twin_server::run(args),
+        Command::Latency(args) => cli::latency::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -2,8 +2,9 @@
 //!
 //! Every move a backend executes has passed the collision supervisor (reachability and leg
 //! stroke, the OBB test, exact clearance) first: the robot is always a
-//! [`Supervised`](crate::robot::Supervised) robot, the twin's `TwinDrive` now and a real
-//! driver later. Camera ingestion runs on a thread of its own ([`Ingestion`]).
+//! [`Supervised`](crate::robot::Supervised) robot: the twin's `TwinDrive` here, a PI hexapod's
+//! `GcsRobot` in [`DriverBackend`](super::DriverBackend). Camera ingestion runs on a thread of
+//! its own ([`Ingestion`]).
 
 use super::ingestion::{Ingestion, IngestionStopped};
 use crate::camera::ingest::Ingest;
@@ -12,6 +13,9 @@ use crate::geometry::{CellFrames, Move};
 use crate::sim::env::first_usable_estimate;
 use crate::sim::{AssemblyEnv, EnvError, EnvOptions, InitialConditions, Observation, StepResult};
 
+/// Stops the robot from any thread (see [`CellBackend::emergency_stop`]).
+pub type EmergencyStop = std::sync::Arc<dyn Fn() + Send + Sync>;
+
 /// Why a backend could not start an episode or take a step.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum BackendError {
@@ -19,6 +23,12 @@ pub enum BackendError {
     Twin(#[from] EnvError),
     #[error(transparent)]
     Ingestion(#[from] IngestionStopped),
+    /// The hexapod controller's driver.
+    #[error("robot: {0}")]
+    Drive(#[from] crate::drivers::gcs::GcsError),
+    /// The camera's driver.
+    #[error(transparent)]
+    Camera(#[from] crate::drivers::igtl::camera::FrameError),
 }
 
 /// A cell the control loop can drive: start an episode, execute supervised moves, hold.
@@ -40,6 +50,17 @@ pub trait CellBackend: Send {
     fn settle(&mut self) -> Result<StepResult, BackendError>;
     /// Stops motion at once and keeps the robot where it is (protective stop).
     fn hold(&mut self);
+    /// Stops motion from any thread, at once, without waiting for the control thread (which
+    /// may be waiting on the robot); the e-stop calls it before it latches. None: the
+    /// control thread's `hold` is as fast.
+    fn emergency_stop(&self) -> Option<EmergencyStop> {
+        None
+    }
+    /// The operator's reset (after an e-stop): a driver that lost its hardware reconnects
+    /// and checks it here, and moves nothing until it has. The twin has nothing to reset.
+    fn reset(&mut self) -> Result<(), BackendError> {
+        Ok(())
+    }
 }
 
 /// The digital twin as a cell backend, its camera's shots ingested on their own thread.

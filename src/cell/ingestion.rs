@@ -5,8 +5,8 @@
 //! The twin's camera captures inside the twin (it sees the twin's true pose), so the control
 //! thread hands each shot over after its move and collects the estimate at its next tick: the
 //! fit runs while the control thread waits for the next period, and a job replays exactly as
-//! `celld eval` runs it. A networked camera will deliver its shots here without the control
-//! thread.
+//! `celld eval` runs it. A networked camera's frames come the same way: the control thread
+//! reads them after the move is on target (`cell::drivers`).
 
 use crate::camera::ingest::{Estimate, Ingest, Shot};
 use std::sync::mpsc;

@@ -7,11 +7,13 @@
 
 pub mod backend;
 pub mod cpu;
+pub mod drivers;
 pub mod ingestion;
 pub mod job;
 pub mod task;
 
 pub use backend::{BackendError, CellBackend, TwinBackend};
+pub use drivers::{DriverBackend, DriverSettings};
 pub use job::{
     ControllerSource, JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord, StepUncertainty,
 };

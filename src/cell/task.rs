@@ -5,7 +5,7 @@
 //! runtime's workers. Commands come in on a channel; every event (job started, step, job ended,
 //! e-stop) goes to one sink, in order; the cell's status is published on a watch channel.
 
-use super::backend::CellBackend;
+use super::backend::{CellBackend, EmergencyStop};
 /// Kept at this path for the HTTP handlers that run background work behind the control thread.
 pub use super::cpu::lower_priority;
 use super::job::{JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord};
@@ -70,6 +70,7 @@ pub struct CellStatus {
 pub struct CellHandle {
     commands: mpsc::Sender<CellCommand>,
     status: watch::Receiver<CellStatus>,
+    stop_now: Option<EmergencyStop>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -85,6 +86,15 @@ impl CellHandle {
     /// drops).
     pub fn is_running(&self) -> bool {
         self.status.has_changed().is_ok()
+    }
+
+    /// Stops motion at once from the calling thread, when the backend can (a driver that
+    /// writes `STP` on its own connection); the e-stop does this before it asks the control
+    /// thread to hold and latch.
+    pub fn stop_now(&self) {
+        if let Some(stop) = &self.stop_now {
+            stop();
+        }
     }
 
     pub fn send(&self, command: CellCommand) -> Result<(), CellStopped> {
@@ -121,6 +131,7 @@ pub fn spawn(
     sink: Box<dyn FnMut(CellEvent) + Send>,
 ) -> (CellHandle, std::thread::JoinHandle<()>) {
     let (commands, inbox) = mpsc::channel();
+    let stop_now = backend.emergency_stop();
     let status = CellStatus {
         backend: backend.name().to_string(),
         estop_latched: settings.estop_latched,
@@ -155,6 +166,7 @@ pub fn spawn(
         CellHandle {
             commands,
             status: status_rx,
+            stop_now,
         },
         thread,
     )
@@ -264,6 +276,9 @@ impl ControlLoop {
                 let _ = reply.send(());
             }
             CellCommand::Reset { reply } => {
+                if let Err(error) = self.backend.reset() {
+                    tracing::warn!(%error, "reset: the backend is not ready; jobs fail until it is");
+                }
                 self.status.send_modify(|s| s.estop_latched = false);
                 (self.sink)(CellEvent::EStop { latched: false });
                 let _ = reply.send(());

@@ -1,6 +1,8 @@
 //! Subcommands of `celld` beyond `eval` and `policy`.
 
+pub mod latency;
 pub mod report;
 pub mod serve;
 pub mod svg;
 pub mod train;
+pub mod twin_server;

@@ -1,2 +1,3 @@
 pub mod cell;
+pub mod drivers;
 pub mod service;

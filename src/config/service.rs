@@ -4,6 +4,7 @@
 //! Layers, later wins: built-in defaults, a TOML file (`--config`), `CELLD_*` environment
 //! variables, command-line flags. Every key is documented in `deploy/celld.example.toml`.
 
+use super::drivers::{CameraDriver, CameraDriverConfig, RobotDriver, RobotDriverConfig};
 use serde::Deserialize;
 use std::fmt;
 use std::net::SocketAddr;
@@ -42,6 +43,10 @@ pub struct ServiceConfig {
     pub control: ControlConfig,
     pub http: HttpConfig,
     pub policies: PolicyConfig,
+    /// The hexapod controller's driver (`twin` or `gcs`).
+    pub robot: RobotDriverConfig,
+    /// The camera's driver (`twin` or `igtl`).
+    pub camera: CameraDriverConfig,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -160,6 +165,8 @@ impl Default for ServiceConfig {
             control: ControlConfig::default(),
             http: HttpConfig::default(),
             policies: PolicyConfig::default(),
+            robot: RobotDriverConfig::default(),
+            camera: CameraDriverConfig::default(),
         }
     }
 }
@@ -267,6 +274,51 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|_| invalid("CELLD_EVALUATION_EPISODES", "not a whole number"))?
                 }
+                "ROBOT_DRIVER" => {
+                    self.robot.driver = match value.as_str() {
+                        "twin" => RobotDriver::Twin,
+                        "gcs" => RobotDriver::Gcs,
+                        _ => return Err(invalid("CELLD_ROBOT_DRIVER", "expected twin or gcs")),
+                    }
+                }
+                "ROBOT_ADDRESS" => self.robot.address = value.clone(),
+                "ROBOT_PORT" => {
+                    self.robot.port = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_ROBOT_PORT", "not a port number"))?
+                }
+                "ROBOT_ANSWER_TIMEOUT_MS" => {
+                    self.robot.answer_timeout_ms = value.parse().map_err(|_| {
+                        invalid("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "not a whole number")
+                    })?
+                }
+                "ROBOT_ON_TARGET_DEADLINE_MS" => {
+                    self.robot.on_target_deadline_ms = value.parse().map_err(|_| {
+                        invalid("CELLD_ROBOT_ON_TARGET_DEADLINE_MS", "not a whole number")
+                    })?
+                }
+                "CAMERA_FRAME_TIMEOUT_MS" => {
+                    self.camera.frame_timeout_ms = value.parse().map_err(|_| {
+                        invalid("CELLD_CAMERA_FRAME_TIMEOUT_MS", "not a whole number")
+                    })?
+                }
+                "ROBOT_REHEARSAL" => {
+                    self.robot.rehearsal = parse_bool(&value)
+                        .ok_or_else(|| invalid("CELLD_ROBOT_REHEARSAL", "expected true or false"))?
+                }
+                "CAMERA_DRIVER" => {
+                    self.camera.driver = match value.as_str() {
+                        "twin" => CameraDriver::Twin,
+                        "igtl" => CameraDriver::Igtl,
+                        _ => return Err(invalid("CELLD_CAMERA_DRIVER", "expected twin or igtl")),
+                    }
+                }
+                "CAMERA_ADDRESS" => self.camera.address = value.clone(),
+                "CAMERA_PORT" => {
+                    self.camera.port = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_CAMERA_PORT", "not a port number"))?
+                }
                 // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
                 _ => {}
             }
@@ -307,6 +359,21 @@ impl ServiceConfig {
                 "control.telemetry_buffer",
                 "0".into(),
                 "must be ≥ 1",
+            ));
+        }
+        if let Some((key, value, reason)) = super::drivers::check(&self.robot, &self.camera) {
+            return Err(invalid(key, value, reason));
+        }
+        let waits_ms = self.robot.on_target_deadline_ms + self.camera.frame_timeout_ms;
+        if self.robot.driver == RobotDriver::Gcs && waits_ms as f64 > self.control.deadline_ms {
+            return Err(invalid(
+                "robot.on_target_deadline_ms",
+                self.robot.on_target_deadline_ms.to_string(),
+                &format!(
+                    "with camera.frame_timeout_ms ({} ms) it must not exceed control.deadline_ms \
+                     ({} ms): raise the deadline for a hexapod whose moves take longer",
+                    self.camera.frame_timeout_ms, self.control.deadline_ms
+                ),
             ));
         }
         let threshold = self.policies.activation_threshold;
@@ -418,6 +485,32 @@ mod tests {
         std::fs::write(&path, "listen_on = \"x\"\n").unwrap();
         let error = ServiceConfig::load(Some(&path)).unwrap_err().to_string();
         assert!(error.contains("listen_on"), "{error}");
+
+        let error = ServiceConfig::default()
+            .apply_env(vars(&[("CELLD_ROBOT_DRIVER", "kuka")]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("CELLD_ROBOT_DRIVER") && error.contains("kuka"),
+            "{error}"
+        );
+        config = ServiceConfig::default();
+        config.robot.driver = RobotDriver::Gcs;
+        let error = config.validate().unwrap_err().to_string();
+        assert!(error.contains("camera.driver"), "{error}");
+        config.camera.driver = CameraDriver::Igtl;
+        config.validate().unwrap();
+        config.robot.on_target_deadline_ms = 40;
+        let error = config.validate().unwrap_err().to_string();
+        assert!(
+            error.contains("robot.on_target_deadline_ms") && error.contains("control.deadline_ms"),
+            "{error}"
+        );
+        config.control.deadline_ms = 100.0;
+        config.validate().unwrap();
+        config.camera.frame_timeout_ms = 0;
+        let error = config.validate().unwrap_err().to_string();
+        assert!(error.contains("camera.frame_timeout_ms"), "{error}");
 
         config = ServiceConfig::default();
         config.control.deadline_ms = 0.0;

@@ -9,6 +9,7 @@ mod supervised;
 pub use supervised::Supervised;
 
 use crate::collision::supervisor::VetoReason;
+use crate::drivers::gcs::GcsError;
 use crate::geometry::{Move, Pose};
 use crate::kinematics::KinematicsError;
 
@@ -20,7 +21,18 @@ pub enum RobotError {
     Vetoed(VetoReason),
     /// The robot could not execute the move (no pose for its leg lengths, a drive fault).
     #[error("robot fault: {0}")]
-    Fault(KinematicsError),
+    Fault(RobotFault),
+}
+
+/// What kept a robot from executing a move it was allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RobotFault {
+    /// The move's pose has no leg lengths, or the legs' lengths no pose.
+    #[error(transparent)]
+    Kinematics(#[from] KinematicsError),
+    /// The hexapod controller or the connection to it failed.
+    #[error(transparent)]
+    Drive(#[from] GcsError),
 }
 
 /// A robot the cell commands in its own language: moves of Segment I in {M}.

@@ -4,7 +4,9 @@
 pub mod batch;
 pub mod env;
 pub mod fault;
+pub mod judge;
 pub mod reward;
+pub mod rig;
 pub mod robot;
 
 pub use batch::BatchEnv;

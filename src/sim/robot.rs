@@ -205,10 +205,10 @@ impl<G: Rng> Robot for TwinDrive<'_, G> {
         let target = self.robot.setpoint * p_m * step.as_pose() * p_m.inverse();
         let legs = (self.robot.nominal)
             .inverse_checked(&target)
-            .map_err(RobotError::Fault)?;
+            .map_err(|e| RobotError::Fault(e.into()))?;
         (self.robot)
             .execute(&target, &legs, self.rng)
-            .map_err(RobotError::Fault)
+            .map_err(|e| RobotError::Fault(e.into()))
     }
 
     /// The twin moves only inside `execute`, so between moves it already holds.

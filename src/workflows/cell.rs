@@ -11,6 +11,7 @@ use serde_json::json;
 /// restarts too) until [`reset`].
 pub async fn estop(context: &Context, by: &str) -> Result<()> {
     let running = context.cell.status().current_job;
+    context.cell.stop_now();
     context
         .cell
         .ask(|reply| CellCommand::EStop { reply })

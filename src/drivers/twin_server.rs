@@ -1,0 +1,261 @@
+//! The twin as a cell's hardware on the network: its platform behind a GCS 2.0 controller
+//! ([`TwinController`]) and its camera behind an OpenIGTLink server, for `celld twin-server`.
+//! std TCP and one thread per connection.
+//!
+//! The camera captures when asked (`GET_POINT`) and answers with one POINT message of the
+//! coded points it decoded; with a stream rate it also sends a capture at that rate to every
+//! client. Both sides share one twin, so a capture sees the platform where the last `MOV`
+//! put it.
+
+use super::gcs::twin::{MOTION_STATUS_CHAR, READY_CHAR, STOP_CHAR, TwinController};
+use super::igtl::codec::{Content, HEADER_BYTES, Header, Message, PointElement, Timestamp};
+use crate::camera::{CameraFrame, Fixture};
+use crate::config::cell::CellConfig;
+use crate::sim::InitialConditions;
+use crate::sim::rig::TwinRig;
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+
+/// What `celld twin-server` is asked to be.
+#[derive(Debug, Clone)]
+pub struct TwinServerOptions {
+    pub cell: CellConfig,
+    /// The episode's seed.
+    pub seed: u64,
+    /// Where the GCS controller listens (port 0: any free one).
+    pub gcs: SocketAddr,
+    /// Where the OpenIGTLink camera listens (port 0: any free one).
+    pub igtl: SocketAddr,
+    /// Start referenced with the servos on (as after an integrator's setup), or as after
+    /// power-on.
+    pub ready: bool,
+    /// Captures streamed to each camera client per second (0: only on `GET_POINT`), Hz.
+    pub stream_hz: f64,
+    /// The header version of the POINT messages sent (1 or 2).
+    pub igtl_version: u16,
+}
+
+/// The twin both servers drive.
+struct Twin {
+    rig: TwinRig,
+    controller: TwinController,
+}
+
+type Shared = Arc<Mutex<Twin>>;
+
+fn lock(twin: &Shared) -> std::sync::MutexGuard<'_, Twin> {
+    twin.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The running servers: their addresses. They run until the process ends.
+pub struct TwinServer {
+    pub gcs: SocketAddr,
+    pub igtl: SocketAddr,
+    twin: Shared,
+}
+
+impl TwinServer {
+    /// Starts the episode of `options.seed` and both servers.
+    pub fn start(options: &TwinServerOptions) -> anyhow::Result<TwinServer> {
+        if !(options.stream_hz.is_finite() && options.stream_hz >= 0.0) {
+            anyhow::bail!(
+                "the camera stream rate must be a finite number ≥ 0 Hz, got {}",
+                options.stream_hz
+            );
+        }
+        if !(1..=2).contains(&options.igtl_version) {
+            anyhow::bail!(
+                "the OpenIGTLink header version must be 1 or 2, got {}",
+                options.igtl_version
+            );
+        }
+        let mut rig = TwinRig::new(&options.cell);
+        rig.begin_episode(options.seed, InitialConditions::from_cell(&options.cell))
+            .map_err(|e| anyhow::anyhow!("the episode's initial pose is unreachable: {e}"))?;
+        let controller = TwinController::new(&rig, options.ready);
+        let twin = Arc::new(Mutex::new(Twin { rig, controller }));
+        let gcs = TcpListener::bind(options.gcs)
+            .map_err(|e| anyhow::anyhow!("cannot listen on {} (GCS): {e}", options.gcs))?;
+        let igtl = TcpListener::bind(options.igtl)
+            .map_err(|e| anyhow::anyhow!("cannot listen on {} (OpenIGTLink): {e}", options.igtl))?;
+        let server = TwinServer {
+            gcs: gcs.local_addr()?,
+            igtl: igtl.local_addr()?,
+            twin: twin.clone(),
+        };
+        let shared = twin.clone();
+        spawn("celld-gcs", move || {
+            accept(gcs, shared, |stream, twin| serve_gcs(stream, &twin))
+        });
+        let camera = CameraSide {
+            stream_hz: options.stream_hz,
+            version: options.igtl_version,
+        };
+        spawn("celld-igtl", move || {
+            accept(igtl, twin, move |stream, twin| camera.serve(stream, &twin))
+        });
+        Ok(server)
+    }
+}
+
+impl TwinServer {
+    /// The true pose of {M} in {F} now (the twin's ground truth, which no client can ask for).
+    pub fn true_f_m(&self) -> crate::geometry::Pose {
+        lock(&self.twin).rig.true_f_m()
+    }
+}
+
+fn spawn(name: &str, work: impl FnOnce() + Send + 'static) {
+    std::thread::Builder::new()
+        .name(name.into())
+        .spawn(work)
+        .expect("spawn a twin-server thread");
+}
+
+fn accept(
+    listener: TcpListener,
+    twin: Shared,
+    serve: impl Fn(TcpStream, Shared) + Clone + Send + 'static,
+) {
+    for stream in listener.incoming() {
+        let Ok(stream) = stream else { continue };
+        let _ = stream.set_nodelay(true);
+        let (twin, serve) = (twin.clone(), serve.clone());
+        spawn("celld-twin-conn", move || serve(stream, twin));
+    }
+}
+
+/// One GCS connection: single control characters act at once; other commands end at LF.
+fn serve_gcs(mut stream: TcpStream, twin: &Shared) {
+    let mut line = Vec::with_capacity(128);
+    let mut chunk = [0u8; 1024];
+    loop {
+        let n = match stream.read(&mut chunk) {
+            Ok(0) | Err(_) => return,
+            Ok(n) => n,
+        };
+        for &byte in &chunk[..n] {
+            let answer =
+                if line.is_empty() && matches!(byte, STOP_CHAR | MOTION_STATUS_CHAR | READY_CHAR) {
+                    lock(twin).controller.handle_char(byte)
+                } else if byte == b'\n' {
+                    let text = String::from_utf8_lossy(&line).into_owned();
+                    line.clear();
+                    let mut guard = lock(twin);
+                    let Twin { rig, controller } = &mut *guard;
+                    controller
+                        .handle(text.trim_end_matches('\r'), rig)
+                        .map(String::into_bytes)
+                } else {
+                    line.push(byte);
+                    None
+                };
+            if let Some(answer) = answer
+                && stream.write_all(&answer).is_err()
+            {
+                return;
+            }
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct CameraSide {
+    stream_hz: f64,
+    version: u16,
+}
+
+impl CameraSide {
+    /// One camera connection: answers each `GET_POINT` with a capture; streams captures when
+    /// a rate is set.
+    fn serve(self, stream: TcpStream, twin: &Shared) {
+        let Ok(writer) = stream.try_clone() else {
+            return;
+        };
+        let writer = Arc::new(Mutex::new(writer));
+        if self.stream_hz > 0.0 {
+            let (twin, writer) = (twin.clone(), writer.clone());
+            let period = Duration::from_secs_f64(1.0 / self.stream_hz);
+            spawn("celld-igtl-stream", move || {
+                loop {
+                    std::thread::sleep(period);
+                    if !self.send_capture(&twin, &writer, 0) {
+                        return;
+                    }
+                }
+            });
+        }
+        let mut reader = stream;
+        let mut header = [0u8; HEADER_BYTES];
+        let mut body = Vec::new();
+        loop {
+            if reader.read_exact(&mut header).is_err() {
+                return;
+            }
+            let Ok(parsed) = Header::decode(&header) else {
+                return;
+            };
+            body.resize(parsed.body_size as usize, 0);
+            if reader.read_exact(&mut body).is_err() {
+                return;
+            }
+            let asked = match Message::decode(&parsed, &body) {
+                Ok(Message {
+                    content: Content::Query(kind),
+                    message_id,
+                    ..
+                }) if kind == "GET_POINT" => Some(message_id),
+                _ => None,
+            };
+            if let Some(message_id) = asked
+                && !self.send_capture(twin, &writer, message_id)
+            {
+                return;
+            }
+        }
+    }
+
+    /// Captures and sends one POINT message; false once the client is gone.
+    fn send_capture(&self, twin: &Shared, writer: &Mutex<TcpStream>, message_id: u32) -> bool {
+        let frame = lock(twin).rig.capture().clone();
+        let message = point_message(&frame, self.version, message_id, Timestamp::now());
+        writer
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .write_all(&message.encode())
+            .is_ok()
+    }
+}
+
+/// A capture as a POINT message: group `C1`/`C2`, name the point's index, position in mm.
+pub fn point_message(
+    frame: &CameraFrame,
+    version: u16,
+    message_id: u32,
+    timestamp: Timestamp,
+) -> Message {
+    let points = frame
+        .points
+        .iter()
+        .map(|point| PointElement {
+            name: point.id.to_string(),
+            group: match point.fixture {
+                Fixture::C1 => "C1".into(),
+                Fixture::C2 => "C2".into(),
+            },
+            rgba: [255, 255, 255, 255],
+            position: point.position_mm.coords.map(|v| v as f32).into(),
+            diameter: 0.0,
+            owner: String::new(),
+        })
+        .collect();
+    Message {
+        version,
+        device: "camera".into(),
+        timestamp,
+        message_id,
+        content: Content::Point(points),
+    }
+}

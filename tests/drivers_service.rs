@@ -1,0 +1,156 @@
+//! `celld serve` with the real drivers against `celld twin-server`: a job runs end to end;
+//! the controller going away mid-job, or the camera going silent, repeating a frame or sending
+//! garbage, ends it in a hold with a named reason, keeps every step stored and the service
+//! serving; after a lost controller the robot moves again only after an operator reset.
+
+mod drivers_support;
+mod serve_support;
+
+use drivers_support::{GARBAGE, PASS, REPEAT, SILENT, TwinServer, camera_relay};
+use serde_json::{Value, json};
+use serve_support::Server;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::time::Duration;
+
+fn id(job: &Value) -> i64 {
+    job["id"].as_i64().unwrap()
+}
+
+#[test]
+fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_reset() {
+    let twin = TwinServer::start(&[]);
+    let (gcs_port, igtl_port) = (twin.gcs.port(), twin.igtl.port());
+    let (gcs, igtl) = (gcs_port.to_string(), igtl_port.to_string());
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_ROBOT_DRIVER", "gcs"),
+            ("CELLD_ROBOT_PORT", &gcs),
+            ("CELLD_ROBOT_REHEARSAL", "true"),
+            ("CELLD_CAMERA_DRIVER", "igtl"),
+            ("CELLD_CAMERA_PORT", &igtl),
+            ("CELLD_STEP_PERIOD_MS", "20"),
+            // Generous waits: a loaded test machine must not make a late answer a fault.
+            ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
+            ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
+        ],
+    );
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(cell["backend"], "drivers", "{cell}");
+    let operator = server.token("operator");
+
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 2}));
+    let done = server.wait_final(id(&job));
+    assert_eq!(done["status"], "succeeded", "{done}");
+
+    // The controller goes away mid-job.
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 3}));
+    let steps_path = format!("/api/jobs/{}/steps", id(&job));
+    server.poll(
+        &steps_path,
+        "took 5 steps",
+        Duration::from_secs(60),
+        |body| {
+            body["items"]
+                .as_array()
+                .is_some_and(|items| items.len() >= 5)
+        },
+    );
+    drop(twin);
+    let failed = server.wait_final(id(&job));
+    assert_eq!(failed["status"], "failed", "{failed}");
+    assert_eq!(failed["failure_reason"], "robot_fault", "{failed}");
+    let steps = server.steps(id(&job));
+    assert_eq!(steps.len() as i64, failed["steps"].as_i64().unwrap());
+    let named: Vec<&str> = steps
+        .iter()
+        .filter_map(|step| step["detected"].as_str())
+        .collect();
+    assert!(
+        named
+            .iter()
+            .any(|d| matches!(*d, "controller_dropped" | "controller_timeout")),
+        "{named:?}"
+    );
+
+    // The service keeps serving; a job cannot start until an operator resets the cell.
+    let (status, _) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(status, 200);
+    let refused = server.create_job(&operator, json!({"controller": "expert", "seed": 4}));
+    let refused = server.wait_final(id(&refused));
+    assert_eq!(refused["status"], "failed");
+    let reason = refused["failure_reason"].as_str().unwrap();
+    assert!(reason.contains("operator reset"), "{reason}");
+
+    // The controller is back; still nothing moves until the reset.
+    let _twin = TwinServer::start_on(gcs_port, igtl_port, &[]);
+    let waiting = server.create_job(&operator, json!({"controller": "expert", "seed": 5}));
+    let waiting = server.wait_final(id(&waiting));
+    assert_eq!(waiting["status"], "failed", "{waiting}");
+    assert_eq!(waiting["steps"], 0);
+    let (status, _) = server.post("/api/cell/reset", Some(&operator), None);
+    assert_eq!(status, 200);
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 6}));
+    let done = server.wait_final(id(&job));
+    assert_eq!(done["status"], "succeeded", "{done}");
+}
+
+/// Polls until the job has stored `count` steps.
+fn wait_steps(server: &Server, job: i64, count: usize) {
+    let path = format!("/api/jobs/{job}/steps");
+    server.poll(&path, "took its steps", Duration::from_secs(60), |body| {
+        body["items"]
+            .as_array()
+            .is_some_and(|items| items.len() >= count)
+    });
+}
+
+#[test]
+fn camera_faults_mid_job_end_it_named_with_every_step_stored_and_the_next_job_runs() {
+    let twin = TwinServer::start(&[]);
+    let mode = Arc::new(AtomicU8::new(PASS));
+    let relay = camera_relay(twin.igtl, mode.clone());
+    let (gcs, igtl) = (twin.gcs.port().to_string(), relay.port().to_string());
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_ROBOT_DRIVER", "gcs"),
+            ("CELLD_ROBOT_PORT", &gcs),
+            ("CELLD_ROBOT_REHEARSAL", "true"),
+            ("CELLD_CAMERA_DRIVER", "igtl"),
+            ("CELLD_CAMERA_PORT", &igtl),
+            ("CELLD_STEP_PERIOD_MS", "20"),
+            // Generous waits: a loaded test machine must not make a late answer a fault.
+            ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
+            ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
+        ],
+    );
+    let operator = server.token("operator");
+    for (seed, fault, reason, named) in [
+        (7, REPEAT, "frozen_camera", "frozen_camera"),
+        (8, SILENT, "stale_camera", "camera_silent"),
+        (9, GARBAGE, "stale_camera", "camera_garbage"),
+    ] {
+        mode.store(PASS, Ordering::SeqCst);
+        let job = server.create_job(&operator, json!({"controller": "expert", "seed": seed}));
+        wait_steps(&server, id(&job), 5);
+        mode.store(fault, Ordering::SeqCst);
+        let failed = server.wait_final(id(&job));
+        assert_eq!(failed["status"], "failed", "{failed}");
+        assert_eq!(failed["failure_reason"], reason, "{failed}");
+        let steps = server.steps(id(&job));
+        assert_eq!(steps.len() as i64, failed["steps"].as_i64().unwrap());
+        assert!(
+            steps.iter().any(|step| step["detected"] == named),
+            "{named} in {:?}",
+            steps.iter().map(|s| &s["detected"]).collect::<Vec<_>>()
+        );
+    }
+    mode.store(PASS, Ordering::SeqCst);
+    let job = server.create_job(&operator, json!({"controller": "expert", "seed": 10}));
+    let done = server.wait_final(id(&job));
+    assert_eq!(done["status"], "succeeded", "{done}");
+}
