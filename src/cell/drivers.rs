@@ -13,7 +13,7 @@
 
 use super::backend::{BackendError, CellBackend, EmergencyStop};
 use super::ingestion::Ingestion;
-use crate::camera::ingest::{Detected, Estimate, Ingest, Shot};
+use crate::camera::ingest::{Estimate, Ingest, Shot};
 use crate::camera::{CameraFrame, StateFilter};
 use crate::collision::supervisor::{Supervisor, VetoReason};
 use crate::config::cell::CellConfig;
@@ -354,11 +354,7 @@ fn judge_step(
         episode.errors = judge.errors(f_m);
     }
     let errors = episode.errors;
-    let camera_failure = match estimate.detected {
-        Some(Detected::CameraShift) => Some(FailureReason::CameraShift),
-        Some(Detected::FrozenCamera) => Some(FailureReason::FrozenCamera),
-        _ => None,
-    };
+    let camera_failure = FailureReason::of_camera(estimate.detected);
     let detected = pending.detected.or(estimate.detected.map(|d| d.code()));
     let outcome = if let Some(reason) = pending.failure.or(camera_failure) {
         Some(Outcome::Failure(reason))

@@ -90,6 +90,15 @@ impl FailureReason {
             FailureReason::RobotShort => "robot_short",
         }
     }
+
+    /// The failure a camera fault noticed at a step ends the episode with, if it ends it.
+    pub fn of_camera(detected: Option<Detected>) -> Option<FailureReason> {
+        match detected {
+            Some(Detected::CameraShift) => Some(FailureReason::CameraShift),
+            Some(Detected::FrozenCamera) => Some(FailureReason::FrozenCamera),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -504,11 +513,7 @@ impl AssemblyEnv {
         self.observe(estimate);
         let true_f_m = self.true_f_m();
         let errors = self.pose_errors(&true_f_m);
-        let camera_failure = match estimate.detected {
-            Some(Detected::CameraShift) => Some(FailureReason::CameraShift),
-            Some(Detected::FrozenCamera) => Some(FailureReason::FrozenCamera),
-            _ => None,
-        };
+        let camera_failure = FailureReason::of_camera(estimate.detected);
         let detected = pending.detected.or(estimate.detected.map(|d| d.code()));
         let outcome = if let Some(reason) = pending.failure.or(camera_failure) {
             Some(Outcome::Failure(reason))
@@ -660,32 +665,43 @@ impl AssemblyEnv {
             || errors.tilt_deg > self.cell.episode.workspace_tilt_deg
     }
 
-    /// Draws the initial pose of {M} in {F}: the mouth pose (tip centred on the entrance) moved by
-    /// `offset_mm` in a random direction of the outside half-space and turned by
-    /// `orientation_deg` about a random axis. If that would put the shaft into Segment II, it is
-    /// moved out along the bore axis until its lowest point clears the entrance face by
-    /// `initial_min_clearance_mm`.
     fn sample_initial(&mut self, initial: InitialConditions) -> Pose {
-        let direction = random_unit(&mut self.rng);
-        let offset = Vector3::new(direction.x, direction.y, direction.z.abs()) * initial.offset_mm;
-        let axis = random_unit(&mut self.rng);
-        let rotation =
-            UnitQuaternion::from_scaled_axis(axis * initial.orientation_deg.to_radians());
-        let length = self.parts.shaft_length_mm;
-        let mut f_m = Isometry3::from_parts(
-            Translation3::from(Vector3::new(0.0, 0.0, length) + offset),
-            rotation,
-        );
-        let tip_centre = f_m * Point3::new(0.0, 0.0, -length);
-        let normal = f_m.rotation * Vector3::z();
-        let lowest =
-            tip_centre.z - self.parts.shaft_radius_mm * (1.0 - normal.z * normal.z).max(0.0).sqrt();
-        let needed = self.cell.episode.initial_min_clearance_mm;
-        if lowest < needed {
-            f_m.translation.vector.z += needed - lowest;
-        }
-        f_m
+        sample_initial(
+            &mut self.rng,
+            &self.parts,
+            self.cell.episode.initial_min_clearance_mm,
+            initial,
+        )
     }
+}
+
+/// Draws the initial pose of {M} in {F}: the mouth pose (tip centred on the entrance) moved by
+/// `offset_mm` in a random direction of the outside half-space and turned by `orientation_deg`
+/// about a random axis. If that would put the shaft into Segment II, it is moved out along the
+/// bore axis until its lowest point clears the entrance face by `min_clearance_mm`. The twin
+/// and the twin-server's rig draw their episodes with it.
+pub(crate) fn sample_initial(
+    rng: &mut impl Rng,
+    parts: &PartGeometry,
+    min_clearance_mm: f64,
+    initial: InitialConditions,
+) -> Pose {
+    let direction = random_unit(rng);
+    let offset = Vector3::new(direction.x, direction.y, direction.z.abs()) * initial.offset_mm;
+    let axis = random_unit(rng);
+    let rotation = UnitQuaternion::from_scaled_axis(axis * initial.orientation_deg.to_radians());
+    let length = parts.shaft_length_mm;
+    let mut f_m = Isometry3::from_parts(
+        Translation3::from(Vector3::new(0.0, 0.0, length) + offset),
+        rotation,
+    );
+    let tip_centre = f_m * Point3::new(0.0, 0.0, -length);
+    let normal = f_m.rotation * Vector3::z();
+    let lowest = tip_centre.z - parts.shaft_radius_mm * (1.0 - normal.z * normal.z).max(0.0).sqrt();
+    if lowest < min_clearance_mm {
+        f_m.translation.vector.z += min_clearance_mm - lowest;
+    }
+    f_m
 }
 
 /// A direction drawn uniformly on the unit sphere.

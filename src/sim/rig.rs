@@ -7,14 +7,13 @@
 //! the camera's noise, from one stream. A client that moves and captures in the twin's order
 //! therefore sees the twin's episode.
 
-use super::env::{InitialConditions, random_unit};
+use super::env::InitialConditions;
 use super::robot::TwinRobot;
 use crate::camera::{CameraFrame, SimCamera};
 use crate::collision::clearance::PartGeometry;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -103,25 +102,12 @@ impl TwinRig {
     /// The initial pose of {M} in {F}, drawn as `AssemblyEnv` draws it (the test below holds
     /// the two together).
     fn sample_initial(&mut self, initial: InitialConditions) -> Pose {
-        let direction = random_unit(&mut self.rng);
-        let offset = Vector3::new(direction.x, direction.y, direction.z.abs()) * initial.offset_mm;
-        let axis = random_unit(&mut self.rng);
-        let rotation =
-            UnitQuaternion::from_scaled_axis(axis * initial.orientation_deg.to_radians());
-        let length = self.parts.shaft_length_mm;
-        let mut f_m = Isometry3::from_parts(
-            Translation3::from(Vector3::new(0.0, 0.0, length) + offset),
-            rotation,
-        );
-        let tip_centre = f_m * Point3::new(0.0, 0.0, -length);
-        let normal = f_m.rotation * Vector3::z();
-        let lowest =
-            tip_centre.z - self.parts.shaft_radius_mm * (1.0 - normal.z * normal.z).max(0.0).sqrt();
-        let needed = self.cell.episode.initial_min_clearance_mm;
-        if lowest < needed {
-            f_m.translation.vector.z += needed - lowest;
-        }
-        f_m
+        super::env::sample_initial(
+            &mut self.rng,
+            &self.parts,
+            self.cell.episode.initial_min_clearance_mm,
+            initial,
+        )
     }
 }
 
