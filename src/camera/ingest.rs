@@ -8,7 +8,8 @@ use super::{
 };
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
-use nalgebra::Matrix6;
+use nalgebra::{Matrix6, Vector6};
+use std::collections::VecDeque;
 
 /// What ingestion is given after each move: the capture and what the robot did before it.
 #[derive(Debug, Clone, Default)]
@@ -123,10 +124,11 @@ impl FrameWatch {
     }
 }
 
-/// Weight of the newest frame in [`StaticWatch`]'s trend.
-const STATIC_TREND_WEIGHT: f64 = 0.3;
-/// A trend beyond this many σ of one frame (about 7 σ of the trend's own noise) is a shift.
-const STATIC_TREND_LIMIT: f64 = 3.0;
+/// Frames in [`StaticSegment`]'s recent window, compared as one with the frames before them.
+const STATIC_WINDOW: usize = 8;
+/// The recent window's mean is a shift when its Mahalanobis distance² from the earlier frames'
+/// mean is beyond this: χ² with 6 degrees of freedom exceeds it with probability about 1e-7.
+const STATIC_SHIFT_CHI2: f64 = 40.0;
 /// A frame this many σ off in any component is gross.
 const STATIC_GROSS_SIGMAS: f64 = 6.0;
 
@@ -137,17 +139,24 @@ const STATIC_GROSS_SIGMAS: f64 = 6.0;
 ///
 /// It is also a watch: Segment II's frame as the camera sees it must stay where the episode's
 /// earlier frames put it. A shift beyond the fits' noise is the camera (or the fixture) knocked
-/// out of calibration; the robot's moves cannot explain it.
+/// out of calibration; the robot's moves cannot explain it. The mean of the last
+/// [`STATIC_WINDOW`] frames is compared with the mean of the frames before them, all six
+/// components at once, so a shift of a few σ of one frame is seen within a few frames even when
+/// the camera is noisy.
 #[derive(Debug, Clone, Default)]
 struct StaticSegment {
-    /// The mean of the frames' {F} in {W}.
-    mean: Option<Pose>,
-    frames: f64,
-    /// Sum of the frames' covariances at the data sheet's noise, as motions of {F} in its own
+    /// The first frame's {F} in {W}: the others are small motions ε of it, in its own axes.
+    reference: Option<Pose>,
+    /// The frames before the recent window: the sum of their ε and their count.
+    earlier_sum: Vector6<f64>,
+    earlier: f64,
+    /// The recent window's ε, oldest first.
+    recent: VecDeque<Vector6<f64>>,
+    /// Sum of all frames' covariances at the data sheet's noise, as motions of {F} in its own
     /// axes (`FixtureCovariance::in_frame`): the mean's is this over frames².
     covariance_sum: Matrix6<f64>,
-    /// Exponentially weighted mean of each component's normalised difference from the mean.
-    trend: [f64; 6],
+    /// The current mean of all frames, as a pose.
+    mean: Option<Pose>,
     /// The last frame was gross.
     gross: bool,
 }
@@ -167,25 +176,22 @@ impl StaticSegment {
     /// Takes in one frame of Segment II's {F} in {W}, with its covariance at the data sheet's
     /// noise in {F}'s axes and the camera's variance factor.
     fn take(&mut self, w_f: &Pose, covariance: &Matrix6<f64>, variance_factor: f64) -> StaticFrame {
-        let Some(mean) = self.mean else {
+        let (Some(reference), Some(mean)) = (self.reference, self.mean) else {
             return self.start_from(w_f, covariance);
         };
-        let to_frame = mean.inverse() * *w_f;
-        let dt = to_frame.translation.vector;
-        let dr = to_frame.rotation.scaled_axis();
-        let difference = [dt.x, dt.y, dt.z, dr.x, dr.y, dr.z];
+        let frame = small_motion(&(reference.inverse() * *w_f));
+        let difference = small_motion(&(mean.inverse() * *w_f));
         // The mean's own error adds 1/n of a frame's variance.
-        let inflate = variance_factor * (1.0 + 1.0 / self.frames);
-        let z: [f64; 6] =
-            std::array::from_fn(|i| difference[i] / (covariance[(i, i)] * inflate).sqrt());
+        let inflate = variance_factor * (1.0 + 1.0 / self.frames());
         // One gross frame is left out; two in a row are a shift, unless the mean rests on one
         // frame: then that frame was the odd one, and the mean starts again from this one.
-        if z.iter()
-            .any(|v| v.is_nan() || v.abs() > STATIC_GROSS_SIGMAS)
-        {
+        if (0..6).any(|i| {
+            let z = difference[i] / (covariance[(i, i)] * inflate).sqrt();
+            z.is_nan() || z.abs() > STATIC_GROSS_SIGMAS
+        }) {
             let confirmed = self.gross;
             self.gross = true;
-            if confirmed && self.frames < 2.0 {
+            if confirmed && self.frames() < 2.0 {
                 return self.start_from(w_f, covariance);
             }
             return if confirmed {
@@ -195,23 +201,39 @@ impl StaticSegment {
             };
         }
         self.gross = false;
-        let mut worst = 0.0f64;
-        for (mean, z) in self.trend.iter_mut().zip(z) {
-            *mean = (1.0 - STATIC_TREND_WEIGHT) * *mean + STATIC_TREND_WEIGHT * z;
-            worst = worst.max(mean.abs());
+        self.recent.push_back(frame);
+        if self.recent.len() > STATIC_WINDOW
+            && let Some(oldest) = self.recent.pop_front()
+        {
+            self.earlier_sum += oldest;
+            self.earlier += 1.0;
         }
-        if worst > STATIC_TREND_LIMIT {
+        self.covariance_sum += covariance;
+        if self.shifted(covariance, variance_factor) {
             return StaticFrame::Shifted;
         }
-        self.frames += 1.0;
-        self.covariance_sum += covariance;
-        let w = 1.0 / self.frames;
-        let shift = Pose::from_parts(
-            (dt * w).into(),
-            nalgebra::UnitQuaternion::from_scaled_axis(dr * w),
-        );
-        self.mean = Some(mean * shift);
-        StaticFrame::Taken { shift }
+        let sum = self.earlier_sum + self.recent.iter().sum::<Vector6<f64>>();
+        let new_mean = reference * pose_of(&(sum / self.frames()));
+        self.mean = Some(new_mean);
+        StaticFrame::Taken {
+            shift: mean.inverse() * new_mean,
+        }
+    }
+
+    /// Whether the full recent window's mean is beyond [`STATIC_SHIFT_CHI2`] of the earlier
+    /// frames' mean, for frames of covariance about `covariance` × `variance_factor`.
+    fn shifted(&self, covariance: &Matrix6<f64>, variance_factor: f64) -> bool {
+        if self.recent.len() < STATIC_WINDOW || self.earlier < 1.0 {
+            return false;
+        }
+        let window = STATIC_WINDOW as f64;
+        let recent = self.recent.iter().sum::<Vector6<f64>>() / window;
+        let gap = recent - self.earlier_sum / self.earlier;
+        let spread = covariance * (variance_factor * (1.0 / window + 1.0 / self.earlier));
+        match spread.try_inverse() {
+            Some(inverse) => (gap.transpose() * inverse * gap)[(0, 0)] > STATIC_SHIFT_CHI2,
+            None => false,
+        }
     }
 
     /// The mean starts from this frame (the first, or after an odd first one).
@@ -220,18 +242,38 @@ impl StaticSegment {
             .mean
             .map_or(Pose::identity(), |mean| mean.inverse() * *w_f);
         *self = StaticSegment {
+            reference: Some(*w_f),
             mean: Some(*w_f),
-            frames: 1.0,
+            recent: VecDeque::from([Vector6::zeros()]),
             covariance_sum: *covariance,
             ..StaticSegment::default()
         };
         StaticFrame::Taken { shift }
     }
 
+    /// Frames averaged in.
+    fn frames(&self) -> f64 {
+        self.earlier + self.recent.len() as f64
+    }
+
     /// Covariance of the mean's error at the data sheet's noise, in {F}'s axes.
     fn mean_covariance(&self) -> Matrix6<f64> {
-        self.covariance_sum / (self.frames * self.frames).max(1.0)
+        self.covariance_sum / (self.frames() * self.frames()).max(1.0)
     }
+}
+
+/// A pose near the identity as `(translation mm, rotation vector rad)`.
+fn small_motion(pose: &Pose) -> Vector6<f64> {
+    let (t, r) = (pose.translation.vector, pose.rotation.scaled_axis());
+    Vector6::new(t.x, t.y, t.z, r.x, r.y, r.z)
+}
+
+/// The pose of a small motion `(translation mm, rotation vector rad)`.
+fn pose_of(motion: &Vector6<f64>) -> Pose {
+    Pose::from_parts(
+        motion.fixed_rows::<3>(0).into_owned().into(),
+        nalgebra::UnitQuaternion::from_scaled_axis(motion.fixed_rows::<3>(3).into_owned()),
+    )
 }
 
 fn fixture_index(fixture: super::Fixture) -> usize {
@@ -392,9 +434,19 @@ mod tests {
     /// {C2}'s fit 2 m from the camera with σ 0.01 mm and 1e-4 rad, seen with noise, shifted by
     /// `shift` from frame `onset` on, and grossly off at the frames in `gross`.
     fn watch(shift: &Pose, onset: usize, gross: &[usize], frames: usize) -> Option<usize> {
+        watch_seeded(shift, onset, gross, frames, 4)
+    }
+
+    fn watch_seeded(
+        shift: &Pose,
+        onset: usize,
+        gross: &[usize],
+        frames: usize,
+        seed: u64,
+    ) -> Option<usize> {
         let truth = pose_from_mm_deg(Vector3::new(0.0, -2000.0, 100.0), Vector3::zeros());
         let covariance = Matrix6::from_diagonal(&Vector6::new(1e-4, 1e-4, 1e-4, 1e-8, 1e-8, 1e-8));
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         let mut still = StaticSegment::default();
         for k in 0..frames {
             let n: [f64; 6] = std::array::from_fn(|_| StandardNormal.sample(&mut rng));
@@ -432,6 +484,24 @@ mod tests {
         let nudged = pose_from_mm_deg(Vector3::new(0.0, 0.05, 0.0), Vector3::zeros());
         let seen = watch(&nudged, 50, &[], 100).expect("a 5 σ shift is noticed");
         assert!((50..56).contains(&seen), "{seen}");
+        // 2 σ of a frame in two directions, as a 0.2 mm shift is for a camera four times as
+        // noisy as its data sheet: noticed within the recent window.
+        let faint = pose_from_mm_deg(Vector3::new(0.02, -0.02, 0.0), Vector3::zeros());
+        let seen = watch(&faint, 50, &[], 100).expect("a 2 σ shift is noticed");
+        assert!((50..59).contains(&seen), "{seen}");
+        // No false alarm in a long still run with gross frames now and then, on other seeds.
+        for seed in 10..20 {
+            assert_eq!(
+                watch_seeded(
+                    &still,
+                    usize::MAX,
+                    &[77, 150, 151 + seed as usize],
+                    300,
+                    seed
+                ),
+                None
+            );
+        }
     }
 
     #[test]
