@@ -9,3 +9,21 @@ pub mod gcs;
 pub mod igtl;
 pub mod latency;
 pub mod twin_server;
+
+use std::net::{TcpStream, ToSocketAddrs};
+use std::time::Duration;
+
+/// Opens a TCP connection to `address` (`host:port`) within `timeout_ms`, with Nagle's delay
+/// off (every command and frame is small and wanted at once). The error is the reason in
+/// words; each driver names the address in its own typed error.
+pub(crate) fn connect_tcp(address: &str, timeout_ms: u64) -> Result<TcpStream, String> {
+    let target = address
+        .to_socket_addrs()
+        .map_err(|e| e.to_string())?
+        .next()
+        .ok_or_else(|| "the address resolves to nothing".to_string())?;
+    let stream = TcpStream::connect_timeout(&target, Duration::from_millis(timeout_ms))
+        .map_err(|e| e.to_string())?;
+    stream.set_nodelay(true).map_err(|e| e.to_string())?;
+    Ok(stream)
+}

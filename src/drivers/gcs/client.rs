@@ -4,7 +4,7 @@
 use super::errors::GcsError;
 use super::protocol::answer_complete;
 use std::io::{ErrorKind, Read, Write};
-use std::net::{TcpStream, ToSocketAddrs};
+use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 /// The driver's timing, all in milliseconds.
@@ -64,17 +64,8 @@ impl GcsClient {
             address: address.to_string(),
             reason,
         };
-        let target = address
-            .to_socket_addrs()
-            .map_err(|e| failed(e.to_string()))?
-            .next()
-            .ok_or_else(|| failed("the address resolves to nothing".into()))?;
         let stream =
-            TcpStream::connect_timeout(&target, Duration::from_millis(settings.connect_timeout_ms))
-                .map_err(|e| failed(e.to_string()))?;
-        stream
-            .set_nodelay(true)
-            .map_err(|e| failed(e.to_string()))?;
+            crate::drivers::connect_tcp(address, settings.connect_timeout_ms).map_err(failed)?;
         Ok(GcsClient {
             address: address.to_string(),
             stream,

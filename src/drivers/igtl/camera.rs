@@ -18,7 +18,7 @@ use crate::camera::{CameraFrame, CodedPoint, Fixture};
 use crate::geometry::{CellFrames, Pose};
 use nalgebra::{Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use std::io::{Read, Write};
-use std::net::{TcpStream, ToSocketAddrs};
+use std::net::TcpStream;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
@@ -265,17 +265,8 @@ impl IgtlCamera {
             address: address.to_string(),
             reason,
         };
-        let target = address
-            .to_socket_addrs()
-            .map_err(|e| failed(e.to_string()))?
-            .next()
-            .ok_or_else(|| failed("the address resolves to nothing".into()))?;
         let stream =
-            TcpStream::connect_timeout(&target, Duration::from_millis(settings.connect_timeout_ms))
-                .map_err(|e| failed(e.to_string()))?;
-        stream
-            .set_nodelay(true)
-            .map_err(|e| failed(e.to_string()))?;
+            crate::drivers::connect_tcp(address, settings.connect_timeout_ms).map_err(failed)?;
         let reader = stream.try_clone().map_err(|e| failed(e.to_string()))?;
         let (sender, messages) = mpsc::channel();
         std::thread::Builder::new()
