@@ -19,17 +19,7 @@ use std::sync::atomic::{AtomicU8, Ordering};
 /// its end, and the `detected` of each step.
 fn job_with(fault: u8) -> (JobEnd, Vec<Option<String>>) {
     let cell = CellConfig::reference();
-    let any = "127.0.0.1:0".parse().unwrap();
-    let server = TwinServer::start(&TwinServerOptions {
-        cell: cell.clone(),
-        seed: 0,
-        gcs: any,
-        igtl: any,
-        ready: true,
-        stream_hz: 0.0,
-        igtl_version: 2,
-    })
-    .unwrap();
+    let server = TwinServer::start(&TwinServerOptions::loopback(&cell, 0)).unwrap();
     let mode = Arc::new(AtomicU8::new(PASS));
     let settings = DriverSettings {
         robot_address: server.gcs.to_string(),

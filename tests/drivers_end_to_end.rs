@@ -57,17 +57,7 @@ fn run(spec: &JobSpec, cell: &CellConfig, backend: &mut dyn CellBackend) -> JobE
 
 /// Jobs of seeds 1 to 8 on `cell`, in the twin and through the drivers, held to the tolerance.
 fn compare_on(cell: &CellConfig) {
-    let any = "127.0.0.1:0".parse().unwrap();
-    let server = TwinServer::start(&TwinServerOptions {
-        cell: cell.clone(),
-        seed: 0,
-        gcs: any,
-        igtl: any,
-        ready: true,
-        stream_hz: 0.0,
-        igtl_version: 2,
-    })
-    .unwrap();
+    let server = TwinServer::start(&TwinServerOptions::loopback(cell, 0)).unwrap();
     let settings = DriverSettings {
         robot_address: server.gcs.to_string(),
         // Generous waits: a loaded machine must not make a late answer part of the comparison.

@@ -16,15 +16,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 fn twin_server(ready: bool) -> TwinServer {
-    let any = "127.0.0.1:0".parse().unwrap();
     TwinServer::start(&TwinServerOptions {
-        cell: CellConfig::reference(),
-        seed: 4,
-        gcs: any,
-        igtl: any,
         ready,
-        stream_hz: 0.0,
-        igtl_version: 2,
+        ..TwinServerOptions::loopback(&CellConfig::reference(), 4)
     })
     .unwrap()
 }

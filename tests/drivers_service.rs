@@ -13,18 +13,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::time::Duration;
 
-fn id(job: &Value) -> i64 {
-    job["id"].as_i64().unwrap()
-}
-
-#[test]
-fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_reset() {
-    let twin = TwinServer::start(&[]);
-    let (gcs_port, igtl_port) = (twin.gcs.port(), twin.igtl.port());
+/// `celld serve` in `dir` with the GCS robot and the OpenIGTLink camera on these loopback ports,
+/// rehearsing against `celld twin-server`, at a 20 ms step period.
+fn serve_through_drivers(dir: &std::path::Path, gcs_port: u16, igtl_port: u16) -> Server {
     let (gcs, igtl) = (gcs_port.to_string(), igtl_port.to_string());
-    let dir = tempfile::tempdir().unwrap();
-    let server = Server::start(
-        dir.path(),
+    Server::start(
+        dir,
         &[
             ("CELLD_ROBOT_DRIVER", "gcs"),
             ("CELLD_ROBOT_PORT", &gcs),
@@ -36,7 +30,19 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
             ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
             ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
         ],
-    );
+    )
+}
+
+fn id(job: &Value) -> i64 {
+    job["id"].as_i64().unwrap()
+}
+
+#[test]
+fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_reset() {
+    let twin = TwinServer::start(&[]);
+    let (gcs_port, igtl_port) = (twin.gcs.port(), twin.igtl.port());
+    let dir = tempfile::tempdir().unwrap();
+    let server = serve_through_drivers(dir.path(), gcs_port, igtl_port);
     let (_, cell) = server.get("/api/cell", Some(&server.admin));
     assert_eq!(cell["backend"], "drivers", "{cell}");
     let operator = server.token("operator");
@@ -112,22 +118,8 @@ fn camera_faults_mid_job_end_it_named_with_every_step_stored_and_the_next_job_ru
     let twin = TwinServer::start(&[]);
     let mode = Arc::new(AtomicU8::new(PASS));
     let relay = camera_relay(twin.igtl, mode.clone());
-    let (gcs, igtl) = (twin.gcs.port().to_string(), relay.port().to_string());
     let dir = tempfile::tempdir().unwrap();
-    let server = Server::start(
-        dir.path(),
-        &[
-            ("CELLD_ROBOT_DRIVER", "gcs"),
-            ("CELLD_ROBOT_PORT", &gcs),
-            ("CELLD_ROBOT_REHEARSAL", "true"),
-            ("CELLD_CAMERA_DRIVER", "igtl"),
-            ("CELLD_CAMERA_PORT", &igtl),
-            ("CELLD_STEP_PERIOD_MS", "20"),
-            // Generous waits: a loaded test machine must not make a late answer a fault.
-            ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
-            ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
-        ],
-    );
+    let server = serve_through_drivers(dir.path(), twin.gcs.port(), relay.port());
     let operator = server.token("operator");
     for (seed, fault, reason, named) in [
         (7, REPEAT, "frozen_camera", "frozen_camera"),

@@ -22,7 +22,7 @@ use crate::drivers::igtl::camera::{CameraSettings, IgtlCamera};
 use crate::geometry::{Belief, CellFrames, Move};
 use crate::kinematics::StewartGeometry;
 use crate::robot::{Robot, RobotError, RobotFault, Supervised};
-use crate::sim::env::first_usable_estimate;
+use crate::sim::env::{PendingMove, first_usable_estimate};
 use crate::sim::judge::Judge;
 use crate::sim::reward::{Ending, RewardTracker};
 use crate::sim::{
@@ -42,16 +42,6 @@ pub struct DriverSettings {
     pub rehearsal: bool,
 }
 
-/// What a move did, between `act` and `settle`.
-#[derive(Debug, Clone, Default)]
-struct Pending {
-    executed: Option<Move>,
-    veto: Option<VetoReason>,
-    failure: Option<FailureReason>,
-    commanded_legs_mm: Option<[f64; 6]>,
-    detected: Option<&'static str>,
-}
-
 /// One episode's counters and state.
 struct Episode {
     step: u32,
@@ -61,7 +51,7 @@ struct Episode {
     observation: Observation,
     reward: RewardTracker,
     errors: PoseErrors,
-    pending: Option<Pending>,
+    pending: Option<PendingMove>,
     over: bool,
 }
 
@@ -248,7 +238,7 @@ impl CellBackend for DriverBackend {
         }
         episode.step += 1;
         let episode = self.episode.as_mut().expect("checked above");
-        let mut pending = Pending::default();
+        let mut pending = PendingMove::default();
         let mut robot = Supervised::new(&self.supervisor, &mut self.robot);
         let belief = episode.belief.as_ref().and_then(StateFilter::belief);
         robot.observe(belief.as_ref().map(|b| b as &dyn Belief));
@@ -337,7 +327,7 @@ fn judge_step(
     cell: &CellConfig,
     judge: &Judge,
     episode: &mut Episode,
-    pending: Pending,
+    pending: PendingMove,
     estimate: &Estimate,
     legs_mm: [f64; 6],
 ) -> StepResult {

@@ -41,16 +41,7 @@ impl Samples {
 
 /// Measures the three latencies, `count` samples each (the e-stop's: `count / 10`, at least 1).
 pub fn measure(cell: &CellConfig, count: usize) -> anyhow::Result<Vec<Samples>> {
-    let any: SocketAddr = "127.0.0.1:0".parse()?;
-    let server = TwinServer::start(&TwinServerOptions {
-        cell: cell.clone(),
-        seed: 1,
-        gcs: any,
-        igtl: any,
-        ready: true,
-        stream_hz: 0.0,
-        igtl_version: 2,
-    })?;
+    let server = TwinServer::start(&TwinServerOptions::loopback(cell, 1))?;
     let settings = GcsSettings::default();
     let mut robot = GcsRobot::connect(&server.gcs.to_string(), settings, cell)?;
     let mut round_trip = Vec::with_capacity(count);

@@ -37,6 +37,24 @@ pub struct TwinServerOptions {
     pub igtl_version: u16,
 }
 
+impl TwinServerOptions {
+    /// `cell`'s twin on free loopback ports, drawing episode `seed`: ready (referenced, servos
+    /// on), answering captures on `GET_POINT` only, in header version 2. What the in-process
+    /// uses (`celld latency`, the tests) want.
+    pub fn loopback(cell: &CellConfig, seed: u64) -> Self {
+        let any = SocketAddr::from(([127, 0, 0, 1], 0));
+        TwinServerOptions {
+            cell: cell.clone(),
+            seed,
+            gcs: any,
+            igtl: any,
+            ready: true,
+            stream_hz: 0.0,
+            igtl_version: 2,
+        }
+    }
+}
+
 /// The twin both servers drive.
 struct Twin {
     rig: TwinRig,

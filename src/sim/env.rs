@@ -188,14 +188,15 @@ pub fn first_usable_estimate<E>(
     Ok(estimate)
 }
 
-/// What a move did, between [`AssemblyEnv::act`] and [`AssemblyEnv::settle`].
+/// What a move did, between a backend's `act` and its `settle` (the twin's
+/// [`AssemblyEnv::act`] and [`AssemblyEnv::settle`], and the driver backend's).
 #[derive(Debug, Clone, Default)]
-struct PendingMove {
-    executed: Option<Move>,
-    veto: Option<VetoReason>,
-    failure: Option<FailureReason>,
-    commanded_legs_mm: Option<[f64; 6]>,
-    detected: Option<&'static str>,
+pub(crate) struct PendingMove {
+    pub(crate) executed: Option<Move>,
+    pub(crate) veto: Option<VetoReason>,
+    pub(crate) failure: Option<FailureReason>,
+    pub(crate) commanded_legs_mm: Option<[f64; 6]>,
+    pub(crate) detected: Option<&'static str>,
 }
 
 /// Largest difference (mm) between a leg's reading and its command that counts as arrived:
