@@ -2,6 +2,7 @@
 //! it wraps sees it (openrr arci's pattern for safety limits).
 
 use super::{Robot, RobotError};
+use crate::collision::clearance::clearance;
 use crate::collision::supervisor::{Supervisor, VetoReason};
 use crate::geometry::{Belief, Move, Pose};
 
@@ -36,39 +37,79 @@ impl<'s, R: Robot> Supervised<'s, R> {
     /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
     /// of its half and quarter that it is sure of instead: the cell slows down rather than
     /// holds. If none is, and the move goes deeper along the shaft's axis, its sideways and
-    /// turning part alone, provided its probability of contact is within the bound: the cell
-    /// centres the shaft before it goes on, rather than holding off-centre while the
-    /// controller keeps asking to go in. (A move the supervisor allows only because it leaves
-    /// the cell no nearer the wall is not good enough here: the controller did not ask for it.)
-    /// Answers the move executed; the first refusal when none is allowed.
+    /// turning part alone ([`Supervised::sideways_parts`]), provided its probability of contact
+    /// is within the bound: the cell centres the shaft before it goes on, rather than holding
+    /// off-centre while the controller keeps asking to go in. (A move the supervisor allows
+    /// only because it leaves the cell no nearer the wall is not good enough here: the
+    /// controller did not ask for it, and a controller that searches by its refusals, such as
+    /// `spiral`, would no longer be told.) Answers the move executed; the first refusal when
+    /// none is allowed.
     pub fn execute_cautiously(&mut self, step: &Move) -> Result<Move, RobotError> {
         let setpoint = self.inner.setpoint();
         let mut refusal = None;
-        let shortened = CAUTIOUS_FACTORS.map(|factor| (step.scaled(factor), false));
-        // Deeper is −z of {M}: Segment I's tip leads along −z.
-        let sideways = (step.translation_mm.z < 0.0).then(|| {
-            let mut centring = *step;
-            centring.translation_mm.z = 0.0;
-            (centring, true)
-        });
-        for (candidate, must_be_sure) in shortened.into_iter().chain(sideways) {
+        for factor in CAUTIOUS_FACTORS {
+            let candidate = step.scaled(factor);
             match self.supervisor.check(&setpoint, self.belief, &candidate) {
-                Ok(allowed)
-                    if !must_be_sure || allowed.contact_risk <= self.supervisor.risk_bound() =>
-                {
+                Ok(_) => {
                     self.inner.execute(&candidate)?;
                     return Ok(candidate);
                 }
-                Ok(_) => {}
                 Err(reason @ VetoReason::Uncertain { .. }) => {
                     refusal.get_or_insert(reason);
                 }
                 Err(reason) => return Err(RobotError::Vetoed(refusal.unwrap_or(reason))),
             }
         }
-        Err(RobotError::Vetoed(
-            refusal.expect("the loop ends only after an uncertain refusal"),
-        ))
+        let refusal = refusal.expect("every share was refused as uncertain");
+        // Deeper is −z of {M}: Segment I's tip leads along −z.
+        if step.translation_mm.z < 0.0 {
+            let roomiest = self
+                .sideways_parts(step)
+                .into_iter()
+                .filter(|candidate| {
+                    let allowed = self.supervisor.check(&setpoint, self.belief, candidate);
+                    allowed.is_ok_and(|a| a.contact_risk <= self.supervisor.risk_bound())
+                })
+                .map(|candidate| (candidate, self.clearance_after(&candidate)))
+                .max_by(|a, b| a.1.total_cmp(&b.1));
+            if let Some((centring, _)) = roomiest {
+                self.inner.execute(&centring)?;
+                return Ok(centring);
+            }
+        }
+        Err(RobotError::Vetoed(refusal))
+    }
+
+    /// The sideways and turning part of `step` alone, two ways: as commanded, and as far
+    /// sideways as the whole move would really take Segment I with the calibration drift the
+    /// estimate has learned. A controller that steers against the drift of the move along the
+    /// axis asks for a sideways command that only makes sense with that move; one that does not
+    /// asks for the sideways move it wants. The cell takes whichever leaves more room where it
+    /// ends.
+    /// The clearance (mm) where `step` leaves Segment I, by the estimate (drift included).
+    fn clearance_after(&self, step: &Move) -> f64 {
+        self.belief.map_or(f64::NEG_INFINITY, |belief| {
+            clearance(self.supervisor.parts(), &belief.m_f_after(step).inverse()).min_mm()
+        })
+    }
+
+    /// A move straight along the axis has only the first: the drift alone is no centring the
+    /// controller asked for.
+    fn sideways_parts(&self, step: &Move) -> Vec<Move> {
+        let mut as_commanded = *step;
+        as_commanded.translation_mm.z = 0.0;
+        let mut parts = vec![as_commanded];
+        let asks_sideways = as_commanded.translation_mm != nalgebra::Vector3::zeros()
+            || as_commanded.rotation_deg != nalgebra::Vector3::zeros();
+        if let Some(belief) = self.belief.filter(|_| asks_sideways) {
+            let really = (belief.m_f_after(step) * belief.m_f().inverse()).inverse();
+            let drift = really.translation.vector - step.as_pose().translation.vector;
+            let mut as_drifted = as_commanded;
+            as_drifted.translation_mm.x += drift.x;
+            as_drifted.translation_mm.y += drift.y;
+            parts.push(as_drifted);
+        }
+        parts
     }
 }
 
@@ -203,5 +244,57 @@ mod tests {
             Err(RobotError::Vetoed(_))
         ));
         assert_eq!(recorder.executed, vec![Move::translation(-0.04, 0.0, 0.0)]);
+    }
+
+    /// [`Unsure`] on a robot whose moves along the axis also carry Segment I sideways, by
+    /// `drift_per_mm` along x per mm along z (as the state filter's learned drift does).
+    struct Drifting {
+        unsure: Unsure,
+        drift_per_mm: f64,
+    }
+
+    impl Belief for Drifting {
+        fn m_f(&self) -> Pose {
+            self.unsure.m_f()
+        }
+        fn covariance(&self) -> nalgebra::Matrix6<f64> {
+            self.unsure.covariance()
+        }
+        fn covariance_after(&self, step: &Move) -> nalgebra::Matrix6<f64> {
+            self.unsure.covariance_after(step)
+        }
+        fn m_f_after(&self, step: &Move) -> Pose {
+            let mut after = step.as_pose().inverse() * self.m_f();
+            after.translation.vector.x -= self.drift_per_mm * step.translation_mm.z;
+            after
+        }
+    }
+
+    #[test]
+    fn the_cell_centres_whether_or_not_the_controller_steers_against_the_drift() {
+        let supervisor = Supervisor::new(&CellConfig::reference());
+        // A 4 mm move deeper carries Segment I 0.02 mm towards −x.
+        let belief = Drifting {
+            unsure: Unsure(inserted_off_axis(), 0.004),
+            drift_per_mm: 0.005,
+        };
+        // One controller steers against the drift: −0.02 mm commanded is −0.04 mm done. The
+        // other asks for the sideways move it wants. Both want the shaft back on the axis.
+        for (asked, centring_x) in [
+            (Move::translation(-0.02, 0.0, -4.0), -0.04),
+            (Move::translation(-0.04, 0.0, -4.0), -0.04),
+        ] {
+            let mut recorder = Recorder::default();
+            let mut robot = Supervised::new(&supervisor, &mut recorder);
+            robot.observe(Some(&belief));
+            let executed = robot
+                .execute_cautiously(&asked)
+                .expect("centring is allowed");
+            let done = executed.translation_mm;
+            assert!(
+                (done.x - centring_x).abs() < 1e-9 && done.y == 0.0 && done.z == 0.0,
+                "{asked:?} gave {executed:?}"
+            );
+        }
     }
 }
