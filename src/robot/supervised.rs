@@ -36,7 +36,9 @@ impl<'s, R: Robot> Supervised<'s, R> {
 
     /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
     /// of its half and quarter that it is sure of instead: the cell slows down rather than
-    /// holds. If none is, and the move goes deeper along the shaft's axis, its sideways and
+    /// holds. A move deeper that also steers and would take Segment I under the wall margin
+    /// (`wall_margin`) is shortened the same way: a shorter move carries less of the robot's
+    /// drift. One straight along the axis is refused as it is. If none is, and the move goes deeper along the shaft's axis, its sideways and
     /// turning part alone ([`Supervised::sideways_parts`]), provided its probability of contact
     /// is within the bound: the cell centres the shaft before it goes on, rather than holding
     /// off-centre while the controller keeps asking to go in. (A move the supervisor allows
@@ -47,6 +49,7 @@ impl<'s, R: Robot> Supervised<'s, R> {
     pub fn execute_cautiously(&mut self, step: &Move) -> Result<Move, RobotError> {
         let setpoint = self.inner.setpoint();
         let mut refusal = None;
+        let steers_deeper = step.translation_mm.z < 0.0 && asks_sideways(step);
         for factor in CAUTIOUS_FACTORS {
             let candidate = step.scaled(factor);
             match self.supervisor.check(&setpoint, self.belief, &candidate) {
@@ -57,10 +60,13 @@ impl<'s, R: Robot> Supervised<'s, R> {
                 Err(reason @ VetoReason::Uncertain { .. }) => {
                     refusal.get_or_insert(reason);
                 }
+                Err(reason @ VetoReason::WallMargin { .. }) if steers_deeper => {
+                    refusal.get_or_insert(reason);
+                }
                 Err(reason) => return Err(RobotError::Vetoed(refusal.unwrap_or(reason))),
             }
         }
-        let refusal = refusal.expect("every share was refused as uncertain");
+        let refusal = refusal.expect("every share was refused as uncertain or near the wall");
         // Deeper is −z of {M}: Segment I's tip leads along −z.
         if step.translation_mm.z < 0.0 {
             let roomiest = self
@@ -99,9 +105,7 @@ impl<'s, R: Robot> Supervised<'s, R> {
         let mut as_commanded = *step;
         as_commanded.translation_mm.z = 0.0;
         let mut parts = vec![as_commanded];
-        let asks_sideways = as_commanded.translation_mm != nalgebra::Vector3::zeros()
-            || as_commanded.rotation_deg != nalgebra::Vector3::zeros();
-        if let Some(belief) = self.belief.filter(|_| asks_sideways) {
+        if let Some(belief) = self.belief.filter(|_| asks_sideways(step)) {
             let really = (belief.m_f_after(step) * belief.m_f().inverse()).inverse();
             let drift = really.translation.vector - step.as_pose().translation.vector;
             let mut as_drifted = as_commanded;
@@ -111,6 +115,12 @@ impl<'s, R: Robot> Supervised<'s, R> {
         }
         parts
     }
+}
+
+/// Whether `step` moves Segment I sideways or turns it, beside any move along the axis.
+fn asks_sideways(step: &Move) -> bool {
+    step.translation_mm.xy() != nalgebra::Vector2::zeros()
+        || step.rotation_deg != nalgebra::Vector3::zeros()
 }
 
 /// The shares of a move tried, longest first, when the whole is too uncertain.
@@ -296,5 +306,33 @@ mod tests {
                 "{asked:?} gave {executed:?}"
             );
         }
+    }
+
+    #[test]
+    fn a_steering_move_too_near_the_wall_is_shortened_and_a_straight_one_refused() {
+        let supervisor = Supervisor::new(&CellConfig::reference());
+        // 0.025 mm off the axis (0.025 mm from the wall), well known; 4 mm deeper carries
+        // Segment I 0.008 mm further towards the wall, under the 0.02 mm margin.
+        let belief = Drifting {
+            unsure: Unsure(Isometry3::translation(0.025, 0.0, 30.0).inverse(), 1e-4),
+            drift_per_mm: -0.002,
+        };
+        let mut recorder = Recorder::default();
+        let mut robot = Supervised::new(&supervisor, &mut recorder);
+        robot.observe(Some(&belief));
+        // A move that steers is shortened to a half that stays outside the margin.
+        let steering = Move::translation(-0.001, 0.0, -4.0);
+        assert_eq!(
+            robot.execute_cautiously(&steering),
+            Ok(steering.scaled(0.5))
+        );
+        // A move straight along the axis is refused as it is: a controller that searches by
+        // the supervisor's refusals (`spiral`) is told.
+        let straight = Move::translation(0.0, 0.0, -4.0);
+        assert!(matches!(
+            robot.execute_cautiously(&straight),
+            Err(RobotError::Vetoed(reason)) if reason.code() == "wall_margin"
+        ));
+        assert_eq!(recorder.executed, vec![steering.scaled(0.5)]);
     }
 }
