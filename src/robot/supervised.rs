@@ -35,8 +35,8 @@ impl<'s, R: Robot> Supervised<'s, R> {
     }
 
     /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
-    /// of its half and quarter that it is sure of instead: the cell slows down rather than
-    /// holds. A move deeper that also steers and would take Segment I under the wall margin
+    /// share of it down to a quarter ([`CAUTIOUS_FACTORS`]) that it is sure of instead: the cell
+    /// slows down rather than holds. A move deeper that also steers and would take Segment I under the wall margin
     /// (`wall_margin`) is shortened the same way: a shorter move carries less of the robot's
     /// drift. One straight along the axis is refused as it is. If none is, and the move goes deeper along the shaft's axis, its sideways and
     /// turning part alone ([`Supervised::sideways_parts`]), provided its probability of contact
@@ -123,8 +123,9 @@ fn asks_sideways(step: &Move) -> bool {
         || step.rotation_deg != nalgebra::Vector3::zeros()
 }
 
-/// The shares of a move tried, longest first, when the whole is too uncertain.
-const CAUTIOUS_FACTORS: [f64; 3] = [1.0, 0.5, 0.25];
+/// The shares of a move tried, longest first, when the whole is too uncertain: fine enough
+/// that a refused move still goes most of the way it may.
+const CAUTIOUS_FACTORS: [f64; 6] = [1.0, 0.8, 0.6, 0.45, 0.33, 0.25];
 
 impl<R: Robot> Robot for Supervised<'_, R> {
     fn setpoint(&self) -> Pose {
@@ -320,11 +321,12 @@ mod tests {
         let mut recorder = Recorder::default();
         let mut robot = Supervised::new(&supervisor, &mut recorder);
         robot.observe(Some(&belief));
-        // A move that steers is shortened to a half that stays outside the margin.
+        // A move that steers is shortened to the longest share that stays outside the margin:
+        // 0.8 of it ends 0.0194 mm from the wall, 0.6 of it 0.0208 mm.
         let steering = Move::translation(-0.001, 0.0, -4.0);
         assert_eq!(
             robot.execute_cautiously(&steering),
-            Ok(steering.scaled(0.5))
+            Ok(steering.scaled(0.6))
         );
         // A move straight along the axis is refused as it is: a controller that searches by
         // the supervisor's refusals (`spiral`) is told.
@@ -333,6 +335,6 @@ mod tests {
             robot.execute_cautiously(&straight),
             Err(RobotError::Vetoed(reason)) if reason.code() == "wall_margin"
         ));
-        assert_eq!(recorder.executed, vec![steering.scaled(0.5)]);
+        assert_eq!(recorder.executed, vec![steering.scaled(0.6)]);
     }
 }
