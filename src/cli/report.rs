@@ -7,6 +7,8 @@
 //! - Table 4: success by camera noise level (× the spec's point σ).
 //! - Table 5: avg steps, avg reward and success of every controller on the reference cell.
 //! - Table 6: the same on phi200, without retraining.
+//! - Generalisation: success and avg steps of every controller on phi170, phi200 and the
+//!   [`GENERALISATION_CELLS`], none of them used in training.
 //! - Mismatch: success, avg steps and contacts of every Table 5 controller when the twin departs
 //!   from the cell file: camera noise ×0.5 to ×4, calibration error ×1 to ×3, and each injected
 //!   fault (`sim::fault`).
@@ -157,8 +159,9 @@ pub fn run(args: ReportArgs) -> Result<()> {
         .collect();
     let mismatches = mismatch_conditions();
     let extra = mismatches.iter().filter(|(_, m)| !m.is_none()).count();
+    let unseen = generalisation_cells()?;
     let total = learned_policies.len() * conditions.len()
-        + (builtins.len() + learned_policies.len()) * (2 + extra);
+        + (builtins.len() + learned_policies.len()) * (2 + extra + unseen.len());
     let bar = ProgressBar::new(total as u64);
     bar.set_style(
         ProgressStyle::with_template(
@@ -219,6 +222,19 @@ pub fn run(args: ReportArgs) -> Result<()> {
             "phi200",
         )?);
     }
+    let mut generalisation = Vec::new();
+    for controller in builtins.iter().chain(&learned_policies) {
+        for cell in &unseen {
+            let initial = InitialConditions::from_cell(cell);
+            generalisation.push(evaluate(
+                controller,
+                cell,
+                initial,
+                Mismatch::NONE,
+                &cell.name,
+            )?);
+        }
+    }
     // The twin as the cell file says is Table 5's own evaluation (the same options and seed).
     let mut mismatch = Vec::new();
     for (controller, nominal_cell) in builtins.iter().chain(&learned_policies).zip(&table5) {
@@ -246,6 +262,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         robustness: &robustness,
         table5: &table5,
         table6: &table6,
+        generalisation: &generalisation,
         mismatch: &mismatch,
     };
     let markdown = render(&args, &command, &learned_policies, &tables, &curves);
@@ -260,6 +277,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
             "robustness": robustness,
             "table5": table5,
             "table6": table6,
+            "generalisation": generalisation,
             "mismatch": mismatch,
         }))?,
     )?;
@@ -294,6 +312,35 @@ pub fn run(args: ReportArgs) -> Result<()> {
     }
     println!("report written to {}", args.out.display());
     Ok(())
+}
+
+/// The generalisation table's cells beyond phi170 and phi200, across the range a deployed policy
+/// must cope with: diameter 100–250 mm, radial clearance 0.03–0.1 mm, depth 40–100 mm, 4–16
+/// holes, another robot and another camera placement. No training run uses them.
+const GENERALISATION_CELLS: [(&str, &str); 4] = [
+    (
+        "cells/phi100-deep.toml",
+        include_str!("../../cells/phi100-deep.toml"),
+    ),
+    (
+        "cells/phi250-shallow.toml",
+        include_str!("../../cells/phi250-shallow.toml"),
+    ),
+    (
+        "cells/phi140-robot.toml",
+        include_str!("../../cells/phi140-robot.toml"),
+    ),
+    (
+        "cells/phi210-camera.toml",
+        include_str!("../../cells/phi210-camera.toml"),
+    ),
+];
+
+fn generalisation_cells() -> Result<Vec<CellConfig>> {
+    GENERALISATION_CELLS
+        .iter()
+        .map(|(path, text)| Ok(CellConfig::parse(text, path)?))
+        .collect()
 }
 
 /// Camera noise levels of Table 4, × the spec's point σ.
@@ -421,6 +468,8 @@ struct Tables<'a> {
     robustness: &'a [Cell],
     table5: &'a [Cell],
     table6: &'a [Cell],
+    /// Every Table 5 controller on each of [`GENERALISATION_CELLS`].
+    generalisation: &'a [Cell],
     mismatch: &'a [Cell],
 }
 
@@ -435,6 +484,7 @@ fn render(
         robustness,
         table5,
         table6,
+        generalisation,
         mismatch,
     } = *tables;
     let mut md = String::new();
@@ -517,6 +567,8 @@ fn render(
         }
         let _ = writeln!(md);
     }
+    let all: Vec<&Cell> = table5.iter().chain(table6).chain(generalisation).collect();
+    render_generalisation(&mut md, &all);
     render_mismatch(&mut md, table5, mismatch);
     if !curves.is_empty() {
         let _ = writeln!(md, "## Fig. 7: learning curves\n");
@@ -537,6 +589,57 @@ fn render(
         }
     }
     md
+}
+
+/// The generalisation table: a row per controller, a column per cell (in the order first met).
+fn render_generalisation(md: &mut String, cells: &[&Cell]) {
+    let _ = writeln!(
+        md,
+        "## Generalisation: every method on cells it was not trained on\n"
+    );
+    let _ = writeln!(
+        md,
+        "Each cell: success rate / avg steps (successful episodes), and the commonest failure \
+         when some episodes failed. phi170 is the cell the policies were trained on; the others \
+         differ in diameter, clearance, depth, holes, robot or camera placement (`cells/`).\n"
+    );
+    let mut names: Vec<&str> = Vec::new();
+    let mut controllers: Vec<&str> = Vec::new();
+    for c in cells {
+        if !names.contains(&c.summary.cell.as_str()) {
+            names.push(&c.summary.cell);
+        }
+        if !controllers.contains(&c.controller.as_str()) {
+            controllers.push(&c.controller);
+        }
+    }
+    let _ = writeln!(md, "| method | {} |", names.join(" | "));
+    let _ = writeln!(md, "|---|{}", "---|".repeat(names.len()));
+    for controller in controllers {
+        let row: Vec<String> = names
+            .iter()
+            .map(|name| {
+                cells
+                    .iter()
+                    .find(|c| c.controller == controller && c.summary.cell == *name)
+                    .map_or("-".to_string(), |c| {
+                        let commonest = c.summary.failures.iter().max_by_key(|(_, n)| **n);
+                        match commonest {
+                            Some((reason, _)) => format!(
+                                "{:.3} / {} ({reason})",
+                                c.summary.success_rate,
+                                steps(&c.summary)
+                            ),
+                            None => {
+                                format!("{:.3} / {}", c.summary.success_rate, steps(&c.summary))
+                            }
+                        }
+                    })
+            })
+            .collect();
+        let _ = writeln!(md, "| {controller} | {} |", row.join(" | "));
+    }
+    let _ = writeln!(md);
 }
 
 /// The mismatch table: a row per Table 5 controller, a column per condition.
@@ -583,7 +686,46 @@ fn render_mismatch(md: &mut String, table5: &[Cell], mismatch: &[Cell]) {
 
 #[cfg(test)]
 mod tests {
-    use super::{command_line, mismatch_conditions, shell_quoted};
+    use super::{command_line, generalisation_cells, mismatch_conditions, shell_quoted};
+
+    #[test]
+    fn the_generalisation_cells_span_the_ranges_a_deployed_policy_must_cope_with() {
+        let cells = generalisation_cells().unwrap();
+        let radial_clearance = |c: &assembly_cell::config::cell::CellConfig| {
+            (c.bore.diameter_mm - c.shaft.diameter_mm) / 2.0
+        };
+        for c in &cells {
+            assert!((100.0..=250.0).contains(&c.bore.diameter_mm), "{}", c.name);
+            let clearance = radial_clearance(c);
+            assert!(
+                (0.03 - 1e-9..=0.1 + 1e-9).contains(&clearance),
+                "{}",
+                c.name
+            );
+            assert!((40.0..=100.0).contains(&c.bore.depth_mm), "{}", c.name);
+            assert!((4..=16).contains(&c.bore.holes), "{}", c.name);
+        }
+        let span = |f: &dyn Fn(&assembly_cell::config::cell::CellConfig) -> f64| {
+            let values: Vec<f64> = cells.iter().map(f).collect();
+            (
+                values.iter().cloned().fold(f64::INFINITY, f64::min),
+                values.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            )
+        };
+        // The ends of each range are covered, and the robot and the camera differ too.
+        assert_eq!(span(&|c| c.bore.diameter_mm), (100.0, 250.0));
+        let (least, most) = span(&radial_clearance);
+        assert!((least - 0.03).abs() < 1e-9 && (most - 0.1).abs() < 1e-9);
+        assert_eq!(span(&|c| c.bore.depth_mm), (40.0, 100.0));
+        assert_eq!(span(&|c| f64::from(c.bore.holes)), (4.0, 16.0));
+        let reference = assembly_cell::config::cell::CellConfig::reference();
+        assert!(cells.iter().any(|c| c.robot != reference.robot));
+        assert!(
+            cells
+                .iter()
+                .any(|c| c.camera.position_mm != reference.camera.position_mm)
+        );
+    }
 
     #[test]
     fn a_quoted_argument_reads_back_the_same_through_a_shell() {
