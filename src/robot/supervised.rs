@@ -35,11 +35,13 @@ impl<'s, R: Robot> Supervised<'s, R> {
     }
 
     /// Executes `step`; when the supervisor is not sure enough of it (`uncertain`), the longest
-    /// share of it down to a quarter ([`CAUTIOUS_FACTORS`]) that it is sure of instead: the cell
-    /// slows down rather than holds. A move deeper that also steers and would take Segment I under the wall margin
-    /// (`wall_margin`) is shortened the same way: a shorter move carries less of the robot's
-    /// drift. One straight along the axis is refused as it is. If none is, and the move goes deeper along the shaft's axis, its sideways and
-    /// turning part alone ([`Supervised::sideways_parts`]), provided its probability of contact
+    /// share of it down to a quarter (`CAUTIOUS_FACTORS`) that it is sure of instead: the cell
+    /// slows down rather than holds. A move deeper that also steers and would take Segment I
+    /// under the wall margin (`wall_margin`) is shortened the same way: a shorter move carries
+    /// less of the robot's drift. One straight along the axis is refused as it is.
+    ///
+    /// If no share is allowed and the move goes deeper along the shaft's axis, its sideways and
+    /// turning part alone (`sideways_parts`), provided its probability of contact
     /// is within the bound: the cell centres the shaft before it goes on, rather than holding
     /// off-centre while the controller keeps asking to go in. (A move the supervisor allows
     /// only because it leaves the cell no nearer the wall is not good enough here: the
@@ -86,12 +88,6 @@ impl<'s, R: Robot> Supervised<'s, R> {
         Err(RobotError::Vetoed(refusal))
     }
 
-    /// The sideways and turning part of `step` alone, two ways: as commanded, and as far
-    /// sideways as the whole move would really take Segment I with the calibration drift the
-    /// estimate has learned. A controller that steers against the drift of the move along the
-    /// axis asks for a sideways command that only makes sense with that move; one that does not
-    /// asks for the sideways move it wants. The cell takes whichever leaves more room where it
-    /// ends.
     /// The clearance (mm) where `step` leaves Segment I, by the estimate (drift included).
     fn clearance_after(&self, step: &Move) -> f64 {
         self.belief.map_or(f64::NEG_INFINITY, |belief| {
@@ -99,8 +95,13 @@ impl<'s, R: Robot> Supervised<'s, R> {
         })
     }
 
-    /// A move straight along the axis has only the first: the drift alone is no centring the
-    /// controller asked for.
+    /// The sideways and turning part of `step` alone, two ways: as commanded, and as far
+    /// sideways as the whole move would really take Segment I with the calibration drift the
+    /// estimate has learned. A controller that steers against the drift of the move along the
+    /// axis asks for a sideways command that only makes sense with that move; one that does not
+    /// asks for the sideways move it wants. The cell takes whichever leaves more room where it
+    /// ends. A move straight along the axis has only the first: the drift alone is no centring
+    /// the controller asked for.
     fn sideways_parts(&self, step: &Move) -> Vec<Move> {
         let mut as_commanded = *step;
         as_commanded.translation_mm.z = 0.0;
