@@ -209,14 +209,8 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
 
     // Policies: the bundled policy's first-start evaluation ends before anything else is asked
     // of the registry.
-    let started = std::time::Instant::now();
-    while server.get("/api/policies/1", Some(&server.admin)).1["evaluation"]["status"] != "done" {
-        assert!(
-            started.elapsed() < WAIT,
-            "the first-start evaluation never ended"
-        );
-        std::thread::sleep(std::time::Duration::from_millis(200));
-    }
+    let bundled = server.wait_evaluated(1, WAIT);
+    assert_eq!(bundled["evaluation"]["status"], "done", "{bundled}");
     browser.goto(&format!("{}/#/policies", server.base));
     browser.wait_until("the bundled policy is listed", WAIT, |b| {
         b.exists("tr[data-policy-id='1']")
@@ -248,14 +242,8 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         Some(json!({"episodes": 200})),
     );
     assert_eq!(status, 202, "{evaluation}");
-    let started = std::time::Instant::now();
-    while server.get("/api/policies/2", Some(&server.admin)).1["evaluation"]["status"] != "done" {
-        assert!(
-            started.elapsed() < WAIT,
-            "the evaluation of policy 2 never ended"
-        );
-        std::thread::sleep(std::time::Duration::from_millis(200));
-    }
+    let evaluated = server.wait_evaluated(2, WAIT);
+    assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
     browser.goto(&format!("{}/#/live", server.base));
     browser.goto(&format!("{}/#/policies", server.base));
     browser.wait_until("policy 2 with its evaluation", WAIT, |b| {

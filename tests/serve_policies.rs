@@ -19,15 +19,8 @@ fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value
     )
 }
 
-fn wait_evaluated(server: &Server, id: i64) -> Value {
-    let path = format!("/api/policies/{id}");
-    server.poll(
-        &path,
-        "ended its evaluation",
-        Duration::from_secs(120),
-        |policy| policy["evaluation"]["status"] != "running",
-    )
-}
+/// How long an evaluation may take.
+const EVALUATION: Duration = Duration::from_secs(120);
 
 fn policy_count(server: &Server) -> usize {
     let (_, list) = server.get("/api/policies", Some(&server.admin));
@@ -93,7 +86,7 @@ fn upload_evaluate_activate_and_roll_back() {
     );
     assert_eq!(status, 202, "{evaluation}");
     assert_eq!(evaluation["status"], "running");
-    let evaluated = wait_evaluated(&server, bc_id);
+    let evaluated = server.wait_evaluated(bc_id, EVALUATION);
     let result = &evaluated["evaluation"];
     assert_eq!(result["status"], "done", "{evaluated}");
     assert_eq!(result["episodes"], 10);
@@ -137,7 +130,7 @@ fn upload_evaluate_activate_and_roll_back() {
     assert_eq!(evaluation["noise_scale"], 2.0);
     assert_eq!(evaluation["calibration_scale"], 0.0);
     assert_eq!(evaluation["fault"], "occlusion");
-    let evaluated = wait_evaluated(&server, bc_id);
+    let evaluated = server.wait_evaluated(bc_id, EVALUATION);
     assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
     assert_eq!(evaluated["evaluation"]["fault"], "occlusion");
 
@@ -158,7 +151,7 @@ fn upload_evaluate_activate_and_roll_back() {
     assert!(done["steps"].as_i64().unwrap() > 0, "{done}");
 
     // Activate the bundled one (evaluated at start), then roll back to bc.
-    wait_evaluated(&server, bundled_id);
+    server.wait_evaluated(bundled_id, EVALUATION);
     let (status, swapped) = server.post(
         &format!("/api/policies/{bundled_id}/activate"),
         Some(&admin),
@@ -201,7 +194,7 @@ fn a_flat_td3_policy_uploads_evaluates_and_runs() {
         Some(json!({"episodes": 5, "seed": 3})),
     );
     assert_eq!(status, 202, "{evaluation}");
-    let evaluated = wait_evaluated(&server, id);
+    let evaluated = server.wait_evaluated(id, EVALUATION);
     assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
     let (status, activated) =
         server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);
@@ -246,7 +239,7 @@ fn the_gate_holds_unless_forced_with_a_reason() {
         Some(&admin),
         Some(json!({"episodes": 5})),
     );
-    let evaluated = wait_evaluated(&server, id);
+    let evaluated = server.wait_evaluated(id, EVALUATION);
     assert!(evaluated["evaluation"]["success_rate"].as_f64().unwrap() < 0.95);
     let (status, refused) =
         server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);

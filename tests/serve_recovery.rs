@@ -150,12 +150,7 @@ fn an_evaluation_cut_short_by_a_kill_is_failed_and_the_bundled_policy_evaluated_
             Some("the service stopped during the evaluation".to_string())
         )
     );
-    let evaluated = server.poll(
-        "/api/policies/1",
-        "evaluated again",
-        Duration::from_secs(120),
-        |policy| policy["evaluation"]["status"] != "running",
-    );
+    let evaluated = server.wait_evaluated(1, Duration::from_secs(120));
     let again = &evaluated["evaluation"];
     assert!(again["id"].as_i64().unwrap() > cut_short, "{evaluated}");
     assert_eq!(again["status"], "done", "{evaluated}");

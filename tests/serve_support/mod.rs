@@ -215,6 +215,15 @@ impl Server {
         }
     }
 
+    /// Polls policy `id` until its evaluation is no longer running (up to `limit`); answers
+    /// the policy.
+    pub fn wait_evaluated(&self, id: i64, limit: Duration) -> Value {
+        let path = format!("/api/policies/{id}");
+        self.poll(&path, "ended its evaluation", limit, |policy| {
+            policy["evaluation"]["status"] != "running"
+        })
+    }
+
     /// Polls the job until `done` holds (up to 60 s).
     pub fn wait_job(&self, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
         let path = format!("/api/jobs/{id}");
