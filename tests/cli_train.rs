@@ -133,6 +133,85 @@ fn train_all_makes_a_policy_resumes_and_is_deterministic() {
 }
 
 #[test]
+fn a_run_across_randomised_cells_is_deterministic_and_writes_a_cell_relative_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    let across = [
+        "--inputs",
+        "cell-relative",
+        "--randomise-cells",
+        "--td3-episodes",
+        "2",
+    ];
+    for out in [&a, &b] {
+        let run = train("all", out, &across);
+        assert!(run.status.success(), "{}", stderr(&run));
+    }
+    for name in ["demos.jsonl", "bc-policy.safetensors", "policy.safetensors"] {
+        assert_eq!(
+            std::fs::read(a.join(name)).unwrap(),
+            std::fs::read(b.join(name)).unwrap(),
+            "{name} differs between two randomised runs with one seed"
+        );
+    }
+    // Each episode had a cell of its own: the bore's depth, which the recorded inputs carry
+    // in slot 1, differs from episode to episode and from the reference cell's 60 mm.
+    let depths: std::collections::BTreeSet<String> = demo_lines(&a)
+        .iter()
+        .map(|line| line["state"][1].to_string())
+        .collect();
+    assert!(depths.len() > 5, "{depths:?}");
+    assert!(!depths.contains("60.0"), "{depths:?}");
+    // The policy is a version 2 file that names its inputs, and it runs on another cell.
+    let policy = a.join("policy.safetensors");
+    let file = assembly_cell::policy::file::PolicyFile::from_path(&policy).unwrap();
+    assert_eq!(file.metadata().format_version, "2");
+    assert_eq!(
+        file.metadata().inputs,
+        assembly_cell::policy::inputs::PolicyInputs::CellRelative
+    );
+    let cell = Path::new(env!("CARGO_MANIFEST_DIR")).join("cells/phi140-robot.toml");
+    let eval = celld(&[
+        "eval",
+        "--controller",
+        policy.to_str().unwrap(),
+        "--cell",
+        cell.to_str().unwrap(),
+        "--episodes",
+        "2",
+    ]);
+    assert!(eval.status.success(), "{}", stderr(&eval));
+
+    // Randomised cells need inputs that can tell them apart; the flat baseline reads the
+    // paper's state only.
+    let absolute = train("all", &dir.path().join("c"), &["--randomise-cells"]);
+    assert!(!absolute.status.success());
+    assert!(
+        stderr(&absolute).contains("--randomise-cells needs --inputs cell-relative"),
+        "{}",
+        stderr(&absolute)
+    );
+    let unknown = train("all", &dir.path().join("c"), &["--inputs", "pixels"]);
+    assert!(!unknown.status.success());
+    assert!(
+        stderr(&unknown).contains("--inputs pixels: expected one of absolute, cell-relative"),
+        "{}",
+        stderr(&unknown)
+    );
+    let flat = train(
+        "flat",
+        &dir.path().join("c"),
+        &["--inputs", "cell-relative"],
+    );
+    assert!(!flat.status.success());
+    assert!(
+        stderr(&flat).contains("absolute inputs only"),
+        "{}",
+        stderr(&flat)
+    );
+}
+
+#[test]
 fn bad_training_requests_are_refused_before_any_work() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");

@@ -493,15 +493,30 @@ fn loader_refuses_each_bad_file_with_its_own_message() {
     );
     cases.push(("wrong format", e));
 
-    // The wrong version.
+    // A version this build does not know.
     let mut p = parts();
-    p.set_meta("format_version", Some("2"));
+    p.set_meta("format_version", Some("3"));
     let e = refuse(&p.encode());
     assert_eq!(
         (e.code(), e.subject()),
         ("bad_metadata", Some("format_version"))
     );
     cases.push(("wrong version", e));
+
+    // Version 2 names its inputs, and only the inputs this build can make.
+    let mut p = parts();
+    p.set_meta("format_version", Some("2"));
+    let e = refuse(&p.encode());
+    assert_eq!(
+        (e.code(), e.subject()),
+        ("missing_metadata", Some("inputs"))
+    );
+    cases.push(("version 2 without its inputs", e));
+    p.set_meta("inputs", Some("pixels"));
+    let e = refuse(&p.encode());
+    assert_eq!((e.code(), e.subject()), ("bad_metadata", Some("inputs")));
+    assert!(e.to_string().contains("cell-relative"), "{e}");
+    cases.push(("version 2 with unknown inputs", e));
 
     // A step limit that is not a number, and one that is not positive.
     let mut p = parts();

@@ -210,6 +210,7 @@ impl CellBackend for DriverBackend {
             step: 0,
             measurement_fresh: estimate.fresh,
             last_veto: None,
+            cell: self.cell.shape(),
         };
         self.episode = Some(Episode {
             step: 0,

@@ -48,6 +48,18 @@ pub struct CellConfig {
     pub supervisor: SupervisorConfig,
 }
 
+/// The few numbers of a cell that a policy trained across cells reads beside the pose
+/// (`policy::inputs`): they differ from cell to cell and change what a good move is.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct CellShape {
+    /// How far the shaft goes in: from the tip at the entrance to seated (mm).
+    pub bore_depth_mm: f64,
+    /// Radial clearance between shaft and bore (mm).
+    pub radial_clearance_mm: f64,
+    /// Angular pitch of the connecting holes (deg).
+    pub hole_pitch_deg: f64,
+}
+
 /// Segment I: the shaft the robot carries.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -325,6 +337,20 @@ impl CellConfig {
     /// Angular pitch of the connecting holes, deg.
     pub fn hole_pitch_deg(&self) -> f64 {
         360.0 / f64::from(self.bore.holes)
+    }
+
+    /// What a policy trained across cells needs to know of this one ([`CellShape`]).
+    pub fn shape(&self) -> CellShape {
+        CellShape {
+            bore_depth_mm: self.shaft.engaged_length_mm,
+            radial_clearance_mm: self.radial_clearance_mm(),
+            hole_pitch_deg: self.hole_pitch_deg(),
+        }
+    }
+
+    /// Checks a cell made in code (a randomised training cell) as a file is checked on loading.
+    pub fn check(&self, origin: &str) -> Result<(), CellConfigError> {
+        self.validate(origin)
     }
 
     /// A stable hash of the whole configuration (FNV-1a over its canonical JSON), so stored

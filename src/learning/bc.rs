@@ -10,6 +10,7 @@ use super::dataset::{GoalScales, Normaliser, StepLabels, StepLimits};
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
 use crate::policy::hierarchical::actor_config;
+use crate::policy::inputs::PolicyInputs;
 use crate::policy::mlp::{Mlp, MlpConfig};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{Module, Optimizer, SGD, VarBuilder, VarMap};
@@ -56,6 +57,8 @@ pub struct BcConfig {
     pub insertion_from_pz_mm: f64,
     /// The fixed σ of the goal-centred input normaliser ([`Normaliser::goal_centred`]).
     pub goal_scales: GoalScales,
+    /// What the policy reads (`policy::inputs`).
+    pub inputs: PolicyInputs,
 }
 
 impl BcConfig {
@@ -86,6 +89,7 @@ impl Default for BcConfig {
             insertion_repeat: 20,
             insertion_from_pz_mm: -61.5,
             goal_scales: GoalScales::default(),
+            inputs: PolicyInputs::Absolute,
         }
     }
 }

@@ -27,6 +27,7 @@
 
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
+use crate::policy::inputs::PolicyInputs;
 
 /// Largest scale label.
 const MAX_SCALE: f64 = 0.98;
@@ -71,7 +72,16 @@ impl Normaliser {
     /// fitted mean and σ of A1..A6 and O_z. Fitted over the demonstrations, the σ of P_x, P_y
     /// is millimetres and that of the tilt degrees, so the micrometre and hundredth-of-a-degree
     /// errors that decide insertion would be lost in the actors' first layer.
-    pub fn goal_centred(mut self, scales: GoalScales) -> Self {
+    /// Cell-relative inputs (`policy::inputs`) have the distance from seated in slot 0 and the
+    /// depth below the entrance in slot 8: both are centred (on seated and on the entrance)
+    /// with the depth's σ, the last step before seated and the first into the bore each as
+    /// finely resolved as P_z is in the paper's state. Their sideways error in clearances
+    /// (slots 4, 5) is centred with σ one clearance.
+    pub fn goal_centred(mut self, scales: GoalScales, inputs: PolicyInputs) -> Self {
+        let relative: &[(usize, f64)] = match inputs {
+            PolicyInputs::Absolute => &[],
+            PolicyInputs::CellRelative => &[(0, scales.depth_mm), (4, 1.0), (5, 1.0)],
+        };
         let fixed = [
             (6, scales.lateral_mm),
             (7, scales.lateral_mm),
@@ -79,7 +89,7 @@ impl Normaliser {
             (9, scales.tilt_deg),
             (10, scales.tilt_deg),
         ];
-        for (i, std) in fixed {
+        for (i, std) in fixed.into_iter().chain(relative.iter().copied()) {
             self.mean[i] = 0.0;
             self.std[i] = std;
         }
@@ -257,7 +267,7 @@ mod tests {
             steps: vec![a.clone(), b],
             succeeded: true,
         }]);
-        let norm = fitted.goal_centred(GoalScales::default());
+        let norm = fitted.goal_centred(GoalScales::default(), PolicyInputs::Absolute);
         assert_eq!((norm.mean[0], norm.std[0]), (12.0, 2.0), "A1 as fitted");
         assert_eq!((norm.mean[7], norm.std[7]), (0.0, 0.3));
         assert_eq!((norm.mean[8], norm.std[8]), (0.0, 5.0));
@@ -266,6 +276,16 @@ mod tests {
         // 30 µm of lateral error is 0.1 of an input unit.
         a.state[7] = 0.03;
         assert!((norm.apply(&a.state)[7] - 0.1).abs() < 1e-6);
+        // Cell-relative inputs: slot 0 is the distance from seated, centred like slot 8.
+        let relative = fitted.goal_centred(GoalScales::default(), PolicyInputs::CellRelative);
+        assert_eq!((relative.mean[0], relative.std[0]), (0.0, 5.0));
+        assert_eq!((relative.mean[8], relative.std[8]), (0.0, 5.0));
+        assert_eq!((relative.mean[4], relative.std[5]), (0.0, 1.0));
+        assert_eq!(
+            relative.std[1..4],
+            fitted.std[1..4],
+            "the cell's numbers as fitted"
+        );
     }
 
     #[test]

@@ -17,7 +17,7 @@ use std::io::{BufRead, Write};
 /// reachable from here too, next to the file format.
 pub use crate::policy::record::{
     DEFAULT_DEMONSTRATOR, DEMONSTRATORS, DemoEpisode, DemoStep, DriverFactory, ExecutionNoise,
-    check_demonstrator, demonstrator_seed, record, record_expert, record_with_noise,
+    Recording, check_demonstrator, demonstrator_seed, record, record_expert, record_with,
     relabel_rollouts,
 };
 

@@ -11,6 +11,7 @@ use super::selector::{SelectorConfig, agreement, init_selector, sequences, train
 use crate::config::cell::CellConfig;
 use crate::policy::Actor;
 use crate::policy::file::{PolicyFile, PolicyFileError, PolicyKind, TENSOR_NAMES};
+use crate::policy::inputs::PolicyInputs;
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
 use rand::SeedableRng;
@@ -26,18 +27,13 @@ pub fn step_limits(cell: &CellConfig) -> StepLimits {
     }
 }
 
+/// The input's slot 8 (mm) from which a position step counts as insertion in behaviour
+/// cloning ([`BcConfig::insertion_from_pz_mm`]): the tip 1.5 mm above the entrance.
+pub fn insertion_from_input_mm(cell: &CellConfig, inputs: PolicyInputs) -> f64 {
+    inputs.entrance_input_mm(cell) - 1.5
+}
+
 /// The actor prefix of each actor in a policy file.
-/// P_z (mm) from which a position step counts as insertion in behaviour cloning
-/// ([`BcConfig::insertion_from_pz_mm`]): the tip 1.5 mm above the entrance.
-pub fn insertion_from_pz_mm(cell: &CellConfig) -> f64 {
-    bore_from_pz_mm(cell) - 1.5
-}
-
-/// P_z (mm) with the tip at the entrance of the bore ([`BcConfig::bore_from_pz_mm`]).
-pub fn bore_from_pz_mm(cell: &CellConfig) -> f64 {
-    -cell.shaft.engaged_length_mm
-}
-
 pub fn actor_prefix(actor: Actor) -> &'static str {
     match actor {
         Actor::Position => "pos",
@@ -47,7 +43,7 @@ pub fn actor_prefix(actor: Actor) -> &'static str {
 
 /// The input normaliser of a policy trained on `demos`.
 pub fn fit_normaliser(demos: &[DemoEpisode], config: &BcConfig) -> Normaliser {
-    Normaliser::fit(demos).goal_centred(config.goal_scales)
+    Normaliser::fit(demos).goal_centred(config.goal_scales, config.inputs)
 }
 
 /// The normaliser training uses: `start`'s when fine-tuning a policy (its weights were trained
@@ -236,10 +232,11 @@ pub fn train_lstm(
 }
 
 /// The policy file made of `varmap`'s tensors (all of [`TENSOR_NAMES`]), checked as an upload
-/// is. `provenance` adds metadata keys (command, seed, …).
+/// is, for a network that reads `inputs`. `provenance` adds metadata keys (command, seed, …).
 pub fn policy_file(
     varmap: &VarMap,
     limits: &StepLimits,
+    inputs: PolicyInputs,
     provenance: &BTreeMap<String, String>,
 ) -> Result<PolicyFile, PolicyFileError> {
     let data = varmap.data().lock().expect("var map lock");
@@ -263,6 +260,7 @@ pub fn policy_file(
     }
     let mut metadata = PolicyFile::standard_metadata(limits.position_mm, limits.orientation_deg);
     metadata.extend(provenance.clone());
+    inputs.mark(&mut metadata);
     PolicyFile::new(tensors, metadata)
 }
 
@@ -367,23 +365,35 @@ mod tests {
         .unwrap();
         assert_eq!(report.losses.len(), 2);
         let provenance = BTreeMap::from([("seed".to_string(), "5".to_string())]);
-        let file = policy_file(&varmap, &limits, &provenance).unwrap();
+        let file = policy_file(&varmap, &limits, PolicyInputs::Absolute, &provenance).unwrap();
         assert_eq!((file.hidden_size(), file.actor_width()), (8, 16));
         assert_eq!(file.raw_metadata()["seed"], "5");
         // The normaliser is stored in f32.
         let stored = normaliser_of(&varmap).unwrap();
-        let fitted = Normaliser::fit(&demos).goal_centred(bc.goal_scales);
+        let fitted = Normaliser::fit(&demos).goal_centred(bc.goal_scales, bc.inputs);
         assert_eq!(stored.mean, fitted.mean.map(|v| f64::from(v as f32)));
         assert_eq!(stored.std, fitted.std.map(|v| f64::from(v as f32)));
         // File → bytes → file → vars → file gives the same bytes.
         let reread = PolicyFile::from_bytes(&file.to_bytes()).unwrap();
-        let again = policy_file(&vars_of(&reread).unwrap(), &limits, &provenance).unwrap();
+        let again = policy_file(
+            &vars_of(&reread).unwrap(),
+            &limits,
+            PolicyInputs::Absolute,
+            &provenance,
+        )
+        .unwrap();
         assert_eq!(again.to_bytes(), file.to_bytes());
         // Checkpoint round trip.
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("stage.safetensors");
         save_vars(&varmap, &path).unwrap();
-        let loaded = policy_file(&load_vars(&path).unwrap(), &limits, &provenance).unwrap();
+        let loaded = policy_file(
+            &load_vars(&path).unwrap(),
+            &limits,
+            PolicyInputs::Absolute,
+            &provenance,
+        )
+        .unwrap();
         assert_eq!(loaded.to_bytes(), file.to_bytes());
         HierarchicalPolicy::from_file(&file).unwrap();
     }
@@ -455,7 +465,8 @@ mod tests {
             position_mm: 5.0,
             orientation_deg: 1.0,
         };
-        let error = policy_file(&varmap, &limits, &BTreeMap::new()).unwrap_err();
+        let error =
+            policy_file(&varmap, &limits, PolicyInputs::Absolute, &BTreeMap::new()).unwrap_err();
         assert!(error.to_string().contains("high.lstm"), "{error}");
     }
 }

@@ -17,6 +17,8 @@ use crate::config::cell::CellConfig;
 use crate::policy::Actor;
 use crate::policy::eval::{self, EvalSummary, episode_seed};
 use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig, holds_depth_after};
+use crate::policy::inputs::PolicyInputs;
+use crate::sim::randomise::{CellRanges, randomised};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome, RewardTerms};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
@@ -45,6 +47,11 @@ pub struct RefineConfig {
     pub eval_episodes: usize,
     /// Seed of the validation episodes.
     pub eval_seed: u64,
+    /// What the policy reads (`policy::inputs`): the BC stage's choice, kept.
+    pub inputs: PolicyInputs,
+    /// Each training episode on a cell of its own, drawn around the given one (domain
+    /// randomisation); validation stays on the given cell.
+    pub randomise: Option<CellRanges>,
 }
 
 impl Default for RefineConfig {
@@ -61,6 +68,8 @@ impl Default for RefineConfig {
             eval_every: 50,
             eval_episodes: 200,
             eval_seed: 0x7A11_DA7E,
+            inputs: PolicyInputs::Absolute,
+            randomise: None,
         }
     }
 }
@@ -152,6 +161,7 @@ impl Refinement {
                 actor_width: dim("pos.0.weight", 0)?,
                 step_limit_mm: cell.steps.position_mm,
                 step_limit_deg: cell.steps.orientation_deg,
+                inputs: config.inputs,
             }
         };
         let mut agents = Vec::with_capacity(2);
@@ -251,6 +261,10 @@ impl Refinement {
         let normaliser = normaliser_of(&self.policy_vars)?;
         let mut policy = self.policy()?;
         let seed = episode_seed(self.seed ^ 0x7D3, self.episode);
+        if let Some(ranges) = &self.config.randomise {
+            let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
+            self.env = AssemblyEnv::new(&drawn, mismatch);
+        }
         let mut observation = self
             .env
             .reset(seed)
@@ -262,11 +276,12 @@ impl Refinement {
         let (success, steps) = loop {
             let mut action = [0.0f64; 6];
             if observation.measurement_fresh {
-                let x = normaliser.apply(&observation.state);
+                let inputs = self.config.inputs.of(&observation);
+                let x = normaliser.apply(&inputs);
                 if let Some((actor, s, a, r)) = pending.take() {
                     self.buffers[agent_index(actor)].push(transition(s, a, r, x, false));
                 }
-                let out = policy.step(&observation.state)?;
+                let out = policy.step(&inputs)?;
                 if !out.is_finite() {
                     candle_core::bail!(
                         "the policy's output is not finite at episode {}",
@@ -308,7 +323,7 @@ impl Refinement {
             }
             if let Some(outcome) = result.outcome {
                 if let Some((actor, s, a, r)) = pending.take() {
-                    let x = normaliser.apply(&result.observation.state);
+                    let x = normaliser.apply(&self.config.inputs.of(&result.observation));
                     self.buffers[agent_index(actor)].push(transition(s, a, r, x, true));
                 }
                 break (outcome == Outcome::Success, self.env.steps());

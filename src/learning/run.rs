@@ -11,6 +11,7 @@ use super::selector::SelectorConfig;
 use crate::config::cell::CellConfig;
 use crate::policy::Actor;
 use crate::policy::file::PolicyFile;
+use crate::policy::inputs::PolicyInputs;
 use crate::sim::EnvOptions;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
@@ -222,8 +223,8 @@ pub fn run(
         learning_rate: settings.bc_learning_rate,
         bore_lateral_weight: settings.bc_bore_lateral_weight,
         seed: settings.seed,
-        insertion_from_pz_mm: pipeline::insertion_from_pz_mm(cell),
-        bore_from_pz_mm: pipeline::bore_from_pz_mm(cell),
+        insertion_from_pz_mm: pipeline::insertion_from_input_mm(cell, PolicyInputs::Absolute),
+        bore_from_pz_mm: PolicyInputs::Absolute.entrance_input_mm(cell),
         ..BcConfig::default()
     };
     let varmap = pipeline::behaviour_clone(
@@ -294,8 +295,9 @@ pub fn run(
         ])
     };
     if settings.part == TrainingPart::Bc {
-        let file = pipeline::policy_file(&varmap, &limits, &provenance("bc"))
-            .map_err(|e| RunError::Training(e.to_string()))?;
+        let file =
+            pipeline::policy_file(&varmap, &limits, PolicyInputs::Absolute, &provenance("bc"))
+                .map_err(|e| RunError::Training(e.to_string()))?;
         return Ok((file, figures));
     }
 
@@ -338,7 +340,12 @@ pub fn run(
     figures["validations"] = json!(refinement.validations());
     let (best, vars) = refinement.best();
     figures["best_validation"] = json!(best);
-    let file = pipeline::policy_file(vars, &limits, &provenance("hierarchical"))
-        .map_err(|e| RunError::Training(e.to_string()))?;
+    let file = pipeline::policy_file(
+        vars,
+        &limits,
+        PolicyInputs::Absolute,
+        &provenance("hierarchical"),
+    )
+    .map_err(|e| RunError::Training(e.to_string()))?;
     Ok((file, figures))
 }

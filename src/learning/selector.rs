@@ -233,6 +233,7 @@ mod tests {
     use crate::config::cell::CellConfig;
     use crate::learning::dataset::GoalScales;
     use crate::learning::demos::{DEFAULT_DEMONSTRATOR, record};
+    use crate::policy::inputs::PolicyInputs;
     use crate::sim::EnvOptions;
 
     #[test]
@@ -242,7 +243,8 @@ mod tests {
         let options = EnvOptions::from_cell(&cell);
         let train = record(&cell, options, DEFAULT_DEMONSTRATOR, 128, 11);
         let held_out = record(&cell, options, DEFAULT_DEMONSTRATOR, 16, 12);
-        let normaliser = Normaliser::fit(&train).goal_centred(GoalScales::default());
+        let normaliser =
+            Normaliser::fit(&train).goal_centred(GoalScales::default(), PolicyInputs::Absolute);
         let limits = StepLimits {
             position_mm: 5.0,
             orientation_deg: 1.0,

@@ -819,6 +819,7 @@ mod tests {
             step,
             measurement_fresh: fresh,
             last_veto: None,
+            cell: CellConfig::reference().shape(),
         }
     }
 

@@ -13,6 +13,7 @@
 //! ([`super::flat::FlatPolicyFile`]), which differs only in its `format`, its tensors and their
 //! shapes ([`PolicyKind`]).
 
+use super::inputs::PolicyInputs;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
@@ -25,8 +26,10 @@ pub(crate) use checks::{
 
 /// `__metadata__["format"]` of every hierarchical policy file.
 pub const FORMAT: &str = "assembly-cell/hierarchical-policy";
-/// `__metadata__["format_version"]` this build reads and writes (both kinds of policy file).
-pub const FORMAT_VERSION: &str = "1";
+/// The newest `__metadata__["format_version"]` this build reads and writes (both kinds of
+/// policy file): version 2 names its inputs (`super::inputs`); version 1, the paper's state,
+/// still loads and runs.
+pub const FORMAT_VERSION: &str = "2";
 /// Size of the state the policy reads (docs/design.md §5).
 pub const STATE_DIM: usize = 12;
 /// Outputs of the high-level head: ω1, ω2, ω3.
@@ -220,6 +223,8 @@ impl PolicyFileError {
 pub struct PolicyMetadata {
     pub format: String,
     pub format_version: String,
+    /// What the network reads (version 1: the paper's state).
+    pub inputs: PolicyInputs,
     /// Step limit the position actor's output is scaled by (mm).
     pub step_limit_mm: f64,
     /// Step limit the orientation actor's output is scaled by (deg).
@@ -508,6 +513,24 @@ mod tests {
         assert_eq!(back.metadata().extra["trained_on"], "phi170");
         assert_eq!(back.step_limit_mm(), 5.0);
         assert_eq!(back.to_bytes(), bytes);
+        assert_eq!(back.metadata().inputs, PolicyInputs::Absolute);
+        assert_eq!(back.metadata().format_version, "1");
+    }
+
+    #[test]
+    fn a_cell_relative_policy_is_a_version_2_file_that_names_its_inputs() {
+        let mut meta = PolicyFile::standard_metadata(5.0, 1.0);
+        PolicyInputs::CellRelative.mark(&mut meta);
+        let p = PolicyFile::new(tiny(4, 8), meta).unwrap();
+        let back = PolicyFile::from_bytes(&p.to_bytes()).unwrap();
+        assert_eq!(back.metadata().format_version, "2");
+        assert_eq!(back.metadata().inputs, PolicyInputs::CellRelative);
+        assert!(!back.metadata().extra.contains_key("inputs"));
+        // A version 1 file with an `inputs` key reads the paper's state, as version 1 says.
+        let mut meta = PolicyFile::standard_metadata(5.0, 1.0);
+        meta.insert("inputs".into(), "cell-relative".into());
+        let p = PolicyFile::new(tiny(4, 8), meta).unwrap();
+        assert_eq!(p.metadata().inputs, PolicyInputs::Absolute);
     }
 
     #[test]

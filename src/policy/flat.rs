@@ -27,6 +27,7 @@
 use super::file::{
     self, Checked, PolicyFileError, PolicyKind, PolicyMetadata, PolicyTensor, STATE_DIM,
 };
+use super::inputs::PolicyInputs;
 use super::mlp::{MlpConfig, PlainMlp};
 use super::{Controller, Decision};
 use crate::geometry::Move;
@@ -211,6 +212,8 @@ pub struct FlatPolicy {
     obs_std: [f64; 12],
     step_limit_mm: f64,
     step_limit_deg: f64,
+    /// What the network reads (`super::inputs`).
+    inputs: PolicyInputs,
     /// Working memory: the two hidden layers.
     s1: Vec<f32>,
     s2: Vec<f32>,
@@ -236,6 +239,7 @@ impl FlatPolicy {
             obs_std: array("obs_std"),
             step_limit_mm: file.step_limit_mm(),
             step_limit_deg: file.step_limit_deg(),
+            inputs: file.metadata.inputs,
             s1: vec![0.0; d],
             s2: vec![0.0; d],
         }
@@ -319,7 +323,7 @@ impl Controller for FlatPolicy {
         if !observation.measurement_fresh {
             return Decision::hold();
         }
-        match self.step(&observation.state) {
+        match self.step(&self.inputs.of(observation)) {
             Ok(action) => Decision::plain(Move::from_array(action)),
             Err(_) => Decision::hold(),
         }
@@ -537,7 +541,7 @@ mod tests {
             "{e}"
         );
         let mut m = meta();
-        m.insert("format_version".into(), "2".into());
+        m.insert("format_version".into(), "3".into());
         let e = FlatPolicyFile::from_bytes(&raw(&parts(), &m)).unwrap_err();
         assert_eq!(
             (e.code(), e.subject()),

@@ -28,6 +28,7 @@
 //! ([`holds_depth_after`]). `celld policy run` prints the forward pass alone.
 
 use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
+use super::inputs::PolicyInputs;
 use super::mlp::{Mlp, MlpConfig};
 use super::{Actor, Controller, Decision};
 use crate::collision::supervisor::VetoReason;
@@ -80,6 +81,8 @@ pub struct PolicyConfig {
     pub step_limit_mm: f64,
     /// The orientation actor's output is scaled by this (deg) × scale.
     pub step_limit_deg: f64,
+    /// What the network reads (`super::inputs`).
+    pub inputs: PolicyInputs,
 }
 
 impl PolicyConfig {
@@ -90,6 +93,7 @@ impl PolicyConfig {
             actor_width: file.actor_width(),
             step_limit_mm: file.step_limit_mm(),
             step_limit_deg: file.step_limit_deg(),
+            inputs: file.metadata().inputs,
         }
     }
 }
@@ -564,7 +568,8 @@ impl Controller for HierarchicalPolicy {
         if !observation.measurement_fresh {
             return Decision::hold();
         }
-        match self.step(&observation.state) {
+        let inputs = self.config().inputs.of(observation);
+        match self.step(&inputs) {
             Ok(out) if out.is_finite() => {
                 let mut action = out.to_move();
                 if holds_depth_after(observation.last_veto.as_ref()) {

@@ -9,6 +9,7 @@ pub mod expert;
 pub mod file;
 pub mod flat;
 pub mod hierarchical;
+pub mod inputs;
 pub mod learned;
 pub mod mlp;
 pub mod record;

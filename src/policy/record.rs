@@ -4,8 +4,10 @@
 //! JSON Lines; the DA-DMP baseline ([`super::dmp`]) is fitted to them.
 
 use super::eval::episode_seed;
+use super::inputs::PolicyInputs;
 use super::{Actor, Controller};
 use crate::config::cell::CellConfig;
+use crate::sim::randomise::{CellRanges, randomised};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -72,13 +74,13 @@ pub fn record(
     episodes: usize,
     seed: u64,
 ) -> Vec<DemoEpisode> {
-    record_with_noise(
+    record_with(
         cell,
         options,
         demonstrator,
         episodes,
         seed,
-        ExecutionNoise::default(),
+        Recording::default(),
     )
 }
 
@@ -91,16 +93,29 @@ pub struct ExecutionNoise {
     pub lateral_mm: f64,
 }
 
-/// [`record`], with `noise` on what is executed (not on what is recorded).
-pub fn record_with_noise(
+/// How a recording is made beyond its cell and demonstrator.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Recording {
+    /// Noise on what is executed (not on what is recorded); none in DAgger's episodes, where
+    /// the driver's moves are executed.
+    pub noise: ExecutionNoise,
+    /// What each step's `state` holds: the numbers a policy with these inputs reads.
+    pub inputs: PolicyInputs,
+    /// Each episode on a cell of its own, drawn around the given one over these ranges
+    /// (domain randomisation); none: every episode on the given cell.
+    pub randomise: Option<CellRanges>,
+}
+
+/// [`record`], made as `recording` says.
+pub fn record_with(
     cell: &CellConfig,
     options: EnvOptions,
     demonstrator: &str,
     episodes: usize,
     seed: u64,
-    noise: ExecutionNoise,
+    recording: Recording,
 ) -> Vec<DemoEpisode> {
-    record_driven(cell, options, demonstrator, episodes, seed, noise, None)
+    record_driven(cell, options, demonstrator, episodes, seed, recording, None)
 }
 
 /// Makes a fresh copy of the controller that drives DAgger's episodes (one per thread).
@@ -119,15 +134,15 @@ pub fn relabel_rollouts(
     driver: DriverFactory,
     episodes: usize,
     seed: u64,
+    recording: Recording,
 ) -> Vec<DemoEpisode> {
-    let none = ExecutionNoise::default();
     record_driven(
         cell,
         options,
         demonstrator,
         episodes,
         seed,
-        none,
+        recording,
         Some(driver),
     )
 }
@@ -138,32 +153,41 @@ pub fn demonstrator_seed(episode_seed: u64) -> u64 {
 }
 
 /// Runs the episodes, recording the demonstrator's decision on every state; what is executed
-/// is the driver's decision if there is one, else the demonstrator's with `noise`.
+/// is the driver's decision if there is one, else the demonstrator's with the recording's
+/// noise.
 fn record_driven(
     cell: &CellConfig,
     options: EnvOptions,
     demonstrator: &str,
     episodes: usize,
     seed: u64,
-    noise: ExecutionNoise,
+    recording: Recording,
     driver: Option<DriverFactory>,
 ) -> Vec<DemoEpisode> {
     assert!(
         DEMONSTRATORS.contains(&demonstrator),
         "unknown demonstrator {demonstrator}"
     );
+    let noise = recording.noise;
+    let demonstrator_for =
+        |cell: &CellConfig| super::builtin(demonstrator, cell).expect("a demonstrator is built in");
     (0..episodes)
         .into_par_iter()
         .map_init(
             || {
                 (
                     AssemblyEnv::new(cell, options),
-                    super::builtin(demonstrator, cell).expect("a demonstrator is built in"),
+                    demonstrator_for(cell),
                     driver.map(|make| make()),
                 )
             },
             |(env, expert, driver), index| {
                 let seed = episode_seed(seed, index);
+                if let Some(ranges) = &recording.randomise {
+                    let (drawn, mismatch) = randomised(cell, &options, ranges, seed);
+                    *env = AssemblyEnv::new(&drawn, mismatch);
+                    *expert = demonstrator_for(&drawn);
+                }
                 expert.reset(demonstrator_seed(seed));
                 if let Some(driver) = driver {
                     driver.reset(seed);
@@ -182,7 +206,7 @@ fn record_driven(
                         steps.push(DemoStep {
                             episode: index as u32,
                             step: observation.step,
-                            state: observation.state,
+                            state: recording.inputs.of(&observation),
                             action: decision.action.to_array(),
                             actor,
                             scale,
@@ -193,6 +217,7 @@ fn record_driven(
                         None => decision.action,
                     };
                     if noise.lateral_mm > 0.0
+                        && driver.is_none()
                         && decision.actor == Some(Actor::Position)
                         && executed.translation_mm != nalgebra::Vector3::zeros()
                     {
@@ -264,11 +289,14 @@ mod tests {
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
         let plain = record(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4);
-        let none = ExecutionNoise::default();
-        let same = record_with_noise(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4, none);
+        let none = Recording::default();
+        let same = record_with(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4, none);
         assert_eq!(plain, same, "no noise is the plain recording");
-        let noise = ExecutionNoise { lateral_mm: 0.05 };
-        let noisy = record_with_noise(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4, noise);
+        let noise = Recording {
+            noise: ExecutionNoise { lateral_mm: 0.05 },
+            ..Recording::default()
+        };
+        let noisy = record_with(&cell, options, DEFAULT_DEMONSTRATOR, 2, 4, noise);
         for (clean, noisy) in plain.iter().zip(&noisy) {
             // The first state is seen before anything is executed: the same state, the same
             // label. From there on the executed moves differ, and so do the states.
@@ -331,7 +359,15 @@ mod tests {
             let demonstrator = policy::builtin(DEFAULT_DEMONSTRATOR, &cell).unwrap();
             Box::new(AsDemonstrator(demonstrator)) as Box<dyn Controller>
         };
-        let relabelled = relabel_rollouts(&cell, options, DEFAULT_DEMONSTRATOR, &make, 3, 8);
+        let relabelled = relabel_rollouts(
+            &cell,
+            options,
+            DEFAULT_DEMONSTRATOR,
+            &make,
+            3,
+            8,
+            Recording::default(),
+        );
         assert_eq!(
             relabelled,
             record(&cell, options, DEFAULT_DEMONSTRATOR, 3, 8)
@@ -343,7 +379,15 @@ mod tests {
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
         let make = || policy::builtin("visual-servo", &cell).unwrap();
-        let relabelled = relabel_rollouts(&cell, options, DEFAULT_DEMONSTRATOR, &make, 2, 8);
+        let relabelled = relabel_rollouts(
+            &cell,
+            options,
+            DEFAULT_DEMONSTRATOR,
+            &make,
+            2,
+            8,
+            Recording::default(),
+        );
         let plain = record(&cell, options, DEFAULT_DEMONSTRATOR, 2, 8);
         for (index, episode) in relabelled.iter().enumerate() {
             let seed = episode_seed(8, index);

@@ -21,7 +21,7 @@ use crate::camera::{FusionTuning, SimCamera, StateFilter};
 use crate::collision::clearance::PartGeometry;
 use crate::collision::obb::Obb;
 use crate::collision::supervisor::{Supervisor, VetoReason, swept_clearance};
-use crate::config::cell::CellConfig;
+use crate::config::cell::{CellConfig, CellShape};
 use crate::geometry::{Belief, CellFrames, Move, Pose, pose};
 use crate::kinematics::KinematicsError;
 use crate::robot::{RobotError, Supervised};
@@ -123,6 +123,8 @@ pub struct Observation {
     pub measurement_fresh: bool,
     /// The supervisor's veto of the previous move, if it was vetoed (a "collision warning").
     pub last_veto: Option<VetoReason>,
+    /// The cell's depth, clearance and hole pitch (what a policy trained across cells reads).
+    pub cell: CellShape,
 }
 
 /// True pose errors of Segment I against the goal (only the twin knows them).
@@ -307,6 +309,7 @@ impl AssemblyEnv {
                 step: 0,
                 measurement_fresh: false,
                 last_veto: None,
+                cell: cell.shape(),
             },
             reward: None,
             outcome: Some(Outcome::Failure(FailureReason::StepLimit)),

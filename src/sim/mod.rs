@@ -5,6 +5,7 @@ pub mod batch;
 pub mod env;
 pub mod fault;
 pub mod judge;
+pub mod randomise;
 pub mod reward;
 pub mod rig;
 pub mod robot;

@@ -37,15 +37,13 @@ impl Run {
                         "recording {} demonstrations of {}…",
                         self.args.demos, self.args.demonstrator
                     );
-                    let recorded = demos::record_with_noise(
+                    let recorded = demos::record_with(
                         &self.cell,
                         self.options,
                         &self.args.demonstrator,
                         self.args.demos,
                         self.args.seed,
-                        demos::ExecutionNoise {
-                            lateral_mm: self.args.demo_lateral_noise_mm,
-                        },
+                        self.recording(),
                     );
                     let succeeded = |e: &[DemoEpisode]| e.iter().filter(|e| e.succeeded).count();
                     let mut figures =
@@ -102,6 +100,7 @@ impl Run {
             &make,
             self.args.dagger_episodes,
             episode_seed(self.args.seed ^ DAGGER_SEED_SALT, round),
+            self.recording(),
         )
     }
 
@@ -116,14 +115,15 @@ impl Run {
             seed: self.args.seed,
             lateral_weight: self.args.bc_lateral_weight,
             bore_lateral_weight: self.args.bc_bore_lateral_weight,
-            bore_from_pz_mm: pipeline::bore_from_pz_mm(&self.cell),
+            bore_from_pz_mm: self.inputs.entrance_input_mm(&self.cell),
             insertion_repeat: self.args.bc_insertion_repeat,
-            insertion_from_pz_mm: pipeline::insertion_from_pz_mm(&self.cell),
+            insertion_from_pz_mm: pipeline::insertion_from_input_mm(&self.cell, self.inputs),
             goal_scales: GoalScales {
                 lateral_mm: self.args.norm_lateral_std_mm,
                 depth_mm: self.args.norm_depth_std_mm,
                 tilt_deg: self.args.norm_tilt_std_deg,
             },
+            inputs: self.inputs,
         }
     }
 
@@ -273,7 +273,8 @@ impl Run {
     fn save_lstm(&self, lstm: &Fitted) -> Result<()> {
         pipeline::save_vars(&lstm.varmap, &self.path(LSTM))?;
         let limits = step_limits(&self.cell);
-        let file = pipeline::policy_file(&lstm.varmap, &limits, &self.provenance("bc"))?;
+        let file =
+            pipeline::policy_file(&lstm.varmap, &limits, self.inputs(), &self.provenance("bc"))?;
         file.save(self.path(BC_POLICY))?;
         self.note("lstm", lstm.wall_s, lstm.figures.clone())
     }

@@ -25,13 +25,15 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
-use assembly_cell::learning::demos;
+use assembly_cell::learning::demos::{self, Recording};
 use assembly_cell::learning::refine::RefineConfig;
 use assembly_cell::learning::run::{self, TrainingSettings};
 use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::file::PolicyFile;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::policy::inputs::PolicyInputs;
 use assembly_cell::sim::EnvOptions;
+use assembly_cell::sim::randomise::CellRanges;
 use candle_nn::VarMap;
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -84,6 +86,18 @@ pub struct TrainArgs {
     /// σ (mm) of sideways noise on the demonstrator's executed moves (DART; 0: none).
     #[arg(long, default_value_t = 0.0)]
     demo_lateral_noise_mm: f64,
+    /// What the policy reads: `absolute` (the paper's state; a version 1 file) or
+    /// `cell-relative` (the pose from the goal and the entrance, with the cell's depth,
+    /// clearance and hole pitch and the estimate's uncertainty; a version 2 file that works on
+    /// cells it was not trained on). Every stage of a run must be given the same.
+    #[arg(long, default_value = "absolute")]
+    inputs: String,
+    /// Record every demonstration and DAgger episode on a cell of its own, drawn around --cell
+    /// over the ranges the product is specified for (diameter 100-250 mm, clearance 0.03-0.1
+    /// mm, depth 40-100 mm, 4-16 holes, robot size, camera placement and latency, camera noise
+    /// 0.5-2x, calibration error 0-3x). Needs --inputs cell-relative.
+    #[arg(long)]
+    randomise_cells: bool,
     /// Read the demonstrations from this JSON Lines file instead of recording them.
     #[arg(long)]
     demos_file: Option<PathBuf>,
@@ -198,10 +212,23 @@ const FLAT_POLICY: &str = "td3-flat-policy.safetensors";
 
 /// Reads and checks --init-policy: a hierarchical policy file of this run's sizes and the
 /// cell's step limits.
-fn init_policy(path: &Path, args: &TrainArgs, cell: &CellConfig) -> Result<PolicyFile> {
+fn init_policy(
+    path: &Path,
+    args: &TrainArgs,
+    cell: &CellConfig,
+    inputs: PolicyInputs,
+) -> Result<PolicyFile> {
     let file =
         PolicyFile::from_path(path).with_context(|| format!("--init-policy {}", path.display()))?;
     let context = |what: String| format!("--init-policy {}: {what}", path.display());
+    let theirs = file.metadata().inputs;
+    if theirs != inputs {
+        bail!(context(format!(
+            "it reads {} inputs, this run's --inputs is {}",
+            theirs.name(),
+            inputs.name()
+        )));
+    }
     for (name, ours, theirs) in [
         ("--actor-width", args.actor_width, file.actor_width()),
         ("--lstm-hidden", args.lstm_hidden, file.hidden_size()),
@@ -238,6 +265,11 @@ pub fn run(command: TrainCommand) -> Result<()> {
         TrainCommand::Flat(a) => (a, &[Stage::Flat]),
     };
     let run = Run::open(args)?;
+    if stages.contains(&Stage::Flat) && run.inputs != PolicyInputs::Absolute {
+        bail!(
+            "`train flat` trains the flat baseline on the absolute inputs only; leave out --inputs"
+        );
+    }
     for stage in stages {
         run.stage(*stage)?;
     }
@@ -265,6 +297,8 @@ struct Run {
     args: TrainArgs,
     cell: CellConfig,
     options: EnvOptions,
+    /// What the policy reads (--inputs).
+    inputs: PolicyInputs,
     /// The --dagger-policy files, loaded and checked, in order.
     dagger_drivers: Vec<HierarchicalPolicy>,
     /// The --init-policy file, checked.
@@ -339,6 +373,19 @@ impl Run {
         }
         demos::check_demonstrator(&args.demonstrator)
             .map_err(|e| anyhow::anyhow!("--demonstrator {e}"))?;
+        let inputs = PolicyInputs::parse(&args.inputs).ok_or_else(|| {
+            anyhow::anyhow!(
+                "--inputs {}: expected one of {}",
+                args.inputs,
+                PolicyInputs::ALL.map(PolicyInputs::name).join(", ")
+            )
+        })?;
+        if args.randomise_cells && inputs != PolicyInputs::CellRelative {
+            bail!(
+                "--randomise-cells needs --inputs cell-relative: a policy that reads the absolute \
+                 pose cannot tell the drawn cells apart"
+            );
+        }
         if let Some(path) = &args.demos_file
             && !path.is_file()
         {
@@ -363,7 +410,7 @@ impl Run {
         let init = args
             .init_policy
             .as_ref()
-            .map(|path| init_policy(path, &args, &cell))
+            .map(|path| init_policy(path, &args, &cell, inputs))
             .transpose()?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
@@ -372,6 +419,7 @@ impl Run {
             args,
             cell,
             options,
+            inputs,
             dagger_drivers,
             init,
         })
@@ -419,6 +467,21 @@ impl Run {
             Stage::BcAndLstm => self.bc_and_lstm(),
             Stage::Td3 => self.td3(),
             Stage::Flat => self.flat(),
+        }
+    }
+
+    fn inputs(&self) -> PolicyInputs {
+        self.inputs
+    }
+
+    /// How this run records its demonstrations and DAgger episodes.
+    fn recording(&self) -> Recording {
+        Recording {
+            noise: demos::ExecutionNoise {
+                lateral_mm: self.args.demo_lateral_noise_mm,
+            },
+            inputs: self.inputs,
+            randomise: self.args.randomise_cells.then(CellRanges::default),
         }
     }
 

@@ -5,6 +5,7 @@
 use super::{
     FORMAT_VERSION, METADATA_KEYS, PolicyFileError, PolicyKind, PolicyMetadata, PolicyTensor,
 };
+use crate::policy::inputs::{INPUTS_KEY, PolicyInputs};
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -227,7 +228,7 @@ pub(crate) fn standard_metadata(
 ) -> BTreeMap<String, String> {
     BTreeMap::from([
         ("format".to_string(), kind.format().to_string()),
-        ("format_version".to_string(), FORMAT_VERSION.to_string()),
+        ("format_version".to_string(), "1".to_string()),
         ("step_limit_mm".to_string(), format!("{step_limit_mm}")),
         ("step_limit_deg".to_string(), format!("{step_limit_deg}")),
     ])
@@ -298,14 +299,28 @@ fn check_metadata(
             reason: format!("expected {expected_format:?}"),
         });
     }
-    let version = get("format_version", &format!("{FORMAT_VERSION:?}"))?;
-    if version != FORMAT_VERSION {
-        return Err(PolicyFileError::BadMetadata {
-            key: "format_version".into(),
-            value: format!("{version:?}"),
-            reason: format!("this build reads format_version {FORMAT_VERSION:?} only"),
-        });
-    }
+    let version = get("format_version", "\"1\" or \"2\"")?;
+    let inputs = match version.as_str() {
+        "1" => PolicyInputs::Absolute,
+        "2" => {
+            let names = PolicyInputs::ALL.map(PolicyInputs::name).join(", ");
+            let name = get(INPUTS_KEY, &format!("one of {names}"))?;
+            PolicyInputs::parse(name).ok_or_else(|| PolicyFileError::BadMetadata {
+                key: INPUTS_KEY.into(),
+                value: format!("{name:?}"),
+                reason: format!("expected one of {names}"),
+            })?
+        }
+        _ => {
+            return Err(PolicyFileError::BadMetadata {
+                key: "format_version".into(),
+                value: format!("{version:?}"),
+                reason: format!(
+                    "this build reads format_version \"1\" and \"2\" ({FORMAT_VERSION:?} with cell-relative inputs)"
+                ),
+            });
+        }
+    };
     let limit = |key: &str, unit: &str| -> Result<f64, PolicyFileError> {
         let text = get(key, &format!("a positive number of {unit}, as a string"))?;
         let bad = |reason: &str| PolicyFileError::BadMetadata {
@@ -326,12 +341,13 @@ fn check_metadata(
     let step_limit_deg = limit("step_limit_deg", "deg")?;
     let extra = raw
         .iter()
-        .filter(|(k, _)| !METADATA_KEYS.contains(&k.as_str()))
+        .filter(|(k, _)| !METADATA_KEYS.contains(&k.as_str()) && k.as_str() != INPUTS_KEY)
         .map(|(k, v)| (k.clone(), v.clone()))
         .collect();
     Ok(PolicyMetadata {
         format: format.clone(),
         format_version: version.clone(),
+        inputs,
         step_limit_mm,
         step_limit_deg,
         extra,
@@ -357,7 +373,7 @@ fn check_names<'a>(
         return Err(PolicyFileError::UnexpectedTensor {
             name: name.to_string(),
             reason: format!(
-                "is not part of a {kind} policy (format_version {FORMAT_VERSION} has exactly: {})",
+                "is not part of a {kind} policy (which has exactly: {})",
                 required.join(", ")
             ),
         });
