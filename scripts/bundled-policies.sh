@@ -3,6 +3,8 @@
 #   policies/default.safetensors  the hierarchical policy (controller `hierarchical`)
 #   policies/bc.safetensors       plain behaviour cloning (controller `bc`)
 #   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
+#   policies/across-cells.safetensors  the policy trained across randomised cells
+#                                 (controller `hierarchical-cells`)
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. The run directories go to runs/bundled/ (ignored by git);
@@ -34,6 +36,14 @@ step hierarchical-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30f
     --init-policy "$RUNS/W30r1/policy.safetensors" --dagger-policy "$RUNS/W30r1/policy.safetensors"
 cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 
+# hierarchical-cells: behaviour cloning on 800 demonstrations of expert-careful, each on a cell
+# of its own drawn over the ranges the product is specified for, the policy reading
+# cell-relative inputs (a version 2 file); the TD3 stage runs one episode
+step hierarchical-cells "$CELLD" train all --out "$RUNS/cells" --seed 2026 \
+    --demonstrator expert-careful --bc-bore-lateral-weight 30 --inputs cell-relative \
+    --randomise-cells --td3-episodes 1
+cp "$RUNS/cells/policy.safetensors" policies/across-cells.safetensors
+
 # bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default
 # demonstrator), BC at a constant rate; its BC policy is the `bc` baseline
 step bc env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/bcrun" --seed 2026 --bc-anneal-fraction 0
@@ -44,4 +54,5 @@ step td3 env RAYON_NUM_THREADS=1 "$CELLD" train flat --out "$RUNS/flat" --seed 2
 cp "$RUNS/flat/td3-flat-policy.safetensors" policies/td3.safetensors
 
 echo "== all done in $((SECONDS - total)) s; git status policies/ shows whether any file changed"
-sha256sum policies/default.safetensors policies/bc.safetensors policies/td3.safetensors
+sha256sum policies/default.safetensors policies/bc.safetensors policies/td3.safetensors \
+    policies/across-cells.safetensors

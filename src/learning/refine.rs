@@ -16,7 +16,7 @@ use super::td3::{ReplayBuffer, Td3, Td3Config, Transition, clone_varmap};
 use crate::config::cell::CellConfig;
 use crate::policy::Actor;
 use crate::policy::eval::{self, EvalSummary, episode_seed};
-use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig, holds_depth_after};
+use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig, deepest_move_mm};
 use crate::policy::inputs::PolicyInputs;
 use crate::sim::randomise::{CellRanges, randomised};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome, RewardTerms};
@@ -302,10 +302,10 @@ impl Refinement {
                     let noise: f64 = self.rng.sample(StandardNormal);
                     (clean + sigma * noise).clamp(-1.0, 1.0) as f32
                 });
-                // As the policy acts as a controller: no deeper after a refusal for contact.
-                if out.actor == Actor::Position && holds_depth_after(observation.last_veto.as_ref())
-                {
-                    a[2] = a[2].max(0.0);
+                // As the policy acts as a controller: not past the goal, and no deeper after a
+                // refusal for contact.
+                if out.actor == Actor::Position && span > 0.0 {
+                    a[2] = a[2].max((deepest_move_mm(&observation) / span) as f32);
                 }
                 for i in 0..3 {
                     action[offset + i] = f64::from(a[i]) * span;

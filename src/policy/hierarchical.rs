@@ -70,6 +70,22 @@ pub fn holds_depth_after(last_veto: Option<&VetoReason>) -> bool {
     last_veto.is_some_and(VetoReason::is_about_contact)
 }
 
+/// The deepest move along the axis (Δz, mm in {M}, negative is deeper) the position actor may
+/// ask for now: never past the seated depth the estimate sees (P_z; from beyond it, a move
+/// back), and no deeper at all after a refusal for contact ([`holds_depth_after`]).
+///
+/// The demonstrators never go past the goal, so a cloned actor's answer there is arbitrary:
+/// one that overshot its last step by a few tenths of a millimetre kept pushing against the
+/// seat until the step limit (docs/learning.md).
+pub fn deepest_move_mm(observation: &Observation) -> f64 {
+    let to_goal_mm = observation.state[8];
+    if holds_depth_after(observation.last_veto.as_ref()) {
+        to_goal_mm.max(0.0)
+    } else {
+        to_goal_mm
+    }
+}
+
 /// Sizes and step limits of a policy.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PolicyConfig {
@@ -562,8 +578,8 @@ impl Controller for HierarchicalPolicy {
 
     /// The policy's move; a step that fails or is not finite holds still (a zero move). Without
     /// a fresh frame the cell holds still and the LSTM does not advance (the expert's
-    /// demonstrations have no such steps). After a refusal for contact the move keeps its
-    /// depth ([`holds_depth_after`]).
+    /// demonstrations have no such steps). A position move goes no deeper than
+    /// [`deepest_move_mm`]: not past the goal, and not deeper after a refusal for contact.
     fn act(&mut self, observation: &Observation) -> Decision {
         if !observation.measurement_fresh {
             return Decision::hold();
@@ -572,8 +588,9 @@ impl Controller for HierarchicalPolicy {
         match self.step(&inputs) {
             Ok(out) if out.is_finite() => {
                 let mut action = out.to_move();
-                if holds_depth_after(observation.last_veto.as_ref()) {
-                    action.translation_mm.z = action.translation_mm.z.max(0.0);
+                if out.actor == Actor::Position {
+                    action.translation_mm.z =
+                        action.translation_mm.z.max(deepest_move_mm(observation));
                 }
                 Decision {
                     action,
@@ -705,6 +722,61 @@ mod tests {
             observation = result.observation;
         }
         assert!(held > 0, "no move went deeper: the rule was not exercised");
+    }
+
+    /// A position move goes no deeper than the goal the estimate sees, and one from past the
+    /// goal comes back; a refusal for contact holds the depth besides.
+    #[test]
+    fn a_position_move_never_goes_past_the_goal() {
+        use crate::collision::clearance::ContactKind;
+        use crate::config::cell::CellConfig;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        let cell = CellConfig::reference();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut observation = env.reset(4).unwrap();
+        let at = |to_goal_mm: f64, veto: Option<VetoReason>| {
+            let mut o = observation.clone();
+            o.state[8] = to_goal_mm;
+            o.last_veto = veto;
+            deepest_move_mm(&o)
+        };
+        let contact = VetoReason::Collision {
+            kind: ContactKind::Seat,
+            clearance_mm: -0.1,
+        };
+        assert_eq!(at(-3.0, None), -3.0);
+        assert_eq!(at(0.4, None), 0.4);
+        assert_eq!(at(-3.0, Some(contact.clone())), 0.0);
+        assert_eq!(at(0.4, Some(contact)), 0.4);
+        assert_eq!(at(-3.0, Some(VetoReason::StaleMeasurement)), -3.0);
+
+        let file =
+            PolicyFile::from_bytes(super::super::bundled_policy("hierarchical").unwrap()).unwrap();
+        let mut policy = HierarchicalPolicy::from_file(&file).unwrap();
+        let mut past_goal = 0;
+        loop {
+            // The same state, as if the shaft had gone 0.3 mm past the goal.
+            let mut beyond = observation.clone();
+            beyond.state[8] = 0.3;
+            let decision = policy.clone().act(&beyond);
+            if decision.actor == Some(Actor::Position) {
+                assert!(decision.action.translation_mm.z >= 0.3);
+                past_goal += 1;
+            }
+            let decision = policy.act(&observation);
+            if decision.actor == Some(Actor::Position) {
+                assert!(decision.action.translation_mm.z >= observation.state[8]);
+            }
+            let result = env.step(&decision.action).unwrap();
+            if result.outcome.is_some() {
+                break;
+            }
+            observation = result.observation;
+        }
+        assert!(
+            past_goal > 0,
+            "no position move: the rule was not exercised"
+        );
     }
 
     #[test]

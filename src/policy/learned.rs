@@ -178,4 +178,30 @@ mod tests {
         let e = LearnedPolicyFile::from_bytes(b"12345678").unwrap_err();
         assert_eq!(e, PolicyFile::from_bytes(b"12345678").unwrap_err());
     }
+
+    /// The policy trained across randomised cells reads cell-relative inputs and assembles on
+    /// a cell none of its demonstrations was recorded on (the report measures it over 1000
+    /// episodes on each generalisation cell).
+    #[test]
+    fn the_bundled_policy_for_any_cell_assembles_on_a_cell_it_was_not_trained_on() {
+        use crate::config::cell::CellConfig;
+        use crate::policy::inputs::PolicyInputs;
+        use crate::sim::EnvOptions;
+        let bytes = crate::policy::bundled_policy("hierarchical-cells").unwrap();
+        let file = LearnedPolicyFile::from_bytes(bytes).unwrap();
+        assert_eq!(file.metadata().inputs, PolicyInputs::CellRelative);
+        let cell =
+            CellConfig::parse(include_str!("../../cells/phi250-shallow.toml"), "cell").unwrap();
+        let make = crate::policy::builtin_factory("hierarchical-cells", &cell).unwrap();
+        let (summary, _) = crate::policy::eval::evaluate(
+            &cell,
+            EnvOptions::from_cell(&cell),
+            20,
+            3,
+            &make,
+            &|_| {},
+        );
+        assert!(summary.successes >= 15, "{summary:?}");
+        assert_eq!(summary.failures.get("contact"), None);
+    }
 }

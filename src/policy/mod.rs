@@ -81,8 +81,9 @@ pub const BUILTIN_CONTROLLERS: [&str; 6] = [
 /// rounds, the default policy), `bc` (plain behaviour cloning: BC actors and selector on the
 /// demonstrations alone, no DAgger, no TD3), both made by `celld train all`, and `td3`
 /// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
-/// flat`). See the README.
-pub const LEARNED_CONTROLLERS: [&str; 3] = ["hierarchical", "bc", "td3"];
+/// flat`), and `hierarchical-cells` (BC + LSTM on cell-relative inputs, every demonstration
+/// on a randomised cell: the policy for cells none was trained on). See the README.
+pub const LEARNED_CONTROLLERS: [&str; 4] = ["hierarchical", "bc", "td3", "hierarchical-cells"];
 
 /// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
 pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
@@ -90,6 +91,7 @@ pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
         "hierarchical" => Some(include_bytes!("../../policies/default.safetensors")),
         "bc" => Some(include_bytes!("../../policies/bc.safetensors")),
         "td3" => Some(include_bytes!("../../policies/td3.safetensors")),
+        "hierarchical-cells" => Some(include_bytes!("../../policies/across-cells.safetensors")),
         _ => None,
     }
 }
