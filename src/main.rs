@@ -68,7 +68,7 @@ enum PolicyCommand {
 #[derive(Args)]
 struct EvalArgs {
     /// A built-in controller (expert, expert-state-only, expert-careful, visual-servo, spiral,
-    /// da-dmp, hierarchical, bc, td3) or a policy file (.safetensors).
+    /// da-dmp, hierarchical, bc, td3, hierarchical-cells) or a policy file (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).
