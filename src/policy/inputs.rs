@@ -24,7 +24,8 @@
 //! In the bore what matters is how much of the clearance the shaft uses, a few hundredths of a
 //! millimetre on one cell and a tenth on another: slots 4 and 5 say it in the cell's own unit.
 //! The estimate's σ is not an input: as one, it stood in for the demonstrator's count of holds
-//! and the sideways moves followed it instead of the pose (docs/learning.md).
+//! and the sideways moves followed it instead of the pose
+//! (docs/experiments/2026-11-25-5277d5a-cell-relative-inputs-and-randomised-cells.md).
 //!
 //! Slots 6–11 keep their places and units, so the training code that reads P and O from them
 //! (the goal-centred normaliser, the insertion weighting of behaviour cloning) works on both,

@@ -274,7 +274,7 @@ impl Run {
         pipeline::save_vars(&lstm.varmap, &self.path(LSTM))?;
         let limits = step_limits(&self.cell);
         let file =
-            pipeline::policy_file(&lstm.varmap, &limits, self.inputs(), &self.provenance("bc"))?;
+            pipeline::policy_file(&lstm.varmap, &limits, self.inputs, &self.provenance("bc"))?;
         file.save(self.path(BC_POLICY))?;
         self.note("lstm", lstm.wall_s, lstm.figures.clone())
     }

@@ -88,11 +88,11 @@ pub struct TrainArgs {
     demo_lateral_noise_mm: f64,
     /// What the policy reads: `absolute` (the paper's state; a version 1 file) or
     /// `cell-relative` (the pose from the goal and the entrance, with the cell's depth,
-    /// clearance and hole pitch and the estimate's uncertainty; a version 2 file that works on
-    /// cells it was not trained on). Every stage of a run must be given the same.
+    /// clearance and hole pitch; a version 2 file that works on cells it was not trained on).
+    /// Every stage of a run must be given the same.
     #[arg(long, default_value = "absolute")]
     inputs: String,
-    /// Record every demonstration and DAgger episode on a cell of its own, drawn around --cell
+    /// Run every demonstration, DAgger and TD3 episode on a cell of its own, drawn around --cell
     /// over the ranges the product is specified for (diameter 100-250 mm, clearance 0.03-0.1
     /// mm, depth 40-100 mm, 4-16 holes, robot size, camera placement and latency, camera noise
     /// 0.5-2x, calibration error 0-3x). Needs --inputs cell-relative.
@@ -468,10 +468,6 @@ impl Run {
             Stage::Td3 => self.td3(),
             Stage::Flat => self.flat(),
         }
-    }
-
-    fn inputs(&self) -> PolicyInputs {
-        self.inputs
     }
 
     /// How this run records its demonstrations and DAgger episodes.

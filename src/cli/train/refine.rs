@@ -121,13 +121,8 @@ impl Run {
         self.write_curve(&refinement)?;
         let (best, vars) = refinement.best();
         let limits = step_limits(&self.cell);
-        pipeline::policy_file(
-            vars,
-            &limits,
-            self.inputs(),
-            &self.provenance("hierarchical"),
-        )?
-        .save(self.path(POLICY))?;
+        pipeline::policy_file(vars, &limits, self.inputs, &self.provenance("hierarchical"))?
+            .save(self.path(POLICY))?;
         if let Some(best) = best {
             eprintln!(
                 "TD3: best validation at episode {}: success {:.3}, avg steps {:.2}",

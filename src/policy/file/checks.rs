@@ -228,7 +228,10 @@ pub(crate) fn standard_metadata(
 ) -> BTreeMap<String, String> {
     BTreeMap::from([
         ("format".to_string(), kind.format().to_string()),
-        ("format_version".to_string(), "1".to_string()),
+        (
+            "format_version".to_string(),
+            PolicyInputs::Absolute.format_version().to_string(),
+        ),
         ("step_limit_mm".to_string(), format!("{step_limit_mm}")),
         ("step_limit_deg".to_string(), format!("{step_limit_deg}")),
     ])
