@@ -487,6 +487,7 @@ fn transition(s: [f32; 12], a: [f32; 6], r: f64, next: [f32; 12], done: bool) ->
         reward: r as f32,
         next_state: next.to_vec(),
         done,
+        ..Transition::default()
     }
 }
 

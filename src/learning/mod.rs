@@ -10,3 +10,5 @@ pub mod refine;
 pub mod run;
 pub mod selector;
 pub mod td3;
+#[cfg(test)]
+mod td3_reach;

@@ -10,6 +10,21 @@
 //! the actor it started from: the BC actors of this cell are right to a few micrometres, and the
 //! critic's gradient, learned from a policy that almost always succeeds, points every update the
 //! same wrong way.
+//!
+//! Beyond the paper, for learning that starts from a demonstrator and improves on it:
+//! - **asymmetric critics** ([`Td3Config::privileged_dim`]): the critics read numbers the actor
+//!   cannot (in the twin, the true pose), so their values are not blurred by the camera's noise;
+//!   the actor, the deployed policy, still reads only its observation;
+//! - **demonstrations in the replay** ([`Td3::update_with`]): a share of every minibatch
+//!   ([`Td3Config::demo_fraction`]) comes from a buffer of the demonstrator's transitions, so the
+//!   critics keep knowing the values of good moves (Večerík et al. 2017);
+//! - **regularised actor updates** ([`Td3Config::demo_regularisation`], TD3+BC, Fujimoto & Gu
+//!   2021, with the Q filter of Nair et al. 2018): the actor's loss is the normalised −Q plus the
+//!   squared distance to the demonstrated action on demonstration rows where the critic rates
+//!   the demonstrated action above the actor's, so it leaves the demonstrator only where the
+//!   critic says it is better to;
+//! - [`Td3::clone_behaviour`] and a frozen actor ([`Td3::freeze_actor`]) for behaviour cloning
+//!   and critic pre-training on the demonstrations before the actor moves.
 
 use super::bc::{init_mlp, vars_under};
 use crate::policy::mlp::{Mlp, MlpConfig};
@@ -41,6 +56,15 @@ pub struct Td3Config {
     /// actor's; if one is, the weights are pulled back along the line to the starting weights
     /// until none is. `None`: plain TD3.
     pub trust_region: Option<f64>,
+    /// Numbers the critics read beside the actor's state ([`Transition::privileged`]); 0: the
+    /// critics read what the actor reads (symmetric TD3).
+    pub privileged_dim: usize,
+    /// Share of each minibatch drawn from the demonstrations when [`Td3::update_with`] is given
+    /// any (Table 1 has none; 0.25 is DDPGfD's order).
+    pub demo_fraction: f64,
+    /// α of TD3+BC: the actor's loss is −α·Q/mean|Q| plus the squared distance to the
+    /// demonstrated action on the demonstration rows the Q filter keeps. `None`: plain −Q.
+    pub demo_regularisation: Option<f64>,
 }
 
 /// Replayed states on which each actor update is checked against the trust region.
@@ -62,6 +86,9 @@ impl Default for Td3Config {
             hidden: 256,
             seed: 0,
             trust_region: None,
+            privileged_dim: 0,
+            demo_fraction: 0.25,
+            demo_regularisation: None,
         }
     }
 }
@@ -82,6 +109,16 @@ pub(crate) fn clone_varmap(from: &VarMap) -> candle_core::Result<VarMap> {
     Ok(to)
 }
 
+/// Sets every variable of `to` to its namesake in `from`.
+fn copy_vars(from: &VarMap, to: &VarMap) -> candle_core::Result<()> {
+    let from = from.data().lock().expect("var map lock");
+    let to = to.data().lock().expect("var map lock");
+    for (name, var) in from.iter() {
+        to[name].set(var.as_tensor())?;
+    }
+    Ok(())
+}
+
 /// target ← τ·online + (1 − τ)·target, variable by variable.
 fn soft_update(online: &VarMap, target: &VarMap, tau: f64) -> candle_core::Result<()> {
     let online = online.data().lock().expect("var map lock");
@@ -93,14 +130,18 @@ fn soft_update(online: &VarMap, target: &VarMap, tau: f64) -> candle_core::Resul
     Ok(())
 }
 
-/// One transition (s, a, r, s', done).
-#[derive(Debug, Clone, PartialEq)]
+/// One transition (s, a, r, s', done), with what only the critics read at s and s'.
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Transition {
     pub state: Vec<f32>,
     pub action: Vec<f32>,
     pub reward: f32,
     pub next_state: Vec<f32>,
     pub done: bool,
+    /// [`Td3Config::privileged_dim`] numbers at s (empty for symmetric critics).
+    pub privileged: Vec<f32>,
+    /// The same at s'.
+    pub next_privileged: Vec<f32>,
 }
 
 /// Replay memory: a ring of the latest `capacity` transitions.
@@ -191,7 +232,7 @@ impl Td3 {
             }
         };
         let actor_config = MlpConfig::actor(state_dim, actor_width, action_dim);
-        let critic_config = MlpConfig::critic(state_dim + action_dim, h);
+        let critic_config = MlpConfig::critic(state_dim + config.privileged_dim + action_dim, h);
         let critic_vars = VarMap::new();
         for prefix in ["critic1", "critic2"] {
             init_mlp(&critic_vars, prefix, &critic_config, &mut rng)?;
@@ -321,27 +362,34 @@ impl Td3 {
         &mut self,
         buffer: &ReplayBuffer,
     ) -> candle_core::Result<Option<(f64, Option<f64>)>> {
+        self.update_with(buffer, &ReplayBuffer::new(1))
+    }
+
+    /// One TD3 update from a minibatch drawn from `online` and, for
+    /// [`Td3Config::demo_fraction`] of it, from `demos` (all of it while `online` is empty:
+    /// critic pre-training). Does nothing until the two hold a batch between them.
+    pub fn update_with(
+        &mut self,
+        online: &ReplayBuffer,
+        demos: &ReplayBuffer,
+    ) -> candle_core::Result<Option<(f64, Option<f64>)>> {
         let n = self.config.batch_size;
-        if buffer.len() < n {
+        if online.len() + demos.len() < n {
             return Ok(None);
         }
-        let (sd, ad) = (self.state_dim, self.action_dim);
-        let (mut s, mut a, mut r, mut s2, mut not_done) = (vec![], vec![], vec![], vec![], vec![]);
-        for _ in 0..n {
-            let t = &buffer.items[self.rng.random_range(0..buffer.len())];
-            s.extend_from_slice(&t.state);
-            a.extend_from_slice(&t.action);
-            r.push(t.reward);
-            s2.extend_from_slice(&t.next_state);
-            not_done.push(if t.done { 0f32 } else { 1.0 });
-        }
-        let device = &Device::Cpu;
-        let s = Tensor::from_vec(s, (n, sd), device)?;
-        let a = Tensor::from_vec(a, (n, ad), device)?;
-        let r = Tensor::from_vec(r, (n, 1), device)?;
-        let s2 = Tensor::from_vec(s2, (n, sd), device)?;
-        let not_done = Tensor::from_vec(not_done, (n, 1), device)?;
+        let from_demos = if online.is_empty() {
+            n
+        } else if demos.is_empty() {
+            0
+        } else {
+            ((n as f64 * self.config.demo_fraction).round() as usize)
+                .min(demos.len())
+                .max(n.saturating_sub(online.len()))
+        };
+        let batch = self.sample(online, demos, n, from_demos);
+        let (s, a, critic_s, critic_s2, s2, r, not_done) = batch.tensors(self)?;
         // Target: y = r + γ (1 − done) min_k Q'_k(s', clip(μ'(s') + clip(ε, −c, c), −1, 1)).
+        let (ad, device) = (self.action_dim, &Device::Cpu);
         let c = self.config.noise_clip;
         let noise: Vec<f32> = (0..n * ad)
             .map(|_| {
@@ -351,12 +399,12 @@ impl Td3 {
             .collect();
         let a2 = (self.actor_target.forward(&s2)? + Tensor::from_vec(noise, (n, ad), device)?)?
             .clamp(-1f32, 1f32)?;
-        let sa2 = Tensor::cat(&[&s2, &a2], 1)?;
+        let sa2 = Tensor::cat(&[&critic_s2, &a2], 1)?;
         let q_next = self.critic_targets[0]
             .forward(&sa2)?
             .minimum(&self.critic_targets[1].forward(&sa2)?)?;
         let y = (r + ((q_next * not_done)? * self.config.gamma)?)?.detach();
-        let sa = Tensor::cat(&[&s, &a], 1)?;
+        let sa = Tensor::cat(&[&critic_s, &a], 1)?;
         let critic_loss = ((self.critics[0].forward(&sa)? - &y)?.sqr()?.mean_all()?
             + (self.critics[1].forward(&sa)? - &y)?.sqr()?.mean_all()?)?;
         self.critic_optimizer.backward_step(&critic_loss)?;
@@ -371,17 +419,93 @@ impl Td3 {
         let mut actor_loss = None;
         if self.updates.is_multiple_of(self.config.policy_delay.max(1)) {
             if !self.actor_frozen {
-                let sa = Tensor::cat(&[&s, &self.actor.forward(&s)?], 1)?;
-                let loss = self.critics[0].forward(&sa)?.mean_all()?.neg()?;
+                let loss = self.actor_loss(&s, &critic_s, &a, from_demos)?;
                 // Only the actor's variables are in this optimizer: the critic stays as it is.
                 self.actor_optimizer.backward_step(&loss)?;
-                self.keep_within_trust_region(buffer)?;
+                self.keep_within_trust_region(online)?;
                 actor_loss = Some(f64::from(loss.to_scalar::<f32>()?));
                 soft_update(&self.actor_vars, &self.actor_target_vars, self.config.tau)?;
             }
             soft_update(&self.critic_vars, &self.critic_target_vars, self.config.tau)?;
         }
         Ok(Some((critic_loss, actor_loss)))
+    }
+
+    /// The actor's loss on a minibatch whose first `demo_rows` rows are demonstrations: −Q, or
+    /// with [`Td3Config::demo_regularisation`] α, −α·Q/mean|Q| + the Q-filtered squared
+    /// distance to the demonstrated actions.
+    fn actor_loss(
+        &self,
+        s: &Tensor,
+        critic_s: &Tensor,
+        a: &Tensor,
+        demo_rows: usize,
+    ) -> candle_core::Result<Tensor> {
+        let pi = self.actor.forward(s)?;
+        let q = self.critics[0].forward(&Tensor::cat(&[critic_s, &pi], 1)?)?;
+        let Some(alpha) = self.config.demo_regularisation else {
+            return q.mean_all()?.neg();
+        };
+        let scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1e-6);
+        let q_term = (q.mean_all()? * (-alpha / scale))?;
+        if demo_rows == 0 {
+            return Ok(q_term);
+        }
+        let (pi_demo, a_demo) = (pi.narrow(0, 0, demo_rows)?, a.narrow(0, 0, demo_rows)?);
+        let critic_demo = critic_s.narrow(0, 0, demo_rows)?;
+        // The Q filter: imitate only where the critic prefers the demonstrated action.
+        let q_demo = self.critics[0].forward(&Tensor::cat(&[&critic_demo, &a_demo], 1)?)?;
+        let keep = q_demo
+            .gt(&q.narrow(0, 0, demo_rows)?)?
+            .to_dtype(DType::F32)?
+            .detach();
+        let kept = f64::from(keep.sum_all()?.to_scalar::<f32>()?);
+        if kept == 0.0 {
+            return Ok(q_term);
+        }
+        let distance = (pi_demo - a_demo)?.sqr()?.sum_keepdim(1)?;
+        let imitation = ((distance * keep)?.sum_all()? / (kept * self.action_dim as f64))?;
+        q_term + imitation
+    }
+
+    /// Rows for a minibatch: `from_demos` drawn from `demos` first, the rest from `online`.
+    fn sample<'a>(
+        &mut self,
+        online: &'a ReplayBuffer,
+        demos: &'a ReplayBuffer,
+        n: usize,
+        from_demos: usize,
+    ) -> Batch<'a> {
+        let mut rows = Vec::with_capacity(n);
+        for k in 0..n {
+            let buffer = if k < from_demos { demos } else { online };
+            rows.push(&buffer.items[self.rng.random_range(0..buffer.len())]);
+        }
+        Batch(rows)
+    }
+
+    /// Behaviour cloning of the actor on `demos` (mean squared error to the demonstrated
+    /// actions, minibatches of the TD3 batch size, the actor's learning rate); returns the last
+    /// loss. For a learner whose actor did not start from cloned weights.
+    pub fn clone_behaviour(
+        &mut self,
+        demos: &ReplayBuffer,
+        updates: usize,
+    ) -> candle_core::Result<Option<f64>> {
+        let n = self.config.batch_size;
+        if demos.is_empty() {
+            return Ok(None);
+        }
+        let mut last = None;
+        for _ in 0..updates {
+            let batch = self.sample(demos, demos, n, n);
+            let (s, a, ..) = batch.tensors(self)?;
+            let loss = (self.actor.forward(&s)? - a)?.sqr()?.mean_all()?;
+            self.actor_optimizer.backward_step(&loss)?;
+            last = Some(f64::from(loss.to_scalar::<f32>()?));
+        }
+        copy_vars(&self.actor_vars, &self.actor_target_vars)?;
+        Ok(last)
     }
 
     /// With a trust region: if the actor is now too far from the anchor on probe states drawn
@@ -392,6 +516,9 @@ impl Td3 {
             return Ok(());
         };
         let n = TRUST_REGION_PROBES.min(buffer.len());
+        if n == 0 {
+            return Ok(());
+        }
         let mut states = Vec::with_capacity(n * self.state_dim);
         for _ in 0..n {
             let t = &buffer.items[self.rng.random_range(0..buffer.len())];
@@ -425,6 +552,51 @@ impl Td3 {
             }
         }
         set(inside)
+    }
+}
+
+/// The transitions of one minibatch.
+struct Batch<'a>(Vec<&'a Transition>);
+
+impl Batch<'_> {
+    /// (s, a, critic's s, critic's s', s', r, 1 − done) as tensors; the critic's states are s
+    /// and s' followed by their privileged numbers.
+    #[allow(clippy::type_complexity)]
+    fn tensors(
+        &self,
+        td3: &Td3,
+    ) -> candle_core::Result<(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)> {
+        let n = self.0.len();
+        let (sd, ad, pd) = (td3.state_dim, td3.action_dim, td3.config.privileged_dim);
+        let column = |f: &dyn Fn(&Transition) -> Vec<f32>, width: usize| {
+            let values: Vec<f32> = self.0.iter().flat_map(|t| f(t)).collect();
+            Tensor::from_vec(values, (n, width), &Device::Cpu)
+        };
+        let critic = |state: &dyn Fn(&Transition) -> &Vec<f32>,
+                      privileged: &dyn Fn(&Transition) -> &Vec<f32>|
+         -> candle_core::Result<Tensor> {
+            for t in &self.0 {
+                if privileged(t).len() != pd {
+                    candle_core::bail!(
+                        "a transition has {} privileged numbers, the critics read {pd}",
+                        privileged(t).len()
+                    );
+                }
+            }
+            column(
+                &|t| [state(t).as_slice(), privileged(t).as_slice()].concat(),
+                sd + pd,
+            )
+        };
+        Ok((
+            column(&|t| t.state.clone(), sd)?,
+            column(&|t| t.action.clone(), ad)?,
+            critic(&|t| &t.state, &|t| &t.privileged)?,
+            critic(&|t| &t.next_state, &|t| &t.next_privileged)?,
+            column(&|t| t.next_state.clone(), sd)?,
+            column(&|t| vec![t.reward], 1)?,
+            column(&|t| vec![if t.done { 0.0 } else { 1.0 }], 1)?,
+        ))
     }
 }
 
@@ -475,6 +647,7 @@ mod tests {
                 reward: -(a - s / 2.0).powi(2),
                 next_state: vec![s],
                 done: true,
+                ..Transition::default()
             });
             td3.update(&buffer).unwrap();
         }
@@ -546,6 +719,7 @@ mod tests {
                 reward: 0.0,
                 next_state: vec![],
                 done: false,
+                ..Transition::default()
             });
         }
         assert_eq!(buffer.len(), 2);
