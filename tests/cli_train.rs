@@ -142,6 +142,9 @@ fn a_run_across_randomised_cells_is_deterministic_and_writes_a_cell_relative_pol
         "--randomise-cells",
         "--td3-episodes",
         "2",
+        // TD3 beside the demonstrator: its episodes in the replay, on randomised cells too.
+        "--td3-demonstrations",
+        "2",
     ];
     for out in [&a, &b] {
         let run = train("all", out, &across);

@@ -216,3 +216,33 @@ fn act_and_settle_out_of_order_are_refused() {
     env.act(&still).unwrap();
     assert!(matches!(env.act(&still), Err(EnvError::OutOfOrder(_))));
 }
+
+/// The true state is what a camera without noise or calibration error reports; with the
+/// data sheet's noise the camera's frame scatters around it by about that noise.
+#[test]
+fn the_true_state_is_what_a_perfect_camera_sees() {
+    let cell = CellConfig::reference();
+    let perfect = EnvOptions {
+        noise_scale: 0.0,
+        calibration_scale: 0.0,
+        ..EnvOptions::from_cell(&cell)
+    };
+    let mut env = AssemblyEnv::new(&cell, perfect);
+    let observation = env.reset(4).unwrap();
+    let truth = env.true_state();
+    for (k, (seen, true_value)) in observation.raw_state.iter().zip(&truth).enumerate() {
+        assert!(
+            (seen - true_value).abs() < 1e-6,
+            "slot {k}: seen {seen}, true {true_value}"
+        );
+    }
+    let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+    let observation = env.reset(4).unwrap();
+    let truth = env.true_state();
+    let lateral_gap =
+        (observation.raw_state[6] - truth[6]).hypot(observation.raw_state[7] - truth[7]);
+    assert!(
+        lateral_gap > 0.0 && lateral_gap < 0.5,
+        "gap {lateral_gap} mm"
+    );
+}

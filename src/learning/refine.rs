@@ -11,6 +11,7 @@
 //! the report's) and the best one is kept.
 
 use super::bc::init_actor;
+use super::dataset::{StepLabels, StepLimits};
 use super::pipeline::{actor_prefix, normaliser_of};
 use super::td3::{ReplayBuffer, Td3, Td3Config, Transition, clone_varmap};
 use crate::config::cell::CellConfig;
@@ -18,8 +19,9 @@ use crate::policy::Actor;
 use crate::policy::eval::{self, EvalSummary, episode_seed};
 use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig, deepest_move_mm};
 use crate::policy::inputs::PolicyInputs;
+use crate::policy::record::{DEFAULT_DEMONSTRATOR, DemoStep, demonstrator_seed};
 use crate::sim::randomise::{CellRanges, randomised};
-use crate::sim::{AssemblyEnv, EnvOptions, Outcome, RewardTerms};
+use crate::sim::{AssemblyEnv, EnvOptions, Observation, Outcome, RewardTerms};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
@@ -52,6 +54,17 @@ pub struct RefineConfig {
     /// Each training episode on a cell of its own, drawn around the given one (domain
     /// randomisation); validation stays on the given cell.
     pub randomise: Option<CellRanges>,
+    /// The critics also read the true pose, as the policy's inputs of a perfect camera
+    /// (asymmetric actor-critic: only the twin knows it, and only training needs it).
+    pub asymmetric: bool,
+    /// Episodes of `demonstrator` recorded into each agent's demonstration buffer before
+    /// training (sampled beside the online data, [`Td3Config::demo_fraction`]); 0: none.
+    pub demonstrations: usize,
+    /// The scripted expert that records them (one of `policy::record::DEMONSTRATORS`).
+    pub demonstrator: &'static str,
+    /// Critic updates on the demonstrations alone, with the actors frozen, before the first
+    /// training episode.
+    pub critic_pretraining_updates: usize,
 }
 
 impl Default for RefineConfig {
@@ -70,9 +83,38 @@ impl Default for RefineConfig {
             eval_seed: 0x7A11_DA7E,
             inputs: PolicyInputs::Absolute,
             randomise: None,
+            asymmetric: false,
+            demonstrations: 0,
+            demonstrator: DEFAULT_DEMONSTRATOR,
+            critic_pretraining_updates: 0,
         }
     }
 }
+
+impl RefineConfig {
+    /// TD3 that learns beside its demonstrator (docs/learning.md): asymmetric critics,
+    /// `demonstrations` episodes of `demonstrator` in the replay, critics pre-trained on them,
+    /// and Q-filtered TD3+BC actor updates (within the trust region, if there is one).
+    pub fn beside_demonstrator(self, demonstrator: &'static str, demonstrations: usize) -> Self {
+        RefineConfig {
+            td3: Td3Config {
+                demo_regularisation: Some(DEMO_REGULARISATION),
+                ..self.td3
+            },
+            asymmetric: true,
+            demonstrations,
+            demonstrator,
+            critic_pretraining_updates: CRITIC_PRETRAINING_UPDATES,
+            ..self
+        }
+    }
+}
+
+/// α of TD3+BC (Fujimoto & Gu 2021's value).
+pub const DEMO_REGULARISATION: f64 = 2.5;
+
+/// Critic updates on the demonstrations before the actors move.
+pub const CRITIC_PRETRAINING_UPDATES: usize = 2000;
 
 /// One training episode, as the learning curve records it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -119,6 +161,8 @@ pub struct Refinement {
     policy_config: PolicyConfig,
     agents: [Td3; 2],
     buffers: [ReplayBuffer; 2],
+    /// The demonstrator's transitions, per agent ([`RefineConfig::demonstrations`]).
+    demo_buffers: [ReplayBuffer; 2],
     env: AssemblyEnv,
     rng: ChaCha8Rng,
     episode: usize,
@@ -170,6 +214,7 @@ impl Refinement {
                 seed: seed.wrapping_add(k as u64 + 1),
                 // A region around freshly initialised actors would only stop them learning.
                 trust_region: config.td3.trust_region.filter(|_| from_bc),
+                privileged_dim: if config.asymmetric { 12 } else { 0 },
                 ..config.td3
             };
             let init = if from_bc {
@@ -186,12 +231,16 @@ impl Refinement {
             agents.push(agent);
         }
         let agents: [Td3; 2] = agents.try_into().map_err(|_| unreachable_agents())?;
-        let refinement = Refinement {
+        let mut refinement = Refinement {
             cell: cell.clone(),
             options,
             config,
             policy_config,
             buffers: [
+                ReplayBuffer::new(config.td3.replay_capacity),
+                ReplayBuffer::new(config.td3.replay_capacity),
+            ],
+            demo_buffers: [
                 ReplayBuffer::new(config.td3.replay_capacity),
                 ReplayBuffer::new(config.td3.replay_capacity),
             ],
@@ -206,6 +255,7 @@ impl Refinement {
             policy_vars,
         };
         refinement.sync_actors()?;
+        refinement.learn_from_demonstrations()?;
         Ok(refinement)
     }
 
@@ -248,8 +298,34 @@ impl Refinement {
         Ok(())
     }
 
+    fn limits(&self) -> StepLimits {
+        StepLimits {
+            position_mm: self.policy_config.step_limit_mm,
+            orientation_deg: self.policy_config.step_limit_deg,
+        }
+    }
+
     fn policy(&self) -> candle_core::Result<HierarchicalPolicy> {
         policy_from_vars(&self.policy_vars, &self.policy_config)
+    }
+
+    /// Records [`RefineConfig::demonstrations`] episodes of the demonstrator into the
+    /// demonstration buffers, then pre-trains the critics on them with the actors frozen.
+    fn learn_from_demonstrations(&mut self) -> candle_core::Result<()> {
+        if self.config.demonstrations == 0 {
+            return Ok(());
+        }
+        for index in 0..self.config.demonstrations {
+            let seed = episode_seed(self.seed ^ 0xDE_3057, index);
+            self.run_episode(Driver::Demonstrator, seed)?;
+        }
+        for (agent, demos) in self.agents.iter_mut().zip(&self.demo_buffers) {
+            agent.freeze_actor(true);
+            for _ in 0..self.config.critic_pretraining_updates {
+                agent.update_with(&ReplayBuffer::new(1), demos)?;
+            }
+        }
+        Ok(())
     }
 
     /// Runs one training episode with exploration, then the agents' updates.
@@ -258,81 +334,11 @@ impl Refinement {
         for agent in &mut self.agents {
             agent.freeze_actor(!warm);
         }
-        let normaliser = normaliser_of(&self.policy_vars)?;
-        let mut policy = self.policy()?;
         let seed = episode_seed(self.seed ^ 0x7D3, self.episode);
-        if let Some(ranges) = &self.config.randomise {
-            let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
-            self.env = AssemblyEnv::new(&drawn, mismatch);
-        }
-        let mut observation = self
-            .env
-            .reset(seed)
-            .map_err(|e| candle_core::Error::Msg(format!("twin reset failed: {e}")))?;
-        let sigma = self.config.td3.exploration_noise;
-        let mut pending: Option<(Actor, [f32; 12], [f32; 3], f64)> = None;
-        let mut taken = [0usize; 2];
-        let mut return_ = 0.0;
-        let (success, steps) = loop {
-            let mut action = [0.0f64; 6];
-            if observation.measurement_fresh {
-                let inputs = self.config.inputs.of(&observation);
-                let x = normaliser.apply(&inputs);
-                if let Some((actor, s, a, r)) = pending.take() {
-                    self.buffers[agent_index(actor)].push(transition(s, a, r, x, false));
-                }
-                let out = policy.step(&inputs)?;
-                if !out.is_finite() {
-                    candle_core::bail!(
-                        "the policy's output is not finite at episode {}",
-                        self.episode
-                    );
-                }
-                let (offset, limit) = match out.actor {
-                    Actor::Position => (0, self.policy_config.step_limit_mm),
-                    Actor::Orientation => (3, self.policy_config.step_limit_deg),
-                };
-                let span = f64::from(out.scale) * limit;
-                let mut a: [f32; 3] = std::array::from_fn(|i| {
-                    let clean = if span > 0.0 {
-                        out.action[offset + i] / span
-                    } else {
-                        0.0
-                    };
-                    let noise: f64 = self.rng.sample(StandardNormal);
-                    (clean + sigma * noise).clamp(-1.0, 1.0) as f32
-                });
-                // As the policy acts as a controller: not past the goal, and no deeper after a
-                // refusal for contact.
-                if out.actor == Actor::Position && span > 0.0 {
-                    a[2] = a[2].max((deepest_move_mm(&observation) / span) as f32);
-                }
-                for i in 0..3 {
-                    action[offset + i] = f64::from(a[i]) * span;
-                }
-                taken[agent_index(out.actor)] += 1;
-                pending = Some((out.actor, x, a, 0.0));
-            }
-            let result = self
-                .env
-                .step(&crate::geometry::Move::from_array(action))
-                .map_err(|e| candle_core::Error::Msg(format!("twin step failed: {e}")))?;
-            return_ += result.reward.total;
-            if let Some((actor, _, _, r)) = pending.as_mut() {
-                *r += local_reward(*actor, &result.reward);
-            }
-            if let Some(outcome) = result.outcome {
-                if let Some((actor, s, a, r)) = pending.take() {
-                    let x = normaliser.apply(&self.config.inputs.of(&result.observation));
-                    self.buffers[agent_index(actor)].push(transition(s, a, r, x, true));
-                }
-                break (outcome == Outcome::Success, self.env.steps());
-            }
-            observation = result.observation;
-        };
+        let (success, steps, return_, taken) = self.run_episode(Driver::Policy, seed)?;
         for (k, agent) in self.agents.iter_mut().enumerate() {
             for _ in 0..taken[k] {
-                agent.update(&self.buffers[k])?;
+                agent.update_with(&self.buffers[k], &self.demo_buffers[k])?;
             }
         }
         self.sync_actors()?;
@@ -345,6 +351,165 @@ impl Refinement {
         self.curve.push(record);
         self.episode += 1;
         Ok(record)
+    }
+
+    /// Runs one episode on `seed`'s cell (drawn when randomising) and keeps each agent's
+    /// transitions: the policy's in the replay buffers, the demonstrator's in the
+    /// demonstration buffers. Returns success, steps, return and the transitions per agent.
+    fn run_episode(
+        &mut self,
+        driver: Driver,
+        seed: u64,
+    ) -> candle_core::Result<(bool, u32, f64, [usize; 2])> {
+        if let Some(ranges) = &self.config.randomise {
+            let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
+            self.env = AssemblyEnv::new(&drawn, mismatch);
+        }
+        let normaliser = normaliser_of(&self.policy_vars)?;
+        let mut policy = self.policy()?;
+        let mut demonstrator = match driver {
+            Driver::Policy => None,
+            Driver::Demonstrator => {
+                let mut expert = crate::policy::builtin(self.config.demonstrator, self.env.cell())
+                    .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+                expert.reset(demonstrator_seed(seed));
+                Some(expert)
+            }
+        };
+        let limits = self.limits();
+        let buffers = match driver {
+            Driver::Policy => &mut self.buffers,
+            Driver::Demonstrator => &mut self.demo_buffers,
+        };
+        let inputs = self.config.inputs;
+        let asymmetric = self.config.asymmetric;
+        // What each agent's critics read at the current step beside the actor's inputs.
+        let privileged = |env: &AssemblyEnv, observation: &Observation| -> Vec<f32> {
+            if !asymmetric {
+                return Vec::new();
+            }
+            let truth = Observation {
+                state: env.true_state(),
+                ..observation.clone()
+            };
+            normaliser.apply(&inputs.of(&truth)).to_vec()
+        };
+        let mut observation = self
+            .env
+            .reset(seed)
+            .map_err(|e| candle_core::Error::Msg(format!("twin reset failed: {e}")))?;
+        let sigma = self.config.td3.exploration_noise;
+        let mut pending: Option<(Actor, Transition)> = None;
+        let mut taken = [0usize; 2];
+        let mut return_ = 0.0;
+        loop {
+            let mut action = [0.0f64; 6];
+            let decision = match &mut demonstrator {
+                Some(expert) => {
+                    let decision = expert.act(&observation);
+                    action = decision.action.to_array();
+                    decision.actor.zip(decision.scale)
+                }
+                None => None,
+            };
+            if observation.measurement_fresh {
+                let x = normaliser.apply(&inputs.of(&observation));
+                let critic_x = privileged(&self.env, &observation);
+                if let Some((actor, mut t)) = pending.take() {
+                    t.next_state = x.to_vec();
+                    t.next_privileged = critic_x.clone();
+                    buffers[agent_index(actor)].push(t);
+                }
+                let chosen = match &demonstrator {
+                    Some(_) => decision,
+                    None => {
+                        let out = policy.step(&inputs.of(&observation))?;
+                        if !out.is_finite() {
+                            candle_core::bail!(
+                                "the policy's output is not finite at episode {}",
+                                self.episode
+                            );
+                        }
+                        action = out.action.map(f64::from);
+                        Some((out.actor, f64::from(out.scale)))
+                    }
+                };
+                if let Some((actor, scale)) = chosen {
+                    let (offset, limit) = match actor {
+                        Actor::Position => (0, self.policy_config.step_limit_mm),
+                        Actor::Orientation => (3, self.policy_config.step_limit_deg),
+                    };
+                    let a: [f32; 3] = if demonstrator.is_some() {
+                        // The demonstrator's move as behaviour cloning labels it: the
+                        // direction the actor learnt, its length the selector's.
+                        let label = StepLabels::of(
+                            &DemoStep {
+                                episode: 0,
+                                step: observation.step,
+                                state: [0.0; 12],
+                                action,
+                                actor,
+                                scale,
+                            },
+                            &limits,
+                        );
+                        label.direction.map(|d| d as f32)
+                    } else {
+                        let span = scale * limit;
+                        let mut a: [f32; 3] = std::array::from_fn(|i| {
+                            let clean = if span > 0.0 {
+                                action[offset + i] / span
+                            } else {
+                                0.0
+                            };
+                            let noise: f64 = self.rng.sample(StandardNormal);
+                            (clean + sigma * noise).clamp(-1.0, 1.0) as f32
+                        });
+                        // As the policy acts as a controller: not past the goal, and no
+                        // deeper after a refusal for contact.
+                        if actor == Actor::Position && span > 0.0 {
+                            a[2] = a[2].max((deepest_move_mm(&observation) / span) as f32);
+                        }
+                        action = [0.0; 6];
+                        for i in 0..3 {
+                            action[offset + i] = f64::from(a[i]) * span;
+                        }
+                        a
+                    };
+                    taken[agent_index(actor)] += 1;
+                    let state = Transition {
+                        state: x.to_vec(),
+                        action: a.to_vec(),
+                        privileged: critic_x,
+                        ..Transition::default()
+                    };
+                    pending = Some((actor, state));
+                }
+            }
+            let result = self
+                .env
+                .step(&crate::geometry::Move::from_array(action))
+                .map_err(|e| candle_core::Error::Msg(format!("twin step failed: {e}")))?;
+            return_ += result.reward.total;
+            if let Some((actor, t)) = pending.as_mut() {
+                t.reward += local_reward(*actor, &result.reward) as f32;
+            }
+            if let Some(outcome) = result.outcome {
+                if let Some((actor, mut t)) = pending.take() {
+                    t.next_state = normaliser.apply(&inputs.of(&result.observation)).to_vec();
+                    t.next_privileged = privileged(&self.env, &result.observation);
+                    t.done = true;
+                    buffers[agent_index(actor)].push(t);
+                }
+                return Ok((
+                    outcome == Outcome::Success,
+                    self.env.steps(),
+                    return_,
+                    taken,
+                ));
+            }
+            observation = result.observation;
+        }
     }
 
     /// Evaluates the current policy on the validation episodes and keeps it if it is the best.
@@ -429,6 +594,15 @@ impl Refinement {
     }
 }
 
+/// Who moves the shaft in an episode of the refinement.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Driver {
+    /// The policy being refined, with exploration noise.
+    Policy,
+    /// The scripted demonstrator ([`RefineConfig::demonstrator`]).
+    Demonstrator,
+}
+
 /// The bookkeeping half of a refinement checkpoint.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RefineProgress {
@@ -436,17 +610,6 @@ pub struct RefineProgress {
     pub curve: Vec<EpisodeRecord>,
     pub validations: Vec<ValidationRecord>,
     pub best: Option<ValidationRecord>,
-}
-
-fn transition(s: [f32; 12], a: [f32; 3], r: f64, next: [f32; 12], done: bool) -> Transition {
-    Transition {
-        state: s.to_vec(),
-        action: a.to_vec(),
-        reward: r as f32,
-        next_state: next.to_vec(),
-        done,
-        ..Transition::default()
-    }
 }
 
 fn unreachable_agents() -> candle_core::Error {
@@ -530,6 +693,13 @@ mod tests {
     }
 
     fn tiny_refinement(from_bc: bool) -> Refinement {
+        tiny_refinement_with(from_bc, |config| config)
+    }
+
+    fn tiny_refinement_with(
+        from_bc: bool,
+        adjust: impl Fn(RefineConfig) -> RefineConfig,
+    ) -> Refinement {
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
         let demos = record_expert(&cell, options, 4, 1);
@@ -565,7 +735,7 @@ mod tests {
             eval_episodes: 2,
             ..RefineConfig::default()
         };
-        Refinement::new(&cell, options, vars, config, from_bc, 3).unwrap()
+        Refinement::new(&cell, options, vars, adjust(config), from_bc, 3).unwrap()
     }
 
     fn snapshot(vars: &VarMap) -> Vec<(String, Vec<f32>)> {
@@ -601,6 +771,49 @@ mod tests {
             let b = again[name].flatten_all().unwrap().to_vec1::<f32>().unwrap();
             assert_eq!(a, b, "{name}");
         }
+    }
+
+    /// With demonstrations, the demonstrator's episodes fill each agent's demonstration buffer
+    /// with the labels behaviour cloning learnt from, every transition carries the true pose
+    /// for the critics, and the run is the same under the same seed.
+    #[test]
+    fn demonstrations_fill_the_buffers_with_bc_labels_and_the_true_pose() {
+        let beside = |config: RefineConfig| RefineConfig {
+            critic_pretraining_updates: 4,
+            ..config.beside_demonstrator("expert", 2)
+        };
+        let mut run = tiny_refinement_with(true, beside);
+        let position = &run.demo_buffers[agent_index(Actor::Position)];
+        assert!(position.len() >= 20, "{} position steps", position.len());
+        let mut moves = 0;
+        for buffer in &run.demo_buffers {
+            for t in buffer.items() {
+                assert_eq!(t.privileged.len(), 12);
+                assert_eq!(t.next_privileged.len(), 12);
+                // A label's largest component is 0.9 (or 0 for a hold), as BC's are.
+                let largest = t.action.iter().fold(0f32, |m, a| m.max(a.abs()));
+                assert!(
+                    largest == 0.0 || (0.0..=0.95).contains(&largest),
+                    "{largest}"
+                );
+                moves += usize::from(largest > 0.0);
+            }
+        }
+        assert!(moves > 0);
+        // The true pose differs from what the camera saw, but not by much.
+        let t = &position.items()[0];
+        let gap = t
+            .state
+            .iter()
+            .zip(&t.privileged)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(gap > 0.0 && gap < 1.0, "normalised gap {gap}");
+        run.train_episode().unwrap();
+        let mut again = tiny_refinement_with(true, beside);
+        again.train_episode().unwrap();
+        assert_eq!(snapshot(&run.policy_vars), snapshot(&again.policy_vars));
+        assert_eq!(run.curve(), again.curve());
     }
 
     #[test]

@@ -177,6 +177,11 @@ impl ReplayBuffer {
     pub fn is_empty(&self) -> bool {
         self.items.is_empty()
     }
+
+    /// The transitions held, in no particular order.
+    pub fn items(&self) -> &[Transition] {
+        &self.items
+    }
 }
 
 /// The TD3 learner: an actor and two critics, each with a target copy.

@@ -575,6 +575,13 @@ impl AssemblyEnv {
         self.frames.segment_for(self.robot.true_platform())
     }
 
+    /// The 12-dim state (docs/design.md §5) of the true pose: what a perfect camera would
+    /// report. Only the twin has it; TD3's critics read it while training.
+    pub fn true_state(&self) -> [f64; 12] {
+        let (w_m, w_f) = self.frames.world_poses(self.robot.true_platform());
+        crate::camera::state_vector(&w_m, &(w_m.inverse() * w_f), self.cell.hole_pitch_deg())
+    }
+
     /// True errors against the goal.
     pub fn true_errors(&self) -> PoseErrors {
         self.pose_errors(&self.true_f_m())

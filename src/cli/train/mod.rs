@@ -26,7 +26,7 @@ use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos::{self, Recording};
-use assembly_cell::learning::refine::RefineConfig;
+use assembly_cell::learning::refine::{DEMO_REGULARISATION, RefineConfig};
 use assembly_cell::learning::run::{self, TrainingSettings};
 use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::file::PolicyFile;
@@ -176,6 +176,15 @@ pub struct TrainArgs {
     /// TD3 episodes at the start in which only the critics learn.
     #[arg(long, default_value_t = RefineConfig::default().critic_warmup_episodes)]
     td3_critic_warmup: usize,
+    /// Episodes of the demonstrator kept in TD3's replay (0: plain TD3 with the trust region).
+    /// With any, TD3 learns beside its demonstrator: critics that also read the true pose,
+    /// pre-trained on the demonstrations, and Q-filtered TD3+BC actor updates.
+    #[arg(long, default_value_t = 0)]
+    td3_demonstrations: usize,
+    /// α of the TD3+BC actor update with --td3-demonstrations: the weight of the critic's
+    /// value against imitating the demonstrator (smaller imitates more).
+    #[arg(long, default_value_t = DEMO_REGULARISATION)]
+    td3_demo_alpha: f64,
     /// Start TD3 from freshly initialised actors instead of the BC actors.
     #[arg(long)]
     no_bc_init: bool,

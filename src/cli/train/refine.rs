@@ -12,6 +12,7 @@ use assembly_cell::learning::flat::{FlatConfig, FlatProgress, FlatTraining};
 use assembly_cell::learning::pipeline::{self, step_limits};
 use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgress, Refinement};
 use assembly_cell::learning::td3::Td3Config;
+use assembly_cell::policy::record::DEMONSTRATORS;
 use candle_core::Tensor;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -46,7 +47,7 @@ impl Run {
         };
         let varmap = pipeline::load_vars(&self.needs(LSTM, "lstm")?)?;
         let defaults = RefineConfig::default();
-        let config = RefineConfig {
+        let mut config = RefineConfig {
             episodes: self.args.td3_episodes,
             eval_every: self.args.eval_every,
             eval_episodes: self.args.eval_episodes,
@@ -65,6 +66,14 @@ impl Run {
             randomise: self.recording().randomise,
             ..defaults
         };
+        if self.args.td3_demonstrations > 0 {
+            let demonstrator = DEMONSTRATORS
+                .into_iter()
+                .find(|&name| name == self.args.demonstrator)
+                .context("the demonstrator was checked when the run started")?;
+            config = config.beside_demonstrator(demonstrator, self.args.td3_demonstrations);
+            config.td3.demo_regularisation = Some(self.args.td3_demo_alpha);
+        }
         let mut refinement = Refinement::new(
             &self.cell,
             self.options,
