@@ -144,3 +144,59 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
         .collect();
     assert!(actions.contains(&"training.start") && actions.contains(&"training.cancel"));
 }
+
+/// A run for any cell records its demonstrations on randomised cells with cell-relative inputs,
+/// stores them as such, and makes a version 2 policy that drives the cell; demonstrations of
+/// the other kind are refused by name.
+#[test]
+fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[("CELLD_STEP_PERIOD_MS", "5")]);
+    let admin = server.admin.clone();
+    let mut any_cell = tiny(2);
+    any_cell["settings"]["for_any_cell"] = json!(true);
+    let (status, started) = server.post("/api/training", Some(&admin), Some(any_cell));
+    assert_eq!(status, 202, "{started}");
+    let id = started["id"].as_i64().unwrap();
+    let done = wait(&server, id, "ended", |r| r["status"] != "running");
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["settings"]["for_any_cell"], true, "{done}");
+
+    let demonstration = done["demonstration_ids"][0].as_i64().unwrap();
+    let (_, listing) = server.get("/api/demonstrations", Some(&admin));
+    let listed = listing["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|d| d["id"] == demonstration)
+        .expect("the run's demonstrations are stored")
+        .clone();
+    assert_eq!(listed["inputs"], "cell-relative", "{listed}");
+    assert!(
+        listed["name"]
+            .as_str()
+            .unwrap()
+            .contains("randomised cells"),
+        "{listed}"
+    );
+    let policy_id = done["policy_id"].as_i64().unwrap();
+    let (_, policy) = server.get(&format!("/api/policies/{policy_id}"), Some(&admin));
+    assert_eq!(policy["metadata"]["format_version"], "2", "{policy}");
+    assert_eq!(policy["metadata"]["inputs"], "cell-relative", "{policy}");
+    let job = server.create_job(&admin, json!({"controller": format!("policy:{policy_id}")}));
+    let finished = server.wait_final(job["id"].as_i64().unwrap());
+    assert!(finished["steps"].as_i64().unwrap() > 0, "{finished}");
+
+    // Those demonstrations are the wrong kind for a run on the absolute state.
+    let (status, refused) = server.post(
+        "/api/training",
+        Some(&admin),
+        Some(json!({"demonstrations": [demonstration]})),
+    );
+    assert_eq!(status, 422, "{refused}");
+    let message = refused["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("cell-relative") && message.contains(&demonstration.to_string()),
+        "{message}"
+    );
+}

@@ -4,7 +4,7 @@
 //! hierarchy), with the same defaults.
 
 use super::bc::BcConfig;
-use super::demos::{DEFAULT_DEMONSTRATOR, DemoEpisode, check_demonstrator};
+use super::demos::{DEFAULT_DEMONSTRATOR, DemoEpisode, Recording, check_demonstrator};
 use super::pipeline::{self, step_limits};
 use super::refine::{RefineConfig, Refinement};
 use super::selector::SelectorConfig;
@@ -13,6 +13,7 @@ use crate::policy::Actor;
 use crate::policy::file::PolicyFile;
 use crate::policy::inputs::PolicyInputs;
 use crate::sim::EnvOptions;
+use crate::sim::randomise::CellRanges;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
@@ -74,6 +75,11 @@ pub struct TrainingSettings {
     /// [`super::demos::DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
     #[schema(pattern = "^(expert-state-only|expert-careful|expert)$")]
     pub demonstrator: String,
+    /// Train a policy for cells it was not trained on: it reads cell-relative inputs (a
+    /// version 2 file), and every recorded demonstration and TD3 episode is on a cell of its
+    /// own, drawn around this one over the ranges the product is specified for (the recipe of
+    /// the bundled `hierarchical-cells`). False: the paper's absolute state, on this cell.
+    pub for_any_cell: bool,
     #[schema(minimum = 1, maximum = 1024)]
     #[serde(deserialize_with = "crate::integer::integer")]
     pub lstm_hidden: usize,
@@ -102,6 +108,7 @@ impl Default for TrainingSettings {
             bc_learning_rate: 0.02,
             bc_bore_lateral_weight: BcConfig::default().bore_lateral_weight,
             demonstrator: DEFAULT_DEMONSTRATOR.to_string(),
+            for_any_cell: false,
             lstm_hidden: 64,
             lstm_epochs: 60,
             td3_episodes: 500,
@@ -148,6 +155,24 @@ impl TrainingSettings {
             }
         }
         check_demonstrator(&self.demonstrator).map_err(|e| format!("demonstrator {e}"))
+    }
+
+    /// What the policy reads.
+    pub fn inputs(&self) -> PolicyInputs {
+        if self.for_any_cell {
+            PolicyInputs::CellRelative
+        } else {
+            PolicyInputs::Absolute
+        }
+    }
+
+    /// How the run records its demonstrations when it is named none.
+    pub fn recording(&self) -> Recording {
+        Recording {
+            inputs: self.inputs(),
+            randomise: self.for_any_cell.then(CellRanges::default),
+            ..Recording::default()
+        }
     }
 
     fn units(&self) -> usize {
@@ -202,6 +227,8 @@ pub fn run(
     cancelled: &dyn Fn() -> bool,
 ) -> Result<(PolicyFile, Value), RunError> {
     settings.check().map_err(RunError::Training)?;
+    let recording = settings.recording();
+    let inputs = recording.inputs;
     check_demonstrations(&demos)?;
     demos.retain(|e| !e.steps.is_empty());
     let held_out = demos.split_off(demos.len() - demos.len() / 10);
@@ -223,8 +250,9 @@ pub fn run(
         learning_rate: settings.bc_learning_rate,
         bore_lateral_weight: settings.bc_bore_lateral_weight,
         seed: settings.seed,
-        insertion_from_pz_mm: pipeline::insertion_from_input_mm(cell, PolicyInputs::Absolute),
-        bore_from_pz_mm: PolicyInputs::Absolute.entrance_input_mm(cell),
+        insertion_from_pz_mm: pipeline::insertion_from_input_mm(cell, inputs),
+        bore_from_pz_mm: inputs.entrance_input_mm(cell),
+        inputs,
         ..BcConfig::default()
     };
     let varmap = pipeline::behaviour_clone(
@@ -295,9 +323,8 @@ pub fn run(
         ])
     };
     if settings.part == TrainingPart::Bc {
-        let file =
-            pipeline::policy_file(&varmap, &limits, PolicyInputs::Absolute, &provenance("bc"))
-                .map_err(|e| RunError::Training(e.to_string()))?;
+        let file = pipeline::policy_file(&varmap, &limits, inputs, &provenance("bc"))
+            .map_err(|e| RunError::Training(e.to_string()))?;
         return Ok((file, figures));
     }
 
@@ -305,6 +332,8 @@ pub fn run(
         episodes: settings.td3_episodes,
         eval_every: settings.eval_every,
         eval_episodes: settings.eval_episodes,
+        inputs,
+        randomise: recording.randomise,
         ..RefineConfig::default()
     };
     let mut refinement = Refinement::new(
@@ -340,12 +369,7 @@ pub fn run(
     figures["validations"] = json!(refinement.validations());
     let (best, vars) = refinement.best();
     figures["best_validation"] = json!(best);
-    let file = pipeline::policy_file(
-        vars,
-        &limits,
-        PolicyInputs::Absolute,
-        &provenance("hierarchical"),
-    )
-    .map_err(|e| RunError::Training(e.to_string()))?;
+    let file = pipeline::policy_file(vars, &limits, inputs, &provenance("hierarchical"))
+        .map_err(|e| RunError::Training(e.to_string()))?;
     Ok((file, figures))
 }

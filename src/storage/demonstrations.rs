@@ -15,12 +15,15 @@ pub struct Demonstration {
     pub job_id: Option<i64>,
     pub episodes: i64,
     pub steps: i64,
+    /// What the recorded states are: `absolute` (the paper's state) or `cell-relative` (the
+    /// inputs of a policy for any cell); a training run learns only from its own kind.
+    pub inputs: String,
     pub created_by: Option<String>,
     pub created_at: String,
 }
 
 const COLUMNS: &str =
-    "id, name, source, cell_hash, job_id, episodes, steps, created_by, created_at";
+    "id, name, source, cell_hash, job_id, episodes, steps, inputs, created_by, created_at";
 
 /// What a new demonstration is.
 pub struct NewDemonstration<'a> {
@@ -28,6 +31,8 @@ pub struct NewDemonstration<'a> {
     pub source: &'a str,
     pub cell_hash: &'a str,
     pub job_id: Option<i64>,
+    /// A `PolicyInputs` name: what the recorded states are.
+    pub inputs: &'a str,
     pub created_by: &'a str,
 }
 
@@ -45,8 +50,9 @@ pub async fn insert<'e>(
 ) -> Result<i64, DbError> {
     let steps: usize = episodes.iter().map(|e| e.steps.len()).sum();
     sqlx::query_scalar(
-        "INSERT INTO demonstrations (name, source, cell_hash, job_id, episodes, steps, body, created_by)
-         VALUES (?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+        "INSERT INTO demonstrations
+             (name, source, cell_hash, job_id, episodes, steps, inputs, body, created_by)
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
     )
     .bind(new.name)
     .bind(new.source)
@@ -54,6 +60,7 @@ pub async fn insert<'e>(
     .bind(new.job_id)
     .bind(episodes.len() as i64)
     .bind(steps as i64)
+    .bind(new.inputs)
     .bind(body_of(episodes))
     .bind(new.created_by)
     .fetch_one(executor)

@@ -12,6 +12,7 @@ use super::demonstrations::{self, NewDemonstration};
 use super::{Db, DbError, jobs, steps};
 use crate::cell::{CellEvent, StepRecord};
 use crate::learning::demos::DemoEpisode;
+use crate::policy::inputs::PolicyInputs;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::sync::mpsc::UnboundedReceiver;
@@ -154,6 +155,7 @@ async fn write(
                                 source: "recorded",
                                 cell_hash,
                                 job_id: Some(*job_id),
+                                inputs: PolicyInputs::Absolute.name(),
                                 created_by: "celld",
                             };
                             demonstrations::insert(&mut *tx, &new, &[episode]).await?;

@@ -3,6 +3,7 @@
 
 use super::{Context, Error, Result, off_the_runtime};
 use crate::learning::demos::{self, DemoError};
+use crate::policy::inputs::PolicyInputs;
 use crate::storage::audit;
 use crate::storage::demonstrations::{self, Demonstration, NewDemonstration};
 use serde_json::json;
@@ -36,6 +37,7 @@ pub async fn import(
             source: "imported",
             cell_hash: &context.cell_config.config_hash(),
             job_id: None,
+            inputs: PolicyInputs::Absolute.name(),
             created_by: by,
         },
         &episodes,

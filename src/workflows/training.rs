@@ -82,7 +82,18 @@ pub async fn start(
         )));
     }
     let mut episodes: Vec<DemoEpisode> = Vec::new();
+    let inputs = settings.inputs().name();
     for &id in &ids {
+        let stored = demonstrations::get(&context.db, id)
+            .await?
+            .ok_or_else(|| Error::not_found(format!("no demonstration with id {id}")))?;
+        if stored.inputs != inputs {
+            return Err(Error::unprocessable(format!(
+                "demonstration {id} holds {} inputs and this run learns from {inputs} ones \
+                 (for_any_cell = {}); name demonstrations of its kind, or none to record them",
+                stored.inputs, settings.for_any_cell
+            )));
+        }
         let text = demonstrations::body(&context.db, id)
             .await?
             .ok_or_else(|| Error::not_found(format!("no demonstration with id {id}")))?;
@@ -226,25 +237,34 @@ async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Val
     if let Some(count) = job.record {
         let (recorded, seed) = (cell.clone(), job.settings.seed);
         let demonstrator = job.settings.demonstrator.clone();
+        let recording = job.settings.recording();
         episodes = on_training_thread(move || {
-            demos::record(
+            demos::record_with(
                 &recorded,
                 EnvOptions::from_cell(&recorded),
                 &demonstrator,
                 count,
                 seed,
+                recording,
             )
         })
         .await
         .map_err(failed)?;
         let new = NewDemonstration {
             name: &format!(
-                "training run {} (recorded {})",
-                job.id, job.settings.demonstrator
+                "training run {} (recorded {}{})",
+                job.id,
+                job.settings.demonstrator,
+                if job.settings.for_any_cell {
+                    " on randomised cells"
+                } else {
+                    ""
+                }
             ),
             source: "scripted",
             cell_hash: &cell.config_hash(),
             job_id: None,
+            inputs: job.settings.inputs().name(),
             created_by: &job.by,
         };
         let id = demonstrations::insert(&context.db.writer, &new, &episodes)
