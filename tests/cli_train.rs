@@ -448,6 +448,59 @@ fn dagger_episodes_come_before_the_demonstrations_which_are_unchanged() {
     assert_ne!(round(0), round(1));
 }
 
+/// With `--dagger-actors-only` the DAgger episodes teach the actors as before, and the selector
+/// learns from the demonstrator's own episodes only: its weights differ from a plain DAgger
+/// run's, and match a run whose selector is trained on those episodes alone.
+#[test]
+fn dagger_actors_only_keeps_the_dagger_episodes_from_the_selector() {
+    let dir = tempfile::tempdir().unwrap();
+    let policy =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/policy_small.safetensors");
+    let dagger = [
+        "--dagger-policy",
+        policy.to_str().unwrap(),
+        "--dagger-episodes",
+        "6",
+    ];
+    let runs: Vec<_> = ["plain", "actors-only"]
+        .iter()
+        .map(|name| dir.path().join(name))
+        .collect();
+    for (run, only) in runs.iter().zip([false, true]) {
+        let mut extra = dagger.to_vec();
+        if only {
+            extra.push("--dagger-actors-only");
+        }
+        for stage in ["bc", "lstm"] {
+            let output = train(stage, run, &extra);
+            assert!(output.status.success(), "{}", stderr(&output));
+        }
+    }
+    let lstm = |run: &Path, prefix: &str| tensors(&run.join("lstm.safetensors"), prefix);
+    assert_eq!(lstm(&runs[0], "pos."), lstm(&runs[1], "pos."));
+    assert_eq!(lstm(&runs[0], "obs_"), lstm(&runs[1], "obs_"));
+    assert_ne!(lstm(&runs[0], "high."), lstm(&runs[1], "high."));
+
+    // The same selector, trained by hand on the demonstrator's episodes: the actors-only run's
+    // demonstrations without the DAgger ones, with its BC stage (and so its normaliser) copied.
+    let own = dir.path().join("own");
+    std::fs::create_dir_all(&own).unwrap();
+    let lines = std::fs::read_to_string(runs[1].join("demos.jsonl")).unwrap();
+    let kept: String = lines
+        .lines()
+        .filter(|line| {
+            let line: serde_json::Value = serde_json::from_str(line).unwrap();
+            line["episode"].as_u64().unwrap() >= 6
+        })
+        .map(|line| format!("{line}\n"))
+        .collect();
+    std::fs::write(own.join("demos.jsonl"), kept).unwrap();
+    std::fs::copy(runs[1].join("bc.safetensors"), own.join("bc.safetensors")).unwrap();
+    let output = train("lstm", &own, &[]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert_eq!(lstm(&own, "high."), lstm(&runs[1], "high."));
+}
+
 #[test]
 fn a_bad_dagger_policy_is_refused_before_any_work() {
     let dir = tempfile::tempdir().unwrap();

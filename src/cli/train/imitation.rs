@@ -23,6 +23,16 @@ use std::time::Instant;
 impl Run {
     /// The demonstrations, recorded (and saved) on first use; a tenth held out.
     pub(super) fn demos(&self) -> Result<(Vec<DemoEpisode>, Vec<DemoEpisode>)> {
+        self.demos_for_the_selector()
+            .map(|(train, held_out, _)| (train, held_out))
+    }
+
+    /// [`Run::demos`], with the episodes the selector trains on: all of them, or with
+    /// `--dagger-actors-only` the demonstrator's own (the DAgger episodes come first in the
+    /// file, the held-out tenth last).
+    fn demos_for_the_selector(
+        &self,
+    ) -> Result<(Vec<DemoEpisode>, Vec<DemoEpisode>, Vec<DemoEpisode>)> {
         let path = self.path(DEMOS);
         if !path.exists() {
             match &self.args.demos_file {
@@ -78,9 +88,25 @@ impl Run {
         let mut episodes = demos::read_jsonl(std::io::BufReader::new(file))
             .with_context(|| format!("{}", path.display()))?;
         run::check_demonstrations(&episodes).with_context(|| format!("{}", path.display()))?;
+        let dagger = if self.args.demos_file.is_none() {
+            self.args.dagger_policy.len() * self.args.dagger_episodes
+        } else {
+            0
+        };
+        let own_from = dagger.min(episodes.len());
+        let own_with_steps = episodes[own_from..]
+            .iter()
+            .filter(|e| !e.steps.is_empty())
+            .count();
         episodes.retain(|e| !e.steps.is_empty());
         let held_out = episodes.split_off(episodes.len() - episodes.len() / 10);
-        Ok((episodes, held_out))
+        let selector = if self.args.dagger_actors_only {
+            let own = own_with_steps.saturating_sub(held_out.len());
+            episodes[episodes.len() - own..].to_vec()
+        } else {
+            episodes.clone()
+        };
+        Ok((episodes, held_out, selector))
     }
 
     /// DAgger round `round`'s episodes: `driver` drives, the demonstrator labels (seeds apart
@@ -141,8 +167,8 @@ impl Run {
             return Ok(());
         }
         let varmap = pipeline::load_vars(&self.needs(BC, "bc")?)?;
-        let (train, held_out) = self.demos()?;
-        let lstm = self.fit_selector(&train, &held_out, varmap, &MultiProgress::new())?;
+        let (_, held_out, selector) = self.demos_for_the_selector()?;
+        let lstm = self.fit_selector(&selector, &held_out, varmap, &MultiProgress::new())?;
         self.save_lstm(&lstm)
     }
 
@@ -155,14 +181,14 @@ impl Run {
             self.bc()?;
             return self.lstm();
         }
-        let (train, held_out) = self.demos()?;
+        let (train, held_out, selector) = self.demos_for_the_selector()?;
         let normaliser =
             pipeline::training_normaliser(&train, &self.bc_config(), self.init.as_ref())?;
         let selector_vars = pipeline::normaliser_vars(&normaliser)?;
         let progress = MultiProgress::new();
         let (bc, lstm) = std::thread::scope(|scope| {
             let lstm =
-                scope.spawn(|| self.fit_selector(&train, &held_out, selector_vars, &progress));
+                scope.spawn(|| self.fit_selector(&selector, &held_out, selector_vars, &progress));
             let bc = self.fit_bc(&train, &progress);
             (bc, lstm.join().expect("the selector's thread panicked"))
         });

@@ -107,6 +107,11 @@ pub struct TrainArgs {
     /// Fine-tune this policy instead of starting from fresh weights.
     #[arg(long)]
     init_policy: Option<PathBuf>,
+    /// DAgger episodes teach the actors only; the selector learns from the demonstrator's own
+    /// episodes. (The demonstrator's holds on a struggling policy's states can teach a selector
+    /// to hold where the demonstrator itself would have moved on.)
+    #[arg(long)]
+    dagger_actors_only: bool,
     /// Episodes each --dagger-policy drives.
     #[arg(long, default_value_t = DEMONSTRATIONS)]
     dagger_episodes: usize,
