@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Makes the three bundled policies again, byte for byte:
+# Makes the four bundled policies again, byte for byte:
 #   policies/default.safetensors  the hierarchical policy (controller `hierarchical`)
 #   policies/bc.safetensors       plain behaviour cloning (controller `bc`)
 #   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
@@ -10,7 +10,7 @@
 # RAYON_NUM_THREADS=1 did so then too. The run directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
-# It takes about 40 minutes of CPU (docs/learning.md § The bundled policies has each run's time).
+# It takes about an hour of CPU (docs/learning.md § The bundled policies has each run's time).
 # Run it from anywhere inside the repository:  scripts/bundled-policies.sh
 source "$(dirname "$0")/common.sh"
 RUNS=runs/bundled
@@ -36,13 +36,21 @@ step hierarchical-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30f
     --init-policy "$RUNS/W30r1/policy.safetensors" --dagger-policy "$RUNS/W30r1/policy.safetensors"
 cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 
-# hierarchical-cells: behaviour cloning on 800 demonstrations of expert-careful, each on a cell
-# of its own drawn over the ranges the product is specified for, the policy reading
+# hierarchical-cells 1: behaviour cloning on 800 demonstrations of expert-careful, each on a
+# cell of its own drawn over the ranges the product is specified for, the policy reading
 # cell-relative inputs (a version 2 file); the TD3 stage runs one episode
-step hierarchical-cells "$CELLD" train all --out "$RUNS/cells" --seed 2026 \
+step hierarchical-cells-1 "$CELLD" train all --out "$RUNS/cells" --seed 2026 \
     --demonstrator expert-careful --bc-bore-lateral-weight 30 --inputs cell-relative \
     --randomise-cells --td3-episodes 1
-cp "$RUNS/cells/policy.safetensors" policies/across-cells.safetensors
+
+# hierarchical-cells 2: DAgger on randomised cells, that policy drives 800 episodes and the
+# demonstrator labels them; the labels teach the actors only, the selector learns from the
+# demonstrator's own episodes
+step hierarchical-cells-2 "$CELLD" train all --out "$RUNS/cellsr1" --seed 2026 \
+    --demonstrator expert-careful --bc-bore-lateral-weight 30 --inputs cell-relative \
+    --randomise-cells --td3-episodes 1 --dagger-policy "$RUNS/cells/policy.safetensors" \
+    --dagger-actors-only --bc-epochs 100
+cp "$RUNS/cellsr1/policy.safetensors" policies/across-cells.safetensors
 
 # bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default
 # demonstrator), BC at a constant rate; its BC policy is the `bc` baseline

@@ -391,8 +391,15 @@ impl Td3 {
                 .min(demos.len())
                 .max(n.saturating_sub(online.len()))
         };
-        let batch = self.sample(online, demos, n, from_demos);
-        let (s, a, critic_s, critic_s2, s2, r, not_done) = batch.tensors(self)?;
+        let BatchTensors {
+            state: s,
+            action: a,
+            critic_state: critic_s,
+            critic_next_state: critic_s2,
+            next_state: s2,
+            reward: r,
+            not_done,
+        } = self.sample(online, demos, n, from_demos).tensors(self)?;
         // Target: y = r + γ (1 − done) min_k Q'_k(s', clip(μ'(s') + clip(ε, −c, c), −1, 1)).
         let (ad, device) = (self.action_dim, &Device::Cpu);
         let c = self.config.noise_clip;
@@ -503,9 +510,10 @@ impl Td3 {
         }
         let mut last = None;
         for _ in 0..updates {
-            let batch = self.sample(demos, demos, n, n);
-            let (s, a, ..) = batch.tensors(self)?;
-            let loss = (self.actor.forward(&s)? - a)?.sqr()?.mean_all()?;
+            let batch = self.sample(demos, demos, n, n).tensors(self)?;
+            let loss = (self.actor.forward(&batch.state)? - batch.action)?
+                .sqr()?
+                .mean_all()?;
             self.actor_optimizer.backward_step(&loss)?;
             last = Some(f64::from(loss.to_scalar::<f32>()?));
         }
@@ -564,13 +572,8 @@ impl Td3 {
 struct Batch<'a>(Vec<&'a Transition>);
 
 impl Batch<'_> {
-    /// (s, a, critic's s, critic's s', s', r, 1 − done) as tensors; the critic's states are s
-    /// and s' followed by their privileged numbers.
-    #[allow(clippy::type_complexity)]
-    fn tensors(
-        &self,
-        td3: &Td3,
-    ) -> candle_core::Result<(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)> {
+    /// The minibatch as tensors, one row per transition.
+    fn tensors(&self, td3: &Td3) -> candle_core::Result<BatchTensors> {
         let n = self.0.len();
         let (sd, ad, pd) = (td3.state_dim, td3.action_dim, td3.config.privileged_dim);
         let column = |f: &dyn Fn(&Transition) -> Vec<f32>, width: usize| {
@@ -593,16 +596,28 @@ impl Batch<'_> {
                 sd + pd,
             )
         };
-        Ok((
-            column(&|t| t.state.clone(), sd)?,
-            column(&|t| t.action.clone(), ad)?,
-            critic(&|t| &t.state, &|t| &t.privileged)?,
-            critic(&|t| &t.next_state, &|t| &t.next_privileged)?,
-            column(&|t| t.next_state.clone(), sd)?,
-            column(&|t| vec![t.reward], 1)?,
-            column(&|t| vec![if t.done { 0.0 } else { 1.0 }], 1)?,
-        ))
+        Ok(BatchTensors {
+            state: column(&|t| t.state.clone(), sd)?,
+            action: column(&|t| t.action.clone(), ad)?,
+            critic_state: critic(&|t| &t.state, &|t| &t.privileged)?,
+            critic_next_state: critic(&|t| &t.next_state, &|t| &t.next_privileged)?,
+            next_state: column(&|t| t.next_state.clone(), sd)?,
+            reward: column(&|t| vec![t.reward], 1)?,
+            not_done: column(&|t| vec![if t.done { 0.0 } else { 1.0 }], 1)?,
+        })
     }
+}
+
+/// A minibatch's columns. The critics' states are the actor's followed by the privileged
+/// numbers.
+struct BatchTensors {
+    state: Tensor,
+    action: Tensor,
+    critic_state: Tensor,
+    critic_next_state: Tensor,
+    next_state: Tensor,
+    reward: Tensor,
+    not_done: Tensor,
 }
 
 /// The starting actor and its weights (names in [`actor_weights`]'s order).

@@ -82,7 +82,8 @@ pub const BUILTIN_CONTROLLERS: [&str; 6] = [
 /// demonstrations alone, no DAgger, no TD3), both made by `celld train all`, and `td3`
 /// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
 /// flat`), and `hierarchical-cells` (BC + LSTM on cell-relative inputs, every demonstration
-/// on a randomised cell: the policy for cells none was trained on). See the README.
+/// on a randomised cell, then a DAgger round for the actors: the policy for cells none was
+/// trained on). See the README.
 pub const LEARNED_CONTROLLERS: [&str; 4] = ["hierarchical", "bc", "td3", "hierarchical-cells"];
 
 /// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
