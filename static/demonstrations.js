@@ -23,13 +23,14 @@ export async function render(page) {
       h('td', {}, demo.job_id ? h('a', { href: `#/jobs/${demo.job_id}`, text: `job ${demo.job_id}` }) : '–'),
       h('td', { text: demo.episodes }),
       h('td', { text: demo.steps }),
+      h('td', { text: demo.inputs }),
       h('td', { text: demo.cell_hash }),
       h('td', { text: `${when(demo.created_at)}${demo.created_by ? ` by ${demo.created_by}` : ''}` }),
       h('td', {}, h('div', { class: 'row' },
         h('button', { type: 'button', class: 'secondary', text: 'Export', onclick: () => download(`/api/demonstrations/${demo.id}`, `${demo.name}.jsonl`).catch((e) => showError(e, 'Exporting')) }),
         may.administer() ? h('button', { type: 'button', class: 'danger', text: 'Delete', onclick: () => remove(demo) }) : null))));
     list.replaceChildren(items.length
-      ? table(['id', 'name', 'source', 'job', 'episodes', 'steps', 'cell', 'created', ''], rows)
+      ? table(['id', 'name', 'source', 'job', 'episodes', 'steps', 'inputs', 'cell', 'created', ''], rows)
       : h('p', { class: 'muted', text: 'No demonstration is stored yet.' }));
   }
 

@@ -41,9 +41,12 @@ export async function render(page) {
         number('training-seed', 'Seed', 2026, { min: 0 }),
         number('training-episodes', 'TD3 episodes', 500, { min: 1 }),
         number('training-record', 'Expert episodes to record', 400, { min: 10 })),
+      h('label', { class: 'row', title: 'Cell-relative inputs (a version 2 policy file); every recorded demonstration and TD3 episode on a cell of its own, drawn around this one' },
+        h('input', { id: 'training-any-cell', type: 'checkbox' }),
+        'For any cell: train a policy for cells it was not trained on'),
       h('label', {}, 'Demonstrations (none chosen: record expert episodes in the twin)',
         h('select', { id: 'training-demos', multiple: true, size: Math.min(4, Math.max(2, demos.length)) },
-          demos.map((d) => h('option', { value: d.id, text: `${d.id}: ${d.name} (${d.episodes} episodes)` })))),
+          demos.map((d) => h('option', { value: d.id, text: `${d.id}: ${d.name} (${d.episodes} episodes, ${d.inputs} inputs)` })))),
       h('div', { class: 'row' }, h('button', { type: 'submit', id: 'training-start', text: 'Start training' })));
     return h('section', { class: 'card stack' },
       h('h2', { text: 'Start a run' }),
@@ -59,6 +62,7 @@ export async function render(page) {
         seed: Number(value('#training-seed')),
         episodes: Number(value('#training-episodes')),
       };
+      if (form.querySelector('#training-any-cell').checked) body.settings = { for_any_cell: true };
       if (chosen.length) body.demonstrations = chosen;
       else body.record = Number(value('#training-record'));
       try {

@@ -260,6 +260,43 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     assert_ne!(policy["status"], "active");
     browser.screenshot(&shots.join("5-policy-gate.png"));
 
+    // A run for any cell, started from the training page: the page sends the setting, the
+    // run records cell-relative demonstrations; it is cancelled before it learns for long.
+    browser.goto(&format!("{}/#/training", server.base));
+    browser.wait_until("the training form", WAIT, |b| {
+        b.exists("#training-any-cell")
+    });
+    browser.find("#training-record").clear();
+    browser.find("#training-record").send_keys("10");
+    browser.find("#training-any-cell").click();
+    browser.find("#training-start").click();
+    browser.wait_until("the run's page", WAIT, |b| {
+        b.current_url().contains("#/training/")
+    });
+    let (_, runs) = server.get("/api/training", Some(&server.admin));
+    let run = runs["items"][0].clone();
+    assert_eq!(run["settings"]["for_any_cell"], true, "{run}");
+    let run_id = run["id"].as_i64().unwrap();
+    let (status, _) = server.post(
+        &format!("/api/training/{run_id}/cancel"),
+        Some(&server.admin),
+        None,
+    );
+    assert_eq!(status, 202);
+    // The page redraws the run every 2 s, so its status is read in one script.
+    browser.wait_until("the page shows the run cancelled", WAIT, |b| {
+        js(
+            b,
+            "return document.querySelector('#training-status')?.textContent ?? '';",
+        )
+        .as_str()
+        .is_some_and(|status| status.contains("cancelled"))
+    });
+    browser.goto(&format!("{}/#/demonstrations", server.base));
+    browser.wait_until("the recorded demonstrations, cell-relative", WAIT, |b| {
+        text_of(b, "#demonstration-list").contains("cell-relative")
+    });
+
     // A tablet: nothing wider than the window.
     browser.set_window_size(768, 1024);
     browser.goto(&format!("{}/#/live", server.base));
