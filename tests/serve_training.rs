@@ -23,6 +23,20 @@ fn wait(server: &Server, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> 
     server.poll(&path, what, Duration::from_secs(300), done)
 }
 
+/// The id of the demonstrations a finished run recorded, and their entry in the list.
+fn recorded_demonstration(server: &Server, run: &Value) -> (i64, Value) {
+    let id = run["demonstration_ids"][0].as_i64().unwrap();
+    let (_, listing) = server.get("/api/demonstrations", Some(&server.admin));
+    let listed = listing["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|d| d["id"] == id)
+        .expect("the run's demonstrations are stored")
+        .clone();
+    (id, listed)
+}
+
 #[test]
 fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_lineage() {
     let dir = tempfile::tempdir().unwrap();
@@ -110,15 +124,7 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
     assert_eq!(stages.iter().filter(|s| **s == "td3").count(), 4);
 
     // Lineage: demonstrations → run → policy → job.
-    let demonstration = done["demonstration_ids"][0].as_i64().unwrap();
-    let (_, demo) = server.get("/api/demonstrations", Some(&admin));
-    let listed = demo["items"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|d| d["id"] == demonstration)
-        .expect("the run's demonstrations are stored")
-        .clone();
+    let (_, listed) = recorded_demonstration(&server, &done);
     assert_eq!(listed["source"], "scripted");
     assert!(
         listed["name"].as_str().unwrap().contains("expert-careful"),
@@ -162,15 +168,7 @@ fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!(done["settings"]["for_any_cell"], true, "{done}");
 
-    let demonstration = done["demonstration_ids"][0].as_i64().unwrap();
-    let (_, listing) = server.get("/api/demonstrations", Some(&admin));
-    let listed = listing["items"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|d| d["id"] == demonstration)
-        .expect("the run's demonstrations are stored")
-        .clone();
+    let (demonstration, listed) = recorded_demonstration(&server, &done);
     assert_eq!(listed["inputs"], "cell-relative", "{listed}");
     assert!(
         listed["name"]
