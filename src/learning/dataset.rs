@@ -139,18 +139,19 @@ pub struct StepLabels {
 
 impl StepLabels {
     pub fn of(step: &DemoStep, limits: &StepLimits) -> Self {
-        let (components, limit, floor) = match step.actor {
-            Actor::Position => (&step.action[0..3], limits.position_mm, MIN_POSITION_SCALE),
-            Actor::Orientation => (
-                &step.action[3..6],
-                limits.orientation_deg,
-                MIN_ORIENTATION_SCALE,
-            ),
+        Self::of_move(step.actor, &step.action, limits)
+    }
+
+    /// The labels of a move `[Δx, Δy, Δz, θx, θy, θz]` (mm, deg) made by `actor`.
+    pub fn of_move(actor: Actor, action: &[f64; 6], limits: &StepLimits) -> Self {
+        let (components, limit, floor) = match actor {
+            Actor::Position => (&action[0..3], limits.position_mm, MIN_POSITION_SCALE),
+            Actor::Orientation => (&action[3..6], limits.orientation_deg, MIN_ORIENTATION_SCALE),
         };
         let largest = components.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         if largest == 0.0 {
             return StepLabels {
-                actor: step.actor,
+                actor,
                 scale: HOLD_SCALE,
                 direction: [0.0; 3],
             };
@@ -159,7 +160,7 @@ impl StepLabels {
         let direction =
             std::array::from_fn(|i| (components[i] / (scale * limit)).clamp(-0.95, 0.95));
         StepLabels {
-            actor: step.actor,
+            actor,
             scale,
             direction,
         }

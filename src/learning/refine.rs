@@ -13,7 +13,6 @@
 mod episode;
 
 use super::bc::init_actor;
-use super::dataset::StepLimits;
 use super::pipeline::actor_prefix;
 use super::td3::{ReplayBuffer, Td3, Td3Config, clone_varmap};
 use crate::config::cell::CellConfig;
@@ -300,13 +299,6 @@ impl Refinement {
         Ok(())
     }
 
-    fn limits(&self) -> StepLimits {
-        StepLimits {
-            position_mm: self.policy_config.step_limit_mm,
-            orientation_deg: self.policy_config.step_limit_deg,
-        }
-    }
-
     fn policy(&self) -> candle_core::Result<HierarchicalPolicy> {
         policy_from_vars(&self.policy_vars, &self.policy_config)
     }
@@ -321,10 +313,11 @@ impl Refinement {
             let seed = episode_seed(self.seed ^ 0xDE_3057, index);
             self.run_episode(Driver::Demonstrator, seed)?;
         }
+        let no_online_data = ReplayBuffer::new(1);
         for (agent, demos) in self.agents.iter_mut().zip(&self.demo_buffers) {
             agent.freeze_actor(true);
             for _ in 0..self.config.critic_pretraining_updates {
-                agent.update_with(&ReplayBuffer::new(1), demos)?;
+                agent.update_with(&no_online_data, demos)?;
             }
         }
         Ok(())

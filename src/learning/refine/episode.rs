@@ -3,11 +3,11 @@
 
 use super::{Refinement, agent_index, local_reward};
 use crate::learning::dataset::StepLabels;
-use crate::learning::pipeline::normaliser_of;
+use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
 use crate::policy::hierarchical::deepest_move_mm;
-use crate::policy::record::{DemoStep, demonstrator_seed};
+use crate::policy::record::demonstrator_seed;
 use crate::sim::randomise::randomised;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
 use rand::Rng;
@@ -46,7 +46,7 @@ impl Refinement {
                 Some(expert)
             }
         };
-        let limits = self.limits();
+        let limits = step_limits(&self.cell);
         let buffers = match driver {
             Driver::Policy => &mut self.buffers,
             Driver::Demonstrator => &mut self.demo_buffers,
@@ -105,26 +105,16 @@ impl Refinement {
                     }
                 };
                 if let Some((actor, scale)) = chosen {
-                    let (offset, limit) = match actor {
-                        Actor::Position => (0, self.policy_config.step_limit_mm),
-                        Actor::Orientation => (3, self.policy_config.step_limit_deg),
-                    };
                     let a: [f32; 3] = if demonstrator.is_some() {
                         // The demonstrator's move as behaviour cloning labels it: the
                         // direction the actor learnt, its length the selector's.
-                        let label = StepLabels::of(
-                            &DemoStep {
-                                episode: 0,
-                                step: observation.step,
-                                state: [0.0; 12],
-                                action,
-                                actor,
-                                scale,
-                            },
-                            &limits,
-                        );
+                        let label = StepLabels::of_move(actor, &action, &limits);
                         label.direction.map(|d| d as f32)
                     } else {
+                        let (offset, limit) = match actor {
+                            Actor::Position => (0, limits.position_mm),
+                            Actor::Orientation => (3, limits.orientation_deg),
+                        };
                         let span = scale * limit;
                         let mut a: [f32; 3] = std::array::from_fn(|i| {
                             let clean = if span > 0.0 {
