@@ -36,21 +36,14 @@ step hierarchical-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30f
     --init-policy "$RUNS/W30r1/policy.safetensors" --dagger-policy "$RUNS/W30r1/policy.safetensors"
 cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 
-# hierarchical-cells 1: behaviour cloning on 800 demonstrations of expert-careful, each on a
-# cell of its own drawn over the ranges the product is specified for, the policy reading
-# cell-relative inputs (a version 2 file); the TD3 stage runs one episode
-step hierarchical-cells-1 "$CELLD" train all --out "$RUNS/cells" --seed 2026 \
-    --demonstrator expert-careful --bc-bore-lateral-weight 30 --inputs cell-relative \
-    --randomise-cells --td3-episodes 1
-
-# hierarchical-cells 2: DAgger on randomised cells, that policy drives 800 episodes and the
-# demonstrator labels them; the labels teach the actors only, the selector learns from the
-# demonstrator's own episodes
-step hierarchical-cells-2 "$CELLD" train all --out "$RUNS/cellsr1" --seed 2026 \
-    --demonstrator expert-careful --bc-bore-lateral-weight 30 --inputs cell-relative \
-    --randomise-cells --td3-episodes 1 --dagger-policy "$RUNS/cells/policy.safetensors" \
-    --dagger-actors-only --bc-epochs 100
-cp "$RUNS/cellsr1/policy.safetensors" policies/across-cells.safetensors
+# hierarchical-cells: `celld train policy` with its defaults, one command: behaviour cloning
+# on 800 demonstrations of expert-careful, each on a cell of its own drawn over the ranges the
+# product is specified for, the policy reading cell-relative inputs (a version 2 file), the
+# sideways errors in the bore weighted 30, the TD3 stage one episode (round-0); then one DAgger
+# round on randomised cells, that policy driving 800 episodes whose labels teach the actors only
+# (round-1)
+step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026
+cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 
 # bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default
 # demonstrator), BC at a constant rate; its BC policy is the `bc` baseline

@@ -40,7 +40,8 @@ export async function render(page) {
           h('option', { value: 'bc', text: 'bc: BC actors and the LSTM selector' }))),
         number('training-seed', 'Seed', 2026, { min: 0 }),
         number('training-episodes', 'TD3 episodes', 500, { min: 1 }),
-        number('training-record', 'Expert episodes to record', 400, { min: 10 })),
+        number('training-record', 'Expert episodes to record', 400, { min: 10 }),
+        number('training-dagger', 'DAgger rounds', 0, { min: 0, max: 5, title: 'After the first pass, the policy drives as many episodes as there are demonstrations, the demonstrator labels them, and they teach the actors; then the stages run again' })),
       h('label', { class: 'row', title: 'Cell-relative inputs (a version 2 policy file); every recorded demonstration and TD3 episode on a cell of its own, drawn around this one' },
         h('input', { id: 'training-any-cell', type: 'checkbox' }),
         'For any cell: train a policy for cells it was not trained on'),
@@ -62,7 +63,11 @@ export async function render(page) {
         seed: Number(value('#training-seed')),
         episodes: Number(value('#training-episodes')),
       };
-      if (form.querySelector('#training-any-cell').checked) body.settings = { for_any_cell: true };
+      const settings = {};
+      if (form.querySelector('#training-any-cell').checked) settings.for_any_cell = true;
+      const rounds = Number(value('#training-dagger'));
+      if (rounds > 0) settings.dagger_rounds = rounds;
+      if (Object.keys(settings).length) body.settings = settings;
       if (chosen.length) body.demonstrations = chosen;
       else body.record = Number(value('#training-record'));
       try {

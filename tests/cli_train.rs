@@ -4,7 +4,7 @@
 mod common;
 
 use common::celld;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 const TINY: [&str; 18] = [
     "--demos",
@@ -657,4 +657,139 @@ fn bad_flat_training_requests_are_refused_before_any_work() {
         stderr(&narrow)
     );
     assert!(!out.join("demos.jsonl").exists(), "no work was done");
+}
+
+/// `train policy`'s toy sizes: [`TINY`] without the seed, which `train policy` takes itself, and
+/// as many DAgger episodes as demonstrations.
+const TINY_POLICY: [&str; 18] = [
+    "--demos",
+    "12",
+    "--dagger-episodes",
+    "12",
+    "--bc-epochs",
+    "2",
+    "--lstm-epochs",
+    "2",
+    "--lstm-hidden",
+    "8",
+    "--actor-width",
+    "16",
+    "--eval-every",
+    "2",
+    "--eval-episodes",
+    "4",
+    "--checkpoint-every",
+    "1",
+];
+
+#[test]
+fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("policy");
+    let mut args = vec![
+        "train",
+        "policy",
+        "--out",
+        out.to_str().unwrap(),
+        "--seed",
+        "7",
+    ];
+    args.push("--");
+    args.extend_from_slice(&TINY_POLICY);
+    let run = celld(&args);
+    assert!(run.status.success(), "{}", stderr(&run));
+
+    // The same two runs by hand, with the recipe docs/learning.md states.
+    let recipe = [
+        "--seed",
+        "7",
+        "--demonstrator",
+        "expert-careful",
+        "--bc-bore-lateral-weight",
+        "30",
+        "--inputs",
+        "cell-relative",
+        "--randomise-cells",
+        "--td3-episodes",
+        "1",
+    ];
+    let (first, second) = (dir.path().join("first"), dir.path().join("second"));
+    let by_hand = |to: &Path, dagger: &[&str]| {
+        let mut args = vec!["train", "all", "--out", to.to_str().unwrap()];
+        args.extend_from_slice(&recipe);
+        args.extend_from_slice(dagger);
+        args.extend_from_slice(&TINY_POLICY);
+        let output = celld(&args);
+        assert!(output.status.success(), "{}", stderr(&output));
+    };
+    by_hand(&first, &[]);
+    let driver = first.join("policy.safetensors");
+    by_hand(
+        &second,
+        &[
+            "--dagger-actors-only",
+            "--dagger-policy",
+            driver.to_str().unwrap(),
+        ],
+    );
+    let read = |path: PathBuf| std::fs::read(&path).unwrap_or_else(|e| panic!("{path:?}: {e}"));
+    assert_eq!(
+        read(out.join("round-0/policy.safetensors")),
+        read(first.join("policy.safetensors"))
+    );
+    assert_eq!(
+        read(out.join("round-1/demos.jsonl")),
+        read(second.join("demos.jsonl"))
+    );
+    assert_eq!(
+        read(out.join("policy.safetensors")),
+        read(second.join("policy.safetensors"))
+    );
+    let episodes = |run: &Path| {
+        let numbers: std::collections::BTreeSet<u64> = demo_lines(run)
+            .iter()
+            .map(|line| line["episode"].as_u64().unwrap())
+            .collect();
+        numbers.len()
+    };
+    assert_eq!((episodes(&first), episodes(&out.join("round-1"))), (12, 24));
+
+    // A finished run resumes to the same policy; without --resume it is not overwritten.
+    let before = read(out.join("policy.safetensors"));
+    let mut again = args.clone();
+    again.insert(4, "--resume");
+    let resumed = celld(&again);
+    assert!(resumed.status.success(), "{}", stderr(&resumed));
+    assert_eq!(read(out.join("policy.safetensors")), before);
+    let twice = celld(&args);
+    assert!(!twice.status.success());
+    assert!(
+        stderr(&twice).contains("pass --resume"),
+        "{}",
+        stderr(&twice)
+    );
+}
+
+#[test]
+fn bad_train_policy_requests_are_refused_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("policy");
+    let refused = |extra: &[&str], message: &str| {
+        let mut args = vec!["train", "policy", "--out", out.to_str().unwrap(), "--"];
+        args.extend_from_slice(extra);
+        let output = celld(&args);
+        assert!(!output.status.success(), "{extra:?} was accepted");
+        assert!(stderr(&output).contains(message), "{}", stderr(&output));
+    };
+    refused(
+        &["--dagger-policy", "p.safetensors"],
+        "--dagger-policy after --: `celld train policy` sets it",
+    );
+    refused(&["--seed=3"], "--seed after --");
+    refused(&["--bc-lr=-1"], "--bc-lr must be a finite number > 0");
+    refused(&["--no-such-flag"], "the flags after --");
+    assert!(
+        !out.join("round-0/demos.jsonl").exists(),
+        "no work was done"
+    );
 }

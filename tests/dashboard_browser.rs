@@ -260,8 +260,9 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     assert_ne!(policy["status"], "active");
     browser.screenshot(&shots.join("5-policy-gate.png"));
 
-    // A run for any cell, started from the training page: the page sends the setting, the
-    // run records cell-relative demonstrations; it is cancelled before it learns for long.
+    // A run for any cell with a DAgger round, started from the training page: the page sends
+    // both settings, the run records cell-relative demonstrations; it is cancelled before it
+    // learns for long.
     browser.goto(&format!("{}/#/training", server.base));
     browser.wait_until("the training form", WAIT, |b| {
         b.exists("#training-any-cell")
@@ -269,6 +270,8 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     browser.find("#training-record").clear();
     browser.find("#training-record").send_keys("10");
     browser.find("#training-any-cell").click();
+    browser.find("#training-dagger").clear();
+    browser.find("#training-dagger").send_keys("1");
     browser.find("#training-start").click();
     browser.wait_until("the run's page", WAIT, |b| {
         b.current_url().contains("#/training/")
@@ -276,6 +279,7 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     let (_, runs) = server.get("/api/training", Some(&server.admin));
     let run = runs["items"][0].clone();
     assert_eq!(run["settings"]["for_any_cell"], true, "{run}");
+    assert_eq!(run["settings"]["dagger_rounds"], 1, "{run}");
     let run_id = run["id"].as_i64().unwrap();
     let (status, _) = server.post(
         &format!("/api/training/{run_id}/cancel"),

@@ -198,3 +198,103 @@ fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
         "{message}"
     );
 }
+
+/// The tensors of a safetensors file, by name.
+fn tensors(bytes: &[u8]) -> Vec<(String, Vec<f32>)> {
+    let mut named: Vec<(String, Vec<f32>)> =
+        candle_core::safetensors::load_buffer(bytes, &candle_core::Device::Cpu)
+            .unwrap()
+            .into_iter()
+            .map(|(name, t)| (name, t.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+            .collect();
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    named
+}
+
+#[test]
+fn a_run_with_a_dagger_round_learns_what_celld_train_policy_learns() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[("CELLD_STEP_PERIOD_MS", "5")]);
+    let admin = server.admin.clone();
+    let mut recipe = tiny(1);
+    for (key, value) in [
+        ("demonstrator", json!("expert-careful")),
+        ("bc_bore_lateral_weight", json!(30.0)),
+        ("for_any_cell", json!(true)),
+        ("dagger_rounds", json!(1)),
+        ("dagger_bc_epochs", json!(3)),
+    ] {
+        recipe["settings"][key] = value;
+    }
+    let (status, started) = server.post("/api/training", Some(&admin), Some(recipe));
+    assert_eq!(status, 202, "{started}");
+    let id = started["id"].as_i64().unwrap();
+    let done = wait(&server, id, "ended", |r| r["status"] != "running");
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["figures"]["dagger"][0]["episodes"], 12, "{done}");
+    let lstm: Vec<i64> = done["curve"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| p["stage"] == "lstm")
+        .map(|p| p["x"].as_i64().unwrap())
+        .collect();
+    assert_eq!(lstm.len(), 6, "both passes' selector epochs: {lstm:?}");
+    assert!(lstm.windows(2).all(|w| w[0] < w[1]), "{lstm:?}");
+    let policy_id = done["policy_id"].as_i64().unwrap();
+    let served = ureq::get(format!("{}/api/policies/{policy_id}/file", server.base))
+        .header("Authorization", format!("Bearer {admin}"))
+        .call()
+        .unwrap()
+        .into_body()
+        .read_to_vec()
+        .unwrap();
+
+    // The command line's recipe at the same sizes.
+    let out = dir.path().join("cli");
+    let cli = std::process::Command::new(env!("CARGO_BIN_EXE_celld"))
+        .args([
+            "train",
+            "policy",
+            "--out",
+            out.to_str().unwrap(),
+            "--seed",
+            "5",
+        ])
+        .args([
+            "--",
+            "--demos",
+            "12",
+            "--dagger-episodes",
+            "12",
+            "--actor-width",
+            "16",
+        ])
+        .args([
+            "--bc-orientation-epochs",
+            "3",
+            "--lstm-hidden",
+            "8",
+            "--lstm-epochs",
+            "3",
+        ])
+        .args([
+            "--eval-every",
+            "0",
+            "--eval-episodes",
+            "2",
+            "--bc-epochs",
+            "3",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        cli.status.success(),
+        "{}",
+        String::from_utf8_lossy(&cli.stderr)
+    );
+    let first_pass = std::fs::read(out.join("round-0/policy.safetensors")).unwrap();
+    let trained = std::fs::read(out.join("policy.safetensors")).unwrap();
+    assert_ne!(tensors(&first_pass), tensors(&trained));
+    assert_eq!(tensors(&served), tensors(&trained));
+}

@@ -2,6 +2,7 @@
 //! LSTM selector, TD3.
 
 pub mod bc;
+pub mod dagger;
 pub mod dataset;
 pub mod demos;
 pub mod flat;

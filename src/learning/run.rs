@@ -4,14 +4,16 @@
 //! hierarchy), with the same defaults.
 
 use super::bc::BcConfig;
+use super::dagger;
 use super::demos::{DEFAULT_DEMONSTRATOR, DemoEpisode, Recording, check_demonstrator};
 use super::pipeline::{self, step_limits};
 use super::refine::{RefineConfig, Refinement};
 use super::selector::SelectorConfig;
 use crate::config::cell::CellConfig;
-use crate::policy::Actor;
 use crate::policy::file::PolicyFile;
+use crate::policy::hierarchical::HierarchicalPolicy;
 use crate::policy::inputs::PolicyInputs;
+use crate::policy::{Actor, Controller};
 use crate::sim::EnvOptions;
 use crate::sim::randomise::CellRanges;
 use serde::{Deserialize, Serialize};
@@ -36,6 +38,10 @@ pub const MAX_EPOCHS: usize = 100_000;
 pub const MAX_TD3_EPISODES: usize = 1_000_000;
 /// Most validation episodes.
 pub const MAX_EVAL_EPISODES: usize = 100_000;
+/// Most DAgger rounds of a run.
+pub const MAX_DAGGER_ROUNDS: usize = 5;
+/// Position actor epochs of a DAgger round by default (`celld train policy`'s).
+pub const DAGGER_BC_EPOCHS: usize = 100;
 
 /// Episodes per batch of the LSTM selector's training (not a setting of the HTTP API; `celld
 /// train --lstm-batch` defaults to it).
@@ -89,6 +95,18 @@ pub struct TrainingSettings {
     #[schema(minimum = 1, maximum = 1_000_000)]
     #[serde(deserialize_with = "crate::integer::integer")]
     pub td3_episodes: usize,
+    /// DAgger rounds after the first pass: the last policy drives as many episodes as the run
+    /// has demonstrations, `demonstrator` labels them, and they teach the actors (the selector
+    /// keeps learning from the demonstrations); then the stages run again. The recommended
+    /// policy has one (`celld train policy`).
+    #[schema(minimum = 0, maximum = 5)]
+    #[serde(deserialize_with = "crate::integer::integer")]
+    pub dagger_rounds: usize,
+    /// Epochs of the position actor in a DAgger round (half the first pass's on twice the
+    /// episodes, in the recommended policy's recipe).
+    #[schema(minimum = 1, maximum = 100_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
+    pub dagger_bc_epochs: usize,
     /// Validate (and keep the best policy) every this many TD3 episodes; 0: at the end only.
     #[serde(deserialize_with = "crate::integer::integer")]
     pub eval_every: usize,
@@ -112,6 +130,8 @@ impl Default for TrainingSettings {
             lstm_hidden: 64,
             lstm_epochs: 60,
             td3_episodes: 500,
+            dagger_rounds: 0,
+            dagger_bc_epochs: DAGGER_BC_EPOCHS,
             eval_every: 50,
             eval_episodes: 200,
         }
@@ -126,6 +146,7 @@ impl TrainingSettings {
         let counts = [
             ("actor_width", self.actor_width, MAX_WIDTH),
             ("bc_epochs", self.bc_epochs, MAX_EPOCHS),
+            ("dagger_bc_epochs", self.dagger_bc_epochs, MAX_EPOCHS),
             (
                 "bc_orientation_epochs",
                 self.bc_orientation_epochs,
@@ -139,6 +160,12 @@ impl TrainingSettings {
             if !(1..=max).contains(&value) {
                 return Err(format!("{field} = {value} is outside 1..={max}"));
             }
+        }
+        if self.dagger_rounds > MAX_DAGGER_ROUNDS {
+            return Err(format!(
+                "dagger_rounds = {} is outside 0..={MAX_DAGGER_ROUNDS}",
+                self.dagger_rounds
+            ));
         }
         if !(1..=MAX_TD3_EPISODES).contains(&self.td3_episodes) {
             return Err(format!(
@@ -175,13 +202,15 @@ impl TrainingSettings {
         }
     }
 
+    /// The progress units (epochs and TD3 episodes) of the whole run.
     fn units(&self) -> usize {
         let td3 = if self.part == TrainingPart::All {
             self.td3_episodes
         } else {
             0
         };
-        self.bc_epochs + self.bc_orientation_epochs + self.lstm_epochs + td3
+        let pass = self.bc_orientation_epochs + self.lstm_epochs + td3;
+        self.bc_epochs + pass + self.dagger_rounds * (self.dagger_bc_epochs + pass)
     }
 }
 
@@ -216,36 +245,125 @@ pub fn check_demonstrations(demos: &[DemoEpisode]) -> Result<(), RunError> {
     Ok(())
 }
 
-/// Runs the pipeline on `demos` (a tenth held out for the selector). `report` gets each curve
-/// point and the fraction done; `cancelled` is asked between epochs' reports and TD3 episodes.
-/// Returns the policy file and the run's figures.
+/// Runs the pipeline on `demos` (a tenth held out for the selector), then its DAgger rounds.
+/// `report` gets each curve point and the fraction done; `cancelled` is asked between epochs'
+/// reports, TD3 episodes and rounds. Returns the policy file and the run's figures.
 pub fn run(
     cell: &CellConfig,
-    mut demos: Vec<DemoEpisode>,
+    demos: Vec<DemoEpisode>,
     settings: &TrainingSettings,
     report: &mut dyn FnMut(CurvePoint, f64),
     cancelled: &dyn Fn() -> bool,
 ) -> Result<(PolicyFile, Value), RunError> {
     settings.check().map_err(RunError::Training)?;
-    let recording = settings.recording();
-    let inputs = recording.inputs;
     check_demonstrations(&demos)?;
-    demos.retain(|e| !e.steps.is_empty());
-    let held_out = demos.split_off(demos.len() - demos.len() / 10);
-    let limits = step_limits(cell);
-    let units = settings.units() as f64;
-    let mut done = 0usize;
-    let failed = |e: candle_core::Error| RunError::Training(e.to_string());
-    let check = || {
-        if cancelled() {
+    let mut progress = Progress {
+        report,
+        cancelled,
+        done: 0,
+        units: settings.units() as f64,
+        points: BTreeMap::new(),
+        offsets: BTreeMap::new(),
+    };
+    let (mut file, mut figures) = pass(
+        cell,
+        dagger::split(demos.clone(), 0, false),
+        settings,
+        settings.bc_epochs,
+        &mut progress,
+    )?;
+    let mut rounds = Vec::new();
+    for round in 1..=settings.dagger_rounds {
+        progress.check()?;
+        let driver = HierarchicalPolicy::from_file(&file).map_err(failed)?;
+        let make = || Box::new(driver.clone()) as Box<dyn Controller>;
+        let driven = dagger::rollouts(
+            cell,
+            EnvOptions::from_cell(cell),
+            &settings.demonstrator,
+            &make,
+            demos.len(),
+            settings.seed,
+            0,
+            settings.recording(),
+        );
+        rounds.push(json!({
+            "round": round,
+            "episodes": driven.len(),
+            "policy_succeeded": driven.iter().filter(|e| e.succeeded).count(),
+        }));
+        let count = driven.len();
+        let episodes = dagger::renumbered(driven.into_iter().chain(demos.clone()).collect());
+        progress.next_round();
+        (file, figures) = pass(
+            cell,
+            dagger::split(episodes, count, true),
+            settings,
+            settings.dagger_bc_epochs,
+            &mut progress,
+        )?;
+    }
+    if !rounds.is_empty() {
+        figures["dagger"] = Value::Array(rounds);
+    }
+    Ok((file, figures))
+}
+
+fn failed(e: impl std::fmt::Display) -> RunError {
+    RunError::Training(e.to_string())
+}
+
+/// A run's progress across its passes: the fraction done, and curve points numbered on from
+/// the last pass's.
+struct Progress<'a> {
+    report: &'a mut dyn FnMut(CurvePoint, f64),
+    cancelled: &'a dyn Fn() -> bool,
+    done: usize,
+    units: f64,
+    /// Points of each stage so far.
+    points: BTreeMap<&'static str, usize>,
+    /// What this pass adds to each stage's x.
+    offsets: BTreeMap<&'static str, usize>,
+}
+
+impl Progress<'_> {
+    fn point(&mut self, stage: &'static str, x: usize, value: f64) {
+        self.done += 1;
+        *self.points.entry(stage).or_default() += 1;
+        let x = x + self.offsets.get(stage).copied().unwrap_or(0);
+        (self.report)(
+            CurvePoint { stage, x, value },
+            self.done as f64 / self.units,
+        );
+    }
+
+    fn next_round(&mut self) {
+        self.offsets = self.points.clone();
+    }
+
+    fn check(&self) -> Result<(), RunError> {
+        if (self.cancelled)() {
             Err(RunError::Cancelled)
         } else {
             Ok(())
         }
-    };
+    }
+}
 
+/// One pass of the pipeline: both actors (the position actor for `bc_epochs`), the selector,
+/// and TD3 when the run's part has it.
+fn pass(
+    cell: &CellConfig,
+    split: dagger::Split,
+    settings: &TrainingSettings,
+    bc_epochs: usize,
+    progress: &mut Progress,
+) -> Result<(PolicyFile, Value), RunError> {
+    let recording = settings.recording();
+    let inputs = recording.inputs;
+    let limits = step_limits(cell);
     let bc = BcConfig {
-        epochs: settings.bc_epochs,
+        epochs: bc_epochs,
         orientation_epochs: settings.bc_orientation_epochs,
         learning_rate: settings.bc_learning_rate,
         bore_lateral_weight: settings.bc_bore_lateral_weight,
@@ -256,29 +374,21 @@ pub fn run(
         ..BcConfig::default()
     };
     let varmap = pipeline::behaviour_clone(
-        &demos,
+        &split.train,
         &limits,
         settings.actor_width,
         &bc,
         None,
         &mut |actor, epoch, loss| {
-            done += 1;
             let stage = match actor {
                 Actor::Position => "bc_position",
                 Actor::Orientation => "bc_orientation",
             };
-            report(
-                CurvePoint {
-                    stage,
-                    x: epoch,
-                    value: loss,
-                },
-                done as f64 / units,
-            );
+            progress.point(stage, epoch, loss);
         },
     )
     .map_err(failed)?;
-    check()?;
+    progress.check()?;
 
     let selector = SelectorConfig {
         hidden_size: settings.lstm_hidden,
@@ -289,27 +399,17 @@ pub fn run(
     };
     let agreement = pipeline::train_lstm(
         &varmap,
-        &demos,
-        &held_out,
+        &split.selector,
+        &split.held_out,
         &limits,
         &selector,
         None,
-        &mut |epoch, loss| {
-            done += 1;
-            report(
-                CurvePoint {
-                    stage: "lstm",
-                    x: epoch,
-                    value: loss,
-                },
-                done as f64 / units,
-            );
-        },
+        &mut |epoch, loss| progress.point("lstm", epoch, loss),
     )
     .map_err(failed)?
     .held_out_agreement;
-    check()?;
-    let mut figures = json!({"demonstrated_episodes": demos.len() + held_out.len(),
+    progress.check()?;
+    let mut figures = json!({"demonstrated_episodes": split.train.len() + split.held_out.len(),
                              "held_out_agreement": agreement});
     let provenance = |kind: &str| {
         BTreeMap::from([
@@ -323,8 +423,8 @@ pub fn run(
         ])
     };
     if settings.part == TrainingPart::Bc {
-        let file = pipeline::policy_file(&varmap, &limits, inputs, &provenance("bc"))
-            .map_err(|e| RunError::Training(e.to_string()))?;
+        let file =
+            pipeline::policy_file(&varmap, &limits, inputs, &provenance("bc")).map_err(failed)?;
         return Ok((file, figures));
     }
 
@@ -347,17 +447,9 @@ pub fn run(
     .map_err(failed)?;
     refinement.validate().map_err(failed)?;
     while refinement.episode() < config.episodes {
-        check()?;
+        progress.check()?;
         let record = refinement.train_episode().map_err(failed)?;
-        done += 1;
-        report(
-            CurvePoint {
-                stage: "td3",
-                x: record.episode,
-                value: record.return_,
-            },
-            done as f64 / units,
-        );
+        progress.point("td3", record.episode, record.return_);
         let episode = refinement.episode();
         if config.eval_every > 0 && episode % config.eval_every == 0 {
             refinement.validate().map_err(failed)?;
@@ -370,6 +462,6 @@ pub fn run(
     let (best, vars) = refinement.best();
     figures["best_validation"] = json!(best);
     let file = pipeline::policy_file(vars, &limits, inputs, &provenance("hierarchical"))
-        .map_err(|e| RunError::Training(e.to_string()))?;
+        .map_err(failed)?;
     Ok((file, figures))
 }

@@ -2,16 +2,16 @@
 //! DAgger rollouts), behaviour cloning of both actors and the LSTM selector on the expert's
 //! choices.
 
-use super::{BC, BC_POLICY, DAGGER_SEED_SALT, DEMOS, Fitted, LSTM, Run, bar};
+use super::{BC, BC_POLICY, DEMOS, Fitted, LSTM, Run, bar};
 use anyhow::{Context, Result};
 use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
+use assembly_cell::learning::dagger;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos::{self, DemoEpisode};
 use assembly_cell::learning::pipeline::{self, step_limits};
 use assembly_cell::learning::run;
 use assembly_cell::learning::selector::SelectorConfig;
-use assembly_cell::policy::eval::episode_seed;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
 use assembly_cell::policy::{Actor, Controller};
 use candle_nn::VarMap;
@@ -75,7 +75,7 @@ impl Run {
                     // The policies' episodes first, so that the held-out tenth stays the
                     // demonstrator's own.
                     episodes.extend(recorded);
-                    let episodes = renumbered(episodes);
+                    let episodes = dagger::renumbered(episodes);
                     let mut jsonl = Vec::new();
                     demos::write_jsonl(&episodes, &mut jsonl)?;
                     write_atomically(&path, &jsonl)?;
@@ -85,7 +85,7 @@ impl Run {
             }
         }
         let file = std::fs::File::open(&path)?;
-        let mut episodes = demos::read_jsonl(std::io::BufReader::new(file))
+        let episodes = demos::read_jsonl(std::io::BufReader::new(file))
             .with_context(|| format!("{}", path.display()))?;
         run::check_demonstrations(&episodes).with_context(|| format!("{}", path.display()))?;
         let dagger = if self.args.demos_file.is_none() {
@@ -93,20 +93,8 @@ impl Run {
         } else {
             0
         };
-        let own_from = dagger.min(episodes.len());
-        let own_with_steps = episodes[own_from..]
-            .iter()
-            .filter(|e| !e.steps.is_empty())
-            .count();
-        episodes.retain(|e| !e.steps.is_empty());
-        let held_out = episodes.split_off(episodes.len() - episodes.len() / 10);
-        let selector = if self.args.dagger_actors_only {
-            let own = own_with_steps.saturating_sub(held_out.len());
-            episodes[episodes.len() - own..].to_vec()
-        } else {
-            episodes.clone()
-        };
-        Ok((episodes, held_out, selector))
+        let split = dagger::split(episodes, dagger, self.args.dagger_actors_only);
+        Ok((split.train, split.held_out, split.selector))
     }
 
     /// DAgger round `round`'s episodes: `driver` drives, the demonstrator labels (seeds apart
@@ -119,13 +107,14 @@ impl Run {
             self.args.demonstrator
         );
         let make = || Box::new(driver.clone()) as Box<dyn Controller>;
-        demos::relabel_rollouts(
+        dagger::rollouts(
             &self.cell,
             self.options,
             &self.args.demonstrator,
             &make,
             self.args.dagger_episodes,
-            episode_seed(self.args.seed ^ DAGGER_SEED_SALT, round),
+            self.args.seed,
+            round,
             self.recording(),
         )
     }
@@ -304,20 +293,6 @@ impl Run {
         file.save(self.path(BC_POLICY))?;
         self.note("lstm", lstm.wall_s, lstm.figures.clone())
     }
-}
-
-/// Numbers the episodes 0, 1, … in order (one file's numbering, whatever their sources).
-fn renumbered(episodes: Vec<DemoEpisode>) -> Vec<DemoEpisode> {
-    episodes
-        .into_iter()
-        .enumerate()
-        .map(|(index, mut episode)| {
-            for step in &mut episode.steps {
-                step.episode = index as u32;
-            }
-            episode
-        })
-        .collect()
 }
 
 fn actor_name(actor: Actor) -> &'static str {

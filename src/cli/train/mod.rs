@@ -1,5 +1,6 @@
 //! `celld train bc|lstm|td3|all`: the training pipeline over a run directory; `celld train flat`:
-//! the flat TD3 baseline (one 6-DoF actor, no BC, no hierarchy) in the same kind of directory.
+//! the flat TD3 baseline (one 6-DoF actor, no BC, no hierarchy) in the same kind of directory;
+//! `celld train policy`: `all` and its DAgger rounds, one run directory each (`policy.rs`).
 //!
 //! A run directory holds each stage's output, so a stage is a checkpoint and a run resumes:
 //!
@@ -42,6 +43,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 mod imitation;
+mod policy;
 mod refine;
 
 #[derive(Subcommand)]
@@ -56,6 +58,9 @@ pub enum TrainCommand {
     All(TrainArgs),
     /// The flat TD3 baseline: one 6-DoF actor from fresh weights, no BC, no hierarchy.
     Flat(TrainArgs),
+    /// The recommended policy in one command: `all` on a cell of its own for every episode,
+    /// then DAgger rounds; with the defaults it makes the bundled `hierarchical-cells`.
+    Policy(policy::PolicyArgs),
 }
 
 // The settings of a run. Defaults that the HTTP API's training also has come from
@@ -212,8 +217,6 @@ pub struct TrainArgs {
 const DEMONSTRATIONS: usize = 800;
 
 const DEMOS: &str = "demos.jsonl";
-/// Sets DAgger's episode seeds apart from the demonstrations' (both derive from --seed).
-const DAGGER_SEED_SALT: u64 = 0xDA66_E500;
 const BC: &str = "bc.safetensors";
 const LSTM: &str = "lstm.safetensors";
 const BC_POLICY: &str = "bc-policy.safetensors";
@@ -277,6 +280,7 @@ pub fn run(command: TrainCommand) -> Result<()> {
         TrainCommand::Td3(a) => (a, &[Stage::Td3]),
         TrainCommand::All(a) => (a, &[Stage::BcAndLstm, Stage::Td3]),
         TrainCommand::Flat(a) => (a, &[Stage::Flat]),
+        TrainCommand::Policy(a) => return policy::run(a),
     };
     let run = Run::open(args)?;
     if stages.contains(&Stage::Flat) && run.inputs != PolicyInputs::Absolute {

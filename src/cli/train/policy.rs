@@ -1,0 +1,151 @@
+//! `celld train policy`: the recommended policy in one command. It runs `train all` once on the
+//! demonstrator's episodes, then `--dagger-rounds` more times, each with the last round's policy
+//! driving DAgger episodes that teach the actors only. With the defaults it makes
+//! `policies/across-cells.safetensors` (controller `hierarchical-cells`) byte for byte.
+//!
+//! The recipe is written as `train all` flags ([`RECIPE`], [`DAGGER_ROUND`]) and parsed into the
+//! same settings, so each round is exactly the `train all` command that `run.json` and the docs
+//! name, and any of its flags can be changed after `--`.
+
+use super::{POLICY, Run, Stage, TrainArgs};
+use anyhow::{Context, Result, bail};
+use assembly_cell::files::write_atomically;
+use clap::{Args, Parser};
+use std::path::{Path, PathBuf};
+
+/// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
+/// weighted 30 in the BC loss, cell-relative inputs, a cell of its own for every episode, and
+/// one TD3 episode (TD3 does not improve on BC yet; docs/learning.md § Where the policies stand).
+pub const RECIPE: &[&str] = &[
+    "--demonstrator",
+    "expert-careful",
+    "--bc-bore-lateral-weight",
+    "30",
+    "--inputs",
+    "cell-relative",
+    "--randomise-cells",
+    "--td3-episodes",
+    "1",
+];
+
+/// The further flags of a DAgger round (before `--dagger-policy`): its episodes teach the actors
+/// only, and the position actor trains for half the epochs on the twice as many episodes.
+pub const DAGGER_ROUND: &[&str] = &["--dagger-actors-only", "--bc-epochs", "100"];
+
+/// DAgger rounds after the first pass by default: a second one traded the reference cell for
+/// others (docs/experiments/2026-11-25-02e8490-dagger-across-cells-actors-only.md).
+const DEFAULT_DAGGER_ROUNDS: usize = 1;
+
+/// Flags a round sets itself; after `--` they would break the chain of rounds.
+const OWN_FLAGS: [&str; 7] = [
+    "--out",
+    "--resume",
+    "--seed",
+    "--cell",
+    "--dagger-policy",
+    "--init-policy",
+    "--demos-file",
+];
+
+#[derive(Args, Clone)]
+pub struct PolicyArgs {
+    /// Run directory: round k goes to DIR/round-k, the final policy to DIR/policy.safetensors.
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue the run in --out (finished rounds and stages are kept).
+    #[arg(long)]
+    resume: bool,
+    #[arg(long, default_value_t = assembly_cell::learning::run::TrainingSettings::default().seed)]
+    seed: u64,
+    /// Cell file the cells are drawn around (default: the bundled reference cell).
+    #[arg(long)]
+    cell: Option<PathBuf>,
+    /// DAgger rounds after the first pass, each driven by the previous round's policy.
+    #[arg(long, default_value_t = DEFAULT_DAGGER_ROUNDS)]
+    dagger_rounds: usize,
+    /// More `celld train all` flags for every round, after `--` (they override the recipe's,
+    /// e.g. `-- --demos 400`).
+    #[arg(last = true)]
+    train_flags: Vec<String>,
+}
+
+/// `train all`'s flags, parsed as the command line parses them; a later flag overrides an
+/// earlier one, so the caller's flags override the recipe's.
+#[derive(Parser)]
+#[command(args_override_self = true)]
+struct AllFlags {
+    #[command(flatten)]
+    args: TrainArgs,
+}
+
+impl PolicyArgs {
+    fn round_dir(&self, round: usize) -> PathBuf {
+        self.out.join(format!("round-{round}"))
+    }
+
+    /// Round `round`'s `train all` command line (without the program name).
+    pub fn round_flags(&self, round: usize) -> Vec<String> {
+        let mut flags: Vec<String> = vec!["--out".into(), path(&self.round_dir(round))];
+        flags.extend(["--seed".into(), self.seed.to_string()]);
+        if let Some(cell) = &self.cell {
+            flags.extend(["--cell".into(), path(cell)]);
+        }
+        if self.resume {
+            flags.push("--resume".into());
+        }
+        flags.extend(RECIPE.iter().map(|flag| flag.to_string()));
+        if round > 0 {
+            flags.extend(DAGGER_ROUND.iter().map(|flag| flag.to_string()));
+            let driver = self.round_dir(round - 1).join(POLICY);
+            flags.extend(["--dagger-policy".into(), path(&driver)]);
+        }
+        flags.extend(self.train_flags.iter().cloned());
+        flags
+    }
+
+    fn round_args(&self, round: usize) -> Result<TrainArgs> {
+        let flags = self.round_flags(round);
+        let command_line = std::iter::once("celld train all".to_string()).chain(flags);
+        AllFlags::try_parse_from(command_line)
+            .map(|parsed| parsed.args)
+            .map_err(|e| anyhow::anyhow!("the flags after --: {}", e.render()))
+    }
+}
+
+fn path(path: &Path) -> String {
+    path.to_string_lossy().into_owned()
+}
+
+/// Runs the rounds in order and copies the last one's policy to `--out`.
+pub fn run(args: PolicyArgs) -> Result<()> {
+    for flag in &args.train_flags {
+        let name = flag.split('=').next().unwrap_or(flag);
+        if OWN_FLAGS.contains(&name) {
+            bail!("{name} after --: `celld train policy` sets it for each round itself");
+        }
+    }
+    // Every round's settings are checked before the first one starts.
+    for round in 0..=args.dagger_rounds {
+        args.round_args(round)?;
+    }
+    let rounds = args.dagger_rounds + 1;
+    for round in 0..rounds {
+        eprintln!(
+            "round {} of {rounds}: `celld train all` with {} (a later flag wins)",
+            round + 1,
+            args.round_flags(round).join(" ")
+        );
+        let run =
+            Run::open(args.round_args(round)?).with_context(|| format!("round {}", round + 1))?;
+        for stage in [Stage::BcAndLstm, Stage::Td3] {
+            run.stage(stage)
+                .with_context(|| format!("round {}", round + 1))?;
+        }
+    }
+    let last = args.round_dir(rounds - 1).join(POLICY);
+    let policy = args.out.join(POLICY);
+    let bytes = std::fs::read(&last).with_context(|| format!("{}", last.display()))?;
+    write_atomically(&policy, &bytes)?;
+    eprintln!("policy: {}", policy.display());
+    Ok(())
+}
