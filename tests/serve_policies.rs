@@ -56,13 +56,7 @@ fn upload_evaluate_activate_and_roll_back() {
     let bundled_id = bundled["id"].as_i64().unwrap();
 
     // The file comes back byte for byte.
-    let file = ureq::get(format!("{}/api/policies/{bc_id}/file", server.base))
-        .header("Authorization", format!("Bearer {admin}"))
-        .call()
-        .unwrap()
-        .into_body()
-        .read_to_vec()
-        .unwrap();
+    let file = server.get_bytes(&format!("/api/policies/{bc_id}/file"), &admin);
     assert_eq!(file, BC);
 
     // No evaluation yet: refused.

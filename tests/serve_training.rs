@@ -242,13 +242,7 @@ fn a_run_with_a_dagger_round_learns_what_celld_train_policy_learns() {
     assert_eq!(lstm.len(), 6, "both passes' selector epochs: {lstm:?}");
     assert!(lstm.windows(2).all(|w| w[0] < w[1]), "{lstm:?}");
     let policy_id = done["policy_id"].as_i64().unwrap();
-    let served = ureq::get(format!("{}/api/policies/{policy_id}/file", server.base))
-        .header("Authorization", format!("Bearer {admin}"))
-        .call()
-        .unwrap()
-        .into_body()
-        .read_to_vec()
-        .unwrap();
+    let served = server.get_bytes(&format!("/api/policies/{policy_id}/file"), &admin);
 
     // The command line's recipe at the same sizes.
     let out = dir.path().join("cli");

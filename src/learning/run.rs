@@ -1,7 +1,8 @@
 //! One training run, demonstrations in, policy file out, as a single function with progress and
 //! cancellation: what `POST /api/training` runs in the background. The stages are those of
 //! `celld train all` (behaviour cloning of both actors, the LSTM selector, then TD3 in the
-//! hierarchy), with the same defaults.
+//! hierarchy), with the same defaults, and any DAgger rounds after them as `celld train policy`
+//! runs them.
 
 use super::bc::BcConfig;
 use super::dagger;

@@ -102,6 +102,18 @@ impl Server {
         Self::answer(request.call())
     }
 
+    /// A body that is not JSON (a policy file), as bytes; panics unless the answer is 200.
+    pub fn get_bytes(&self, path: &str, token: &str) -> Vec<u8> {
+        let mut response = self
+            .agent
+            .get(format!("{}{path}", self.base))
+            .header("Authorization", format!("Bearer {token}"))
+            .call()
+            .expect("the server answers");
+        assert_eq!(response.status().as_u16(), 200, "GET {path}");
+        response.body_mut().read_to_vec().expect("a body")
+    }
+
     pub fn post(&self, path: &str, token: Option<&str>, body: Option<Value>) -> (u16, Value) {
         let mut request = self.agent.post(format!("{}{path}", self.base));
         if let Some(token) = token {
