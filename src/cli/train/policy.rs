@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 /// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
 /// weighted 30 in the BC loss, cell-relative inputs, a cell of its own for every episode, and
 /// one TD3 episode (TD3 does not improve on BC yet; docs/learning.md § Where the policies stand).
-pub const RECIPE: &[&str] = &[
+const RECIPE: &[&str] = &[
     "--demonstrator",
     "expert-careful",
     "--bc-bore-lateral-weight",
@@ -30,7 +30,7 @@ pub const RECIPE: &[&str] = &[
 
 /// The further flags of a DAgger round (before `--dagger-policy`): its episodes teach the actors
 /// only, and the position actor trains for half the epochs on the twice as many episodes.
-pub const DAGGER_ROUND: &[&str] = &["--dagger-actors-only", "--bc-epochs", "100"];
+const DAGGER_ROUND: &[&str] = &["--dagger-actors-only", "--bc-epochs", "100"];
 
 /// DAgger rounds after the first pass by default: a second one traded the reference cell for
 /// others (docs/experiments/2026-11-25-02e8490-dagger-across-cells-actors-only.md).
@@ -64,7 +64,7 @@ pub struct PolicyArgs {
     #[arg(long, default_value_t = DEFAULT_DAGGER_ROUNDS)]
     dagger_rounds: usize,
     /// More `celld train all` flags for every round, after `--` (they override the recipe's,
-    /// e.g. `-- --demos 400`).
+    /// e.g. `-- --demos 400 --dagger-episodes 400`).
     #[arg(last = true)]
     train_flags: Vec<String>,
 }
@@ -84,7 +84,7 @@ impl PolicyArgs {
     }
 
     /// Round `round`'s `train all` command line (without the program name).
-    pub fn round_flags(&self, round: usize) -> Vec<String> {
+    fn round_flags(&self, round: usize) -> Vec<String> {
         let mut flags: Vec<String> = vec!["--out".into(), path(&self.round_dir(round))];
         flags.extend(["--seed".into(), self.seed.to_string()]);
         if let Some(cell) = &self.cell {
