@@ -124,19 +124,18 @@ pub fn run(args: PolicyArgs) -> Result<()> {
             bail!("{name} after --: `celld train policy` sets it for each round itself");
         }
     }
-    // Every round's settings are checked before the first one starts.
-    for round in 0..=args.dagger_rounds {
-        args.round_args(round)?;
-    }
-    let rounds = args.dagger_rounds + 1;
-    for round in 0..rounds {
+    // Every round's settings are parsed before the first one starts.
+    let settings = (0..=args.dagger_rounds)
+        .map(|round| args.round_args(round))
+        .collect::<Result<Vec<_>>>()?;
+    let rounds = settings.len();
+    for (round, round_args) in settings.into_iter().enumerate() {
         eprintln!(
             "round {} of {rounds}: `celld train all` with {} (a later flag wins)",
             round + 1,
             args.round_flags(round).join(" ")
         );
-        let run =
-            Run::open(args.round_args(round)?).with_context(|| format!("round {}", round + 1))?;
+        let run = Run::open(round_args).with_context(|| format!("round {}", round + 1))?;
         for stage in [Stage::BcAndLstm, Stage::Td3] {
             run.stage(stage)
                 .with_context(|| format!("round {}", round + 1))?;
