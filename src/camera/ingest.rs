@@ -246,28 +246,33 @@ impl StaticSegment {
     fn suspicion(&self, covariance: &Matrix6<f64>, variance_factor: f64) -> Option<Matrix6<f64>> {
         let n = self.taken.len();
         let sides = STATIC_EARLIER_FRAMES as usize;
-        let (worst, split) = (sides..=n.saturating_sub(sides))
-            .map(|split| {
-                let (before, after) = self.taken.split_at(split);
-                (
-                    chi2_between(before, after, covariance, variance_factor),
-                    split,
-                )
-            })
-            .max_by(|a, b| a.0.total_cmp(&b.0))?;
-        let (before, after) = self.taken.split_at(split);
-        if worst <= STATIC_SUSPECT_CHI2
-            || chi2_between(
-                &without_odd_frame(before, covariance, variance_factor),
-                after,
-                covariance,
-                variance_factor,
-            ) <= STATIC_SUSPECT_CHI2
-        {
+        let inverse = covariance.try_inverse()? / variance_factor;
+        let total = self.taken.iter().sum::<Vector6<f64>>();
+        // Each split from running sums: the frames before it, and the rest.
+        let mut before_sum = Vector6::zeros();
+        let mut worst = (0.0, 0);
+        for split in 1..n {
+            before_sum += self.taken[split - 1];
+            if split < sides || n - split < sides {
+                continue;
+            }
+            let (n_before, n_after) = (split as f64, (n - split) as f64);
+            let gap = (total - before_sum) / n_after - before_sum / n_before;
+            let chi2 = (gap.transpose() * inverse * gap)[(0, 0)] / (1.0 / n_before + 1.0 / n_after);
+            if chi2 > worst.0 {
+                worst = (chi2, split);
+            }
+        }
+        let (worst, split) = worst;
+        if worst <= STATIC_SUSPECT_CHI2 {
             return None;
         }
-        let gap = self.taken.iter().sum::<Vector6<f64>>() / n as f64
-            - before.iter().sum::<Vector6<f64>>() / before.len() as f64;
+        let (before, after) = self.taken.split_at(split);
+        let true_view = without_odd_frame(before, covariance, variance_factor);
+        if chi2_between(&true_view, after, covariance, variance_factor) <= STATIC_SUSPECT_CHI2 {
+            return None;
+        }
+        let gap = total / n as f64 - before.iter().sum::<Vector6<f64>>() / before.len() as f64;
         Some(gap * gap.transpose() + covariance * (variance_factor / before.len() as f64))
     }
 
