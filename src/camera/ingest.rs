@@ -37,6 +37,9 @@ pub enum Detected {
     /// The measured pose jumped, confirmed by a second frame, where the robot's moves say it
     /// cannot have: the camera or a fixture has been knocked out of calibration.
     CameraShift,
+    /// Segment II's frames since some frame disagree with the frames before it, short of a
+    /// confirmed shift: its estimate's covariance is widened, so the cell holds.
+    ShiftSuspected,
 }
 
 impl Detected {
@@ -46,6 +49,7 @@ impl Detected {
             Detected::FrozenCamera => "frozen_camera",
             Detected::OutOfOrder => "out_of_order",
             Detected::CameraShift => "camera_shift",
+            Detected::ShiftSuspected => "camera_shift_suspected",
         }
     }
 }
@@ -421,7 +425,10 @@ impl Ingest {
                 (false, fault)
             }
             Ok(noticed) => match self.ingest(&shot.frame, shot.remaining.as_ref()) {
-                Ok(shifted) => (true, shifted.or(noticed)),
+                Ok(shifted) => {
+                    let suspected = self.segment_two.suspected.map(|_| Detected::ShiftSuspected);
+                    (true, shifted.or(noticed).or(suspected))
+                }
                 Err(CameraError::Shifted) => (false, Some(Detected::CameraShift)),
                 Err(_) => (false, noticed),
             },

@@ -157,7 +157,7 @@ pub struct StepRecord {
     /// How sure the cell was of the state after the step.
     pub uncertainty: StepUncertainty,
     /// A fault the cell noticed at this step (`occlusion`, `out_of_order`, `robot_lag`,
-    /// `camera_shift`, `frozen_camera`, `robot_short`).
+    /// `camera_shift`, `camera_shift_suspected`, `frozen_camera`, `robot_short`).
     pub detected: Option<String>,
 }
 

@@ -152,8 +152,8 @@ pub struct StepResult {
     /// The nominal leg lengths the supervisor let through for this step's move (none: vetoed,
     /// or the robot could not take it).
     pub commanded_legs_mm: Option<[f64; 6]>,
-    /// A fault noticed at this step (`occlusion`, `out_of_order`, `robot_lag`, or the code of
-    /// the fault the episode ends on).
+    /// A fault noticed at this step (`occlusion`, `out_of_order`, `robot_lag`,
+    /// `camera_shift_suspected`, or the code of the fault the episode ends on).
     pub detected: Option<&'static str>,
     pub done: bool,
     pub outcome: Option<Outcome>,
