@@ -220,8 +220,8 @@ impl StaticSegment {
         if self.shifted(covariance, variance_factor) {
             return StaticFrame::Shifted;
         }
-        self.suspected = self.suspicion(covariance, variance_factor);
         let sum = self.taken.iter().sum::<Vector6<f64>>();
+        self.suspected = self.suspicion(&sum, covariance, variance_factor);
         let new_mean = reference * pose_of(&(sum / self.frames()));
         self.mean = Some(new_mean);
         StaticFrame::Taken {
@@ -246,12 +246,17 @@ impl StaticSegment {
     /// of the true view, and the sliding window soon has only shifted frames on both sides; the
     /// mean then drifts towards the shifted view unseen. If the later frames are shifted, the
     /// truth is the earlier frames' mean: the error of the mean of all frames is then their gap
-    /// `d` plus the earlier mean's own error, `d dᵀ + Σ / n_before`.
-    fn suspicion(&self, covariance: &Matrix6<f64>, variance_factor: f64) -> Option<Matrix6<f64>> {
+    /// `d` plus the earlier mean's own error, `d dᵀ + Σ / n_before`. `total` is the sum of every
+    /// frame's ε.
+    fn suspicion(
+        &self,
+        total: &Vector6<f64>,
+        covariance: &Matrix6<f64>,
+        variance_factor: f64,
+    ) -> Option<Matrix6<f64>> {
         let n = self.taken.len();
         let sides = STATIC_EARLIER_FRAMES as usize;
         let inverse = covariance.try_inverse()? / variance_factor;
-        let total = self.taken.iter().sum::<Vector6<f64>>();
         // Each split from running sums: the frames before it, and the rest.
         let mut before_sum = Vector6::zeros();
         let mut worst = (0.0, 0);
