@@ -97,6 +97,11 @@ struct EvalArgs {
     /// occlusion, frozen_camera, out_of_order, robot_lag or robot_short (docs/configuration.md).
     #[arg(long, value_name = "NAME")]
     fault: Option<Fault>,
+    /// Robots the episodes are shared among. Each is kept for its share, and the cell starts
+    /// each episode from the drift it learned of that robot in the ones before, as a cell in
+    /// service does (docs/estimation.md §3a). 0: every episode a robot the cell has never seen.
+    #[arg(long, default_value_t = eval::DEFAULT_KEPT_ROBOTS)]
+    robots: u32,
     /// Imperfections of the twin to switch off (comma-separated).
     #[arg(long, value_enum, value_delimiter = ',')]
     without: Vec<Imperfection>,
@@ -235,6 +240,8 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         calibration_scale: args.calibration_scale,
         fault: args.fault,
         initial,
+        kept_robots: args.robots,
+        robot_seed: 0,
     };
     let progress = ProgressBar::new(args.episodes as u64);
     progress.set_style(
@@ -246,7 +253,7 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     });
     progress.finish_and_clear();
     println!(
-        "{} on {}: {} episodes, seed {}, initial {} mm / {} deg, noise ×{}, calibration ×{}, fault {}",
+        "{} on {}: {} episodes, seed {}, initial {} mm / {} deg, noise ×{}, calibration ×{}, fault {}, {}",
         summary.controller,
         summary.cell,
         summary.episodes,
@@ -256,6 +263,10 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         summary.noise_scale,
         summary.calibration_scale,
         summary.fault.as_deref().unwrap_or("none"),
+        match summary.kept_robots {
+            0 => "a new robot each episode".to_string(),
+            n => format!("{n} kept robots"),
+        },
     );
     println!(
         "  success rate {:.4} ({} of {})",

@@ -9,11 +9,20 @@ use assembly_cell::sim::{AssemblyEnv, EnvOptions};
 
 /// Mean NEES per component and joint (all six, correlations included) over `episodes` expert
 /// episodes, and the noise scale learned at the end.
-fn mean_nees(noise_scale: f64, calibration_scale: f64, episodes: u64) -> ([f64; 6], f64, f64) {
+/// With `kept_robots` 1 the cell keeps its robot and starts each episode from the drift it
+/// remembers (docs/estimation.md §3a).
+fn mean_nees(
+    noise_scale: f64,
+    calibration_scale: f64,
+    episodes: u64,
+    kept_robots: u32,
+) -> ([f64; 6], f64, f64) {
     let mut cell = CellConfig::reference();
     cell.imperfections.calibration_error_mm *= calibration_scale;
     let options = EnvOptions {
         noise_scale,
+        kept_robots,
+        robot_seed: 11,
         ..EnvOptions::from_cell(&cell)
     };
     let mut env = AssemblyEnv::new(&cell, options);
@@ -48,24 +57,36 @@ fn mean_nees(noise_scale: f64, calibration_scale: f64, episodes: u64) -> ([f64; 
     (sum.map(|s| s / count), joint / count, scale)
 }
 
-#[test]
-fn the_covariance_is_consistent_across_noise_and_calibration() {
-    for noise in [0.25, 1.0, 2.0, 4.0, 8.0] {
-        for calibration in [0.0, 1.0, 3.0] {
-            let (nees, joint, scale) = mean_nees(noise, calibration, 60);
+/// The band: the joint six-component NEES averages between 0.5 and 1.2 times its dimension,
+/// no component averages above 1.5 (overconfident in that axis), and the noise learned from
+/// the residuals is the camera's.
+fn assert_consistent(noises: &[f64], calibrations: &[f64], kept_robots: u32) {
+    for &noise in noises {
+        for &calibration in calibrations {
+            let (nees, joint, scale) = mean_nees(noise, calibration, 60, kept_robots);
             let label = format!(
-                "noise ×{noise}, calibration ×{calibration}: NEES {nees:.2?}, joint {joint:.2}"
+                "noise ×{noise}, calibration ×{calibration}, kept robots {kept_robots}: \
+                 NEES {nees:.2?}, joint {joint:.2}"
             );
             eprintln!("{label}");
-            // The band: the joint six-component NEES averages between 0.5 and 1.2 times its
-            // dimension, and no component averages above 1.5 (overconfident in that axis).
             assert!((3.0..=7.2).contains(&joint), "{label}");
             assert!(nees.iter().all(|&n| n <= 1.5), "{label}");
-            // The noise it learned from the residuals is the camera's.
             assert!(
                 (scale / noise - 1.0).abs() < 0.15,
                 "{label}: learned ×{scale:.2}"
             );
         }
     }
+}
+
+#[test]
+fn the_covariance_is_consistent_across_noise_and_calibration() {
+    assert_consistent(&[0.25, 1.0, 2.0, 4.0, 8.0], &[0.0, 1.0, 3.0], 0);
+}
+
+/// Started from a remembered drift, the filter is as honest: the memory's own uncertainty is
+/// carried into each episode.
+#[test]
+fn the_covariance_stays_consistent_when_the_robot_is_kept() {
+    assert_consistent(&[1.0, 4.0], &[0.0, 1.0, 3.0], 1);
 }

@@ -16,10 +16,11 @@
 //! second frame that agrees with the held one is a confirmed jump: the estimate starts again
 //! from it and the caller is told ([`Fusion::Jumped`]), for the robot did not move that way.
 
+use super::drift::DriftKnowledge;
 use super::uncertainty::segment_two_in_m;
 use crate::geometry::pose::Pose;
 use crate::geometry::{Belief, Move, PoseSd};
-use nalgebra::{Matrix2x3, Matrix6, SMatrix, SVector, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Matrix2, Matrix2x3, Matrix6, SMatrix, SVector, UnitQuaternion, Vector3, Vector6};
 
 /// Filter settings. The move errors suit the reference robot (0.5 µm leg resolution and error,
 /// joint centres within 0.5 mm of nominal) with room for three times its calibration error.
@@ -35,8 +36,12 @@ pub struct FusionTuning {
     /// commanded leg lengths, so this error does not add up from move to move: it is part of
     /// each frame's error and of the next move's, never of the filter's memory.
     pub landing_error_mm: f64,
-    /// Prior σ of the sideways drift per mm commanded.
+    /// Prior σ of the sideways drift per mm commanded, for a robot the cell has not seen.
     pub drift_prior_sd: f64,
+    /// σ per mm by which a kept robot's drift may differ from one episode to the next: its
+    /// poses at the bore differ by each episode's initial error, and a robot changes slowly
+    /// (`camera::drift`).
+    pub drift_change_sd: f64,
     /// Rotation error of an executed move: σ (rad) per rad turned and per mm moved (tilt about
     /// x and y of {M}; twist about z).
     pub rotation_error_per_rad: f64,
@@ -56,6 +61,7 @@ impl Default for FusionTuning {
             sideways_error_per_mm: 1e-4,
             landing_error_mm: 5e-4,
             drift_prior_sd: 0.002,
+            drift_change_sd: 3e-5,
             rotation_error_per_rad: 5e-3,
             tilt_error_per_mm: 4e-6,
             twist_error_per_mm: 1e-5,
@@ -297,6 +303,26 @@ impl StateFilter {
         self.segment_two = *covariance;
     }
 
+    /// Forgets the episode but starts from what is known of the robot's drift (a kept robot's
+    /// last episode, `camera::drift`) instead of the prior for an unseen one.
+    pub fn reset_from(&mut self, known: &DriftKnowledge) {
+        self.reset();
+        self.drift = known.per_mm_vector();
+        self.covariance
+            .fixed_view_mut::<6, 6>(6, 6)
+            .copy_from(&known.covariance_matrix());
+    }
+
+    /// What the filter knows now of the robot's drift, as learned over `episodes` episodes.
+    pub fn drift_knowledge(&self, episodes: u32) -> DriftKnowledge {
+        let covariance = self.covariance.fixed_view::<6, 6>(6, 6).into_owned();
+        DriftKnowledge::new(
+            &self.drift,
+            &((covariance + covariance.transpose()) * 0.5),
+            episodes,
+        )
+    }
+
     /// Starts again from a measurement, keeping the learned drift.
     fn set_to(&mut self, measured: Pose, covariance: &Matrix6<f64>) {
         let drift = self.covariance.fixed_view::<6, 6>(6, 6).into_owned();
@@ -311,6 +337,10 @@ impl StateFilter {
         self.held_back = None;
         self.innovation_trend = [0.0; 6];
         self.blended = 0;
+    }
+
+    pub fn tuning(&self) -> &FusionTuning {
+        &self.tuning
     }
 
     /// The estimate of {F} in {M}, once there is one.
@@ -332,6 +362,22 @@ impl StateFilter {
             Some(m_f) => segment_one + segment_two_in_m(m_f, &self.segment_two),
             None => segment_one,
         }
+    }
+
+    /// How far this filter's sideways estimate is from `reference`'s, both fed the same frames
+    /// but `reference` from a wider prior on the drift: the Mahalanobis distance² (2 degrees of
+    /// freedom) of their difference in x and y over `reference`'s covariance less this one's.
+    /// If this filter's prior is right, the reference only knows less, and the difference of
+    /// the two has that covariance (Segment II's mean, which they share, cancels). None before
+    /// both have an estimate.
+    pub fn sideways_disagreement_with(&self, reference: &StateFilter) -> Option<f64> {
+        let (mine, theirs) = (self.m_f?, reference.m_f?);
+        let gap = (mine.translation.vector - theirs.translation.vector).xy();
+        let sideways = |f: &StateFilter| f.covariance.fixed_view::<2, 2>(0, 0).into_owned();
+        let floor = Matrix2::from_diagonal_element(self.tuning.landing_error_mm.powi(2));
+        let spread = sideways(reference) - sideways(self) + floor;
+        let inverse = spread.cholesky()?.inverse();
+        Some((gap.transpose() * inverse * gap)[(0, 0)])
     }
 
     /// The same once `step` is executed (the filter's prediction, leaving the filter as it is).

@@ -2,6 +2,7 @@
 //! sees, one [`Shot`] in and one [`Estimate`] out. The twin's environment calls it inline; the
 //! service runs it on a thread of its own (`cell::ingestion`).
 
+use super::drift::{DriftKnowledge, UnusableDrift};
 use super::uncertainty::{NoiseScale, relative_covariance_of};
 use super::{
     CameraError, CameraFrame, Fusion, FusionTuning, StateEstimator, StateFilter, state_vector,
@@ -15,6 +16,9 @@ use nalgebra::{Matrix6, Vector6};
 pub struct Shot {
     /// The first capture of an episode: forget the last one first.
     pub new_episode: bool,
+    /// With `new_episode`: the robot hit something or faulted since the last episode, so what
+    /// the cell remembers of its drift is forgotten too.
+    pub forget_robot: bool,
     /// The move the robot executed since the last capture (none: vetoed, or still).
     pub executed: Option<Move>,
     /// The part of the commanded move still to come after the exposure, in {M} (none when the
@@ -40,6 +44,10 @@ pub enum Detected {
     /// Segment II's frames since some frame disagree with the frames before it, short of a
     /// confirmed shift: its estimate's covariance is widened, so the cell holds.
     ShiftSuspected,
+    /// The robot's moves disagree with the drift the cell remembered of it: it has changed
+    /// since (replaced, re-mounted, knocked). The memory is dropped and the episode goes on
+    /// from what its own frames say.
+    RobotChanged,
 }
 
 impl Detected {
@@ -50,9 +58,18 @@ impl Detected {
             Detected::OutOfOrder => "out_of_order",
             Detected::CameraShift => "camera_shift",
             Detected::ShiftSuspected => "camera_shift_suspected",
+            Detected::RobotChanged => "robot_changed",
         }
     }
 }
+
+/// Beyond this Mahalanobis distance² (x and y) between the sideways estimates of the filter
+/// that remembers the robot's drift and the one that does not, the remembered drift is taken to
+/// be wrong. χ² with 2 degrees of freedom passes 12 with probability 2.5e-3, but the distance is
+/// measured cautiously (`StateFilter::sideways_disagreement_with`) and a false alarm costs only
+/// the episode's speed: the cell goes on without the memory. 20 let a silently replaced robot
+/// into the wall four times as often (docs/estimation.md §3a).
+const ROBOT_CHANGED_CHI2: f64 = 12.0;
 
 /// Frames in a row a coded point may be missing before it is reported occluded (a dropped
 /// point, 2% a frame in the reference camera, is missing 8 frames in a row once in 4e13).
@@ -398,6 +415,18 @@ pub struct Ingest {
     state: [f64; 12],
     raw_state: [f64; 12],
     estimated_m_f: Option<Pose>,
+    /// The cell keeps its robot: each episode starts from the drift the last ones learned.
+    remember_drift: bool,
+    /// What the episodes so far learned of the robot's drift (with `remember_drift`).
+    drift_memory: Option<DriftKnowledge>,
+    /// No camera fault was confirmed in this episode, so what it learned may be kept.
+    episode_trusted: bool,
+    /// While an episode runs from the remembered drift: the same filter started from the prior
+    /// for a robot never seen, fed the same frames, so that a remembered drift that has become
+    /// wrong shows as the two disagreeing.
+    unremembering: Option<StateFilter>,
+    /// The remembered drift was found wrong at this frame (named once, at the frame).
+    robot_changed: bool,
 }
 
 impl Ingest {
@@ -412,13 +441,75 @@ impl Ingest {
             state: [0.0; 12],
             raw_state: [0.0; 12],
             estimated_m_f: None,
+            remember_drift: false,
+            drift_memory: None,
+            episode_trusted: true,
+            unremembering: None,
+            robot_changed: false,
         }
+    }
+
+    /// For a cell that keeps its robot: each episode starts from the drift the episodes before
+    /// it learned (`camera::drift`), not from the prior for a robot never seen. An episode in
+    /// which a camera shift or a frozen camera was confirmed teaches it nothing.
+    pub fn remembering_drift(mut self) -> Self {
+        self.remember_drift = true;
+        self
+    }
+
+    /// What the finished episodes taught of the robot's drift (none before the first, or when
+    /// the drift is not remembered).
+    pub fn drift_memory(&self) -> Option<&DriftKnowledge> {
+        self.drift_memory.as_ref()
+    }
+
+    /// What would be remembered if the episode ended now: the memory updated with what this
+    /// episode's frames alone said of the drift (`DriftKnowledge::updated_with`); the memory as
+    /// it was if the episode cannot teach anything.
+    pub fn learned_drift(&self) -> Option<DriftKnowledge> {
+        if !self.remember_drift {
+            return None;
+        }
+        // The filter that started from the prior for an unseen robot.
+        let alone = self.unremembering.as_ref().unwrap_or(&self.filter);
+        if !self.episode_trusted || alone.m_f().is_none() {
+            return self.drift_memory;
+        }
+        let episode = alone.drift_knowledge(1);
+        if !episode.is_usable() {
+            return self.drift_memory;
+        }
+        let tuning = self.filter.tuning();
+        Some(match self.drift_memory {
+            Some(memory) => {
+                memory
+                    .carried(tuning.drift_change_sd)
+                    .updated_with(&episode, tuning.drift_prior_sd)
+                    .knowledge
+            }
+            None => episode,
+        })
+    }
+
+    /// Starts the next episodes from `memory` (a stored one, after a restart); one that is not
+    /// usable is refused and the memory left as it was.
+    pub fn set_drift_memory(&mut self, memory: DriftKnowledge) -> Result<(), UnusableDrift> {
+        if !memory.is_usable() {
+            return Err(UnusableDrift);
+        }
+        self.drift_memory = Some(memory);
+        Ok(())
     }
 
     /// Takes in one shot: forgets the last episode if this one is new, predicts the executed
     /// move, then ingests the capture.
     pub fn take(&mut self, shot: &Shot) -> Estimate {
         if shot.new_episode {
+            self.drift_memory = if shot.forget_robot {
+                None
+            } else {
+                self.learned_drift()
+            };
             self.reset();
         }
         if let Some(step) = &shot.executed {
@@ -438,6 +529,14 @@ impl Ingest {
                 Err(_) => (false, noticed),
             },
         };
+        if matches!(
+            detected,
+            Some(Detected::CameraShift | Detected::FrozenCamera)
+        ) {
+            self.episode_trusted = false;
+        }
+        let changed = std::mem::take(&mut self.robot_changed).then_some(Detected::RobotChanged);
+        let detected = detected.or(changed);
         Estimate {
             state: self.state,
             raw_state: self.raw_state,
@@ -448,11 +547,22 @@ impl Ingest {
         }
     }
 
-    /// Forgets everything: a new episode starts blind.
+    /// Forgets everything but the robot's drift, when remembered: a new episode starts blind.
     fn reset(&mut self) {
         self.filter.reset();
+        self.unremembering = None;
+        if let Some(memory) = self.drift_memory.filter(|_| self.remember_drift) {
+            self.unremembering = Some(self.filter);
+            let change_sd = self.filter.tuning().drift_change_sd;
+            self.filter.reset_from(&memory.carried(change_sd));
+        }
+        self.episode_trusted = true;
+        self.robot_changed = false;
         self.noise = NoiseScale::default();
-        self.filter.set_noise_scale(self.noise.scale());
+        let scale = self.noise.scale();
+        for filter in self.filters() {
+            filter.set_noise_scale(scale);
+        }
         self.watch = FrameWatch::default();
         self.segment_two = StaticSegment::default();
         self.state = [0.0; 12];
@@ -462,7 +572,15 @@ impl Ingest {
 
     /// The robot executed `step`: the filter carries its estimate along.
     fn predict(&mut self, step: &Move) {
-        self.filter.predict(step);
+        for filter in self.filters() {
+            filter.predict(step);
+        }
+    }
+
+    /// The state filter and, while the episode runs from a remembered drift, the one that does
+    /// not remember it.
+    fn filters(&mut self) -> impl Iterator<Item = &mut StateFilter> {
+        std::iter::once(&mut self.filter).chain(self.unremembering.as_mut())
     }
 
     /// Takes in one capture. `remaining` is the part of the commanded move still to come after
@@ -488,7 +606,10 @@ impl Ingest {
         }
         self.noise
             .add(measurement.residual_squares, measurement.residual_dof);
-        self.filter.set_noise_scale(self.noise.scale());
+        let scale = self.noise.scale();
+        for filter in self.filters() {
+            filter.set_noise_scale(scale);
+        }
         let variance_factor = self.noise.cautious_variance_factor();
         // Segment II from the episode's mean, not from this frame alone; this frame's view of
         // it goes into the mean unless it is gross.
@@ -501,17 +622,40 @@ impl Ingest {
                 self.estimated_m_f = None;
                 return Err(CameraError::Shifted);
             }
-            StaticFrame::Taken { shift } => self.filter.move_segment_two(
-                &shift,
-                &self.segment_two.cautious_mean_covariance(variance_factor),
-            ),
+            StaticFrame::Taken { shift } => {
+                let covariance = self.segment_two.cautious_mean_covariance(variance_factor);
+                for filter in self.filters() {
+                    filter.move_segment_two(&shift, &covariance);
+                }
+            }
             StaticFrame::Gross => {}
         }
         let w_f = self.segment_two.mean.unwrap_or(measurement.w_f);
         let m_f = measurement.w_m.inverse() * w_f;
         let covariance =
             relative_covariance_of(&measurement.w_m, &m_f, &measurement.c1) * variance_factor;
-        let shifted = match self.filter.update(&m_f, &covariance) {
+        let mut fusion = self.filter.update(&m_f, &covariance);
+        if let Some(mut unremembering) = self.unremembering {
+            let fresh = unremembering.update(&m_f, &covariance);
+            // The remembered drift is wrong if the filter that remembers it is far from the
+            // one that does not, or sees a jump that the other explains.
+            let wrong = self
+                .filter
+                .sideways_disagreement_with(&unremembering)
+                .is_some_and(|d| d > ROBOT_CHANGED_CHI2)
+                || (matches!(fusion, Fusion::Jumped { .. })
+                    && matches!(fresh, Fusion::Blended | Fusion::Reset));
+            if wrong {
+                self.filter = unremembering;
+                self.unremembering = None;
+                self.drift_memory = None;
+                self.robot_changed = true;
+                fusion = fresh;
+            } else {
+                self.unremembering = Some(unremembering);
+            }
+        }
+        let shifted = match fusion {
             Fusion::HeldBack { sigmas } => {
                 self.estimated_m_f = None;
                 return Err(CameraError::HeldBack { sigmas });

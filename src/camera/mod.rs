@@ -5,12 +5,14 @@
 //! gross outliers. [`StateEstimator`] fits the fixture frames {C1}, {C2} to a capture, applies
 //! Eq. 1 (`w_m = w_c1 · c1_m`, `w_f = w_c2 · c2_f`) and forms the 12-dim state.
 
+pub mod drift;
 mod estimate;
 pub mod fusion;
 pub mod ingest;
 mod sim;
 pub mod uncertainty;
 
+pub use drift::DriftKnowledge;
 pub use estimate::{Measurement, StateEstimator, state_vector};
 pub use fusion::{Fusion, FusionTuning, StateFilter};
 pub use sim::{SimCamera, nominal_point_sigma_mm};

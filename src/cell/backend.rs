@@ -73,12 +73,25 @@ pub struct TwinBackend {
 
 impl TwinBackend {
     /// The twin of `cell`. Ingestion keeps to `cpu` when given (the control thread's CPU).
+    /// Like a real cell it has one robot, kept from job to job, and each job starts from the
+    /// drift the ones before learned of it.
     pub fn new(cell: &CellConfig, cpu: Option<usize>) -> Self {
-        let ingest = Ingest::new(cell, &CellFrames::from_config(cell));
+        let ingest = Ingest::new(cell, &CellFrames::from_config(cell)).remembering_drift();
         TwinBackend {
-            env: AssemblyEnv::new(cell, EnvOptions::from_cell(cell)),
+            env: AssemblyEnv::new(cell, Self::options(cell)),
             ingestion: Ingestion::spawn(ingest, cpu),
             awaiting_estimate: false,
+        }
+    }
+}
+
+impl TwinBackend {
+    /// The twin's options: the cell file's, with its one robot kept.
+    pub fn options(cell: &CellConfig) -> EnvOptions {
+        EnvOptions {
+            kept_robots: 1,
+            robot_seed: crate::sim::CELL_ROBOT_SEED,
+            ..EnvOptions::from_cell(cell)
         }
     }
 }

@@ -71,6 +71,8 @@ pub struct DriverBackend {
     last_sequence: u64,
     awaiting_estimate: bool,
     episode: Option<Episode>,
+    /// Reset after an e-stop or a fault since the last episode (see `reset`).
+    robot_suspect: bool,
 }
 
 impl DriverBackend {
@@ -88,7 +90,8 @@ impl DriverBackend {
             supervisor: Supervisor::new(cell),
             nominal: StewartGeometry::from_config(&cell.robot),
             judge: Judge::new(cell),
-            ingestion: Ingestion::spawn(Ingest::new(cell, &frames), cpu),
+            // One robot, kept: each job starts from the drift the ones before learned.
+            ingestion: Ingestion::spawn(Ingest::new(cell, &frames).remembering_drift(), cpu),
             frames,
             robot,
             camera: Some(camera),
@@ -98,6 +101,7 @@ impl DriverBackend {
             last_sequence: 0,
             awaiting_estimate: false,
             episode: None,
+            robot_suspect: false,
         })
     }
 
@@ -198,6 +202,7 @@ impl CellBackend for DriverBackend {
             let (frame, _) = self.capture();
             self.ingestion.take(Shot {
                 new_episode: first,
+                forget_robot: first && std::mem::take(&mut self.robot_suspect),
                 executed: None,
                 remaining: None,
                 frame,
@@ -273,6 +278,7 @@ impl CellBackend for DriverBackend {
         episode.pending = Some(pending);
         self.ingestion.send(Shot {
             new_episode: false,
+            forget_robot: false,
             executed,
             remaining: None,
             frame,
@@ -318,7 +324,10 @@ impl CellBackend for DriverBackend {
 
     /// The operator's reset: the robot driver reconnects if it must, checks the controller
     /// and unlatches.
+    /// After an e-stop or a latched fault the robot may have hit something or been moved by
+    /// hand: the next episode forgets what the cell remembers of its drift.
     fn reset(&mut self) -> Result<(), BackendError> {
+        self.robot_suspect = true;
         Ok(self.robot.reset()?)
     }
 }

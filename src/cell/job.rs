@@ -391,7 +391,7 @@ mod tests {
     use crate::cell::backend::TwinBackend;
     use crate::policy::Decision;
     use crate::policy::eval::run_episode;
-    use crate::sim::{AssemblyEnv, EnvOptions};
+    use crate::sim::AssemblyEnv;
     use std::cell::Cell;
 
     fn spec(controller: &str, seed: u64) -> JobSpec {
@@ -429,7 +429,7 @@ mod tests {
             .unwrap_or_else(|e| panic!("{e:?}"));
         let (records, end) = run_to_end(&mut run, &mut backend);
 
-        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut env = AssemblyEnv::new(&cell, TwinBackend::options(&cell));
         let mut expert = policy::builtin("expert", &cell).unwrap();
         let reference = run_episode(&mut env, expert.as_mut(), 0, 11);
         assert_eq!(end.steps, reference.steps);
@@ -480,7 +480,11 @@ mod tests {
         backend.start(8, initial).unwrap();
         backend.act(&crate::geometry::Move::default()).unwrap();
         let fresh_start = backend.start(9, initial).unwrap();
-        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        // The twin the same way, but each move settled: its robot and what the cell remembers
+        // of it are the same.
+        let mut env = AssemblyEnv::new(&cell, TwinBackend::options(&cell));
+        env.reset_with(8, initial).unwrap();
+        env.step(&crate::geometry::Move::default()).unwrap();
         assert_eq!(fresh_start, env.reset_with(9, initial).unwrap());
     }
 

@@ -39,6 +39,10 @@ pub struct ReportArgs {
     out: PathBuf,
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Robots each evaluation shares its episodes among, each kept and its drift remembered
+    /// (`celld eval --robots`); 0: a new robot every episode.
+    #[arg(long, default_value_t = eval::DEFAULT_KEPT_ROBOTS)]
+    robots: u32,
     /// Learned policies to tabulate, as LABEL=FILE (hierarchical or flat; repeatable); default:
     /// the bundled ones.
     #[arg(long = "policy")]
@@ -182,6 +186,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         let factory = (controller.factory)(cell)?;
         let options = mismatch.apply(EnvOptions {
             initial,
+            kept_robots: args.robots,
             ..EnvOptions::from_cell(cell)
         });
         let (summary, _) =
@@ -495,9 +500,17 @@ fn render(
     };
     let _ = writeln!(
         md,
-        "{made_by}: {} episodes per cell, evaluation seed {}. Success is judged on the twin's \
-         true pose; avg steps count successful episodes only.\n",
-        args.episodes, args.seed
+        "{made_by}: {} episodes per cell, evaluation seed {}, {}. Success is judged on the \
+         twin's true pose; avg steps count successful episodes only.\n",
+        args.episodes,
+        args.seed,
+        match args.robots {
+            0 => "a robot the cell has never seen in every episode".to_string(),
+            n => format!(
+                "the episodes shared among {n} robots, each kept and its drift remembered \
+                 from episode to episode as a cell in service does (docs/estimation.md §3a)"
+            ),
+        }
     );
     let find = |label: &str, condition: &str| {
         robustness

@@ -96,6 +96,7 @@ fn ingestion(cell: &CellConfig, count: usize) -> anyhow::Result<Vec<f64>> {
             .expect("a POINT message is a frame");
         let estimate = ingest.take(&Shot {
             new_episode: k == 0,
+            forget_robot: false,
             executed: None,
             remaining: None,
             frame,

@@ -11,7 +11,7 @@ use super::gcs::twin::{MOTION_STATUS_CHAR, READY_CHAR, STOP_CHAR, TwinController
 use super::igtl::codec::{Content, HEADER_BYTES, Header, Message, PointElement, Timestamp};
 use crate::camera::{CameraFrame, Fixture};
 use crate::config::cell::CellConfig;
-use crate::sim::InitialConditions;
+use crate::sim::{CELL_ROBOT_SEED, InitialConditions};
 use crate::sim::rig::TwinRig;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
@@ -89,7 +89,8 @@ impl TwinServer {
                 options.igtl_version
             );
         }
-        let mut rig = TwinRig::new(&options.cell);
+        // One cell, one robot, kept from job to job as the service's own twin keeps it.
+        let mut rig = TwinRig::new(&options.cell).with_kept_robot(CELL_ROBOT_SEED);
         rig.begin_episode(options.seed, InitialConditions::from_cell(&options.cell))
             .map_err(|e| anyhow::anyhow!("the episode's initial pose is unreachable: {e}"))?;
         let controller = TwinController::new(&rig, options.ready);

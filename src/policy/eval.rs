@@ -41,6 +41,9 @@ pub struct EvalSummary {
     pub calibration_scale: f64,
     /// The fault injected in every episode (`sim::Fault::code`), if any.
     pub fault: Option<String>,
+    /// Robots the episodes were shared among, each kept and its drift remembered (0: a new
+    /// robot every episode, nothing remembered).
+    pub kept_robots: u32,
     pub successes: usize,
     pub success_rate: f64,
     /// Average steps over the successful episodes (null when none succeeded).
@@ -111,8 +114,23 @@ pub fn run_episode(
     }
 }
 
+/// Robots an evaluation shares its episodes among unless told otherwise: enough that its
+/// figures average over robots, few enough that each robot's first, cold episode is a small
+/// share of a thousand (`EnvOptions::kept_robots`).
+pub const DEFAULT_KEPT_ROBOTS: u32 = 10;
+
+/// The seed of robot `index` of an evaluation seeded with `seed` (`EnvOptions::kept_robots`).
+pub fn robot_seed(seed: u64, index: usize) -> u64 {
+    episode_seed(seed ^ 0x0B07_C0DE_5EED_0001, index)
+}
+
 /// Runs `episodes` episodes on all cores; `make_controller` builds one controller per worker;
 /// `on_episode` is called after each episode (for a progress bar).
+///
+/// With `options.kept_robots` = n ≥ 1, the episodes are shared among n robots in consecutive
+/// blocks: each robot runs its block in order, the cell remembering its drift from episode to
+/// episode, and the robots run in parallel. Either way an episode's outcome does not depend on
+/// the number of threads.
 pub fn evaluate(
     cell: &CellConfig,
     options: EnvOptions,
@@ -123,18 +141,37 @@ pub fn evaluate(
 ) -> (EvalSummary, Vec<EpisodeReport>) {
     let started = Instant::now();
     let name = make_controller().name().to_string();
-    let reports: Vec<EpisodeReport> = (0..episodes)
-        .into_par_iter()
-        .map_init(
-            || (AssemblyEnv::new(cell, options), make_controller()),
-            |(env, controller), index| {
-                let report =
-                    run_episode(env, controller.as_mut(), index, episode_seed(seed, index));
-                on_episode(&report);
-                report
-            },
-        )
-        .collect();
+    let run = |env: &mut AssemblyEnv, controller: &mut Box<dyn Controller>, index: usize| {
+        let report = run_episode(env, controller.as_mut(), index, episode_seed(seed, index));
+        on_episode(&report);
+        report
+    };
+    let reports: Vec<EpisodeReport> = if options.kept_robots == 0 {
+        (0..episodes)
+            .into_par_iter()
+            .map_init(
+                || (AssemblyEnv::new(cell, options), make_controller()),
+                |(env, controller), index| run(env, controller, index),
+            )
+            .collect()
+    } else {
+        let robots = (options.kept_robots as usize).clamp(1, episodes.max(1));
+        let blocks: Vec<Vec<EpisodeReport>> = (0..robots)
+            .into_par_iter()
+            .map(|robot| {
+                let kept = EnvOptions {
+                    robot_seed: robot_seed(seed, robot),
+                    ..options
+                };
+                let mut env = AssemblyEnv::new(cell, kept);
+                let mut controller = make_controller();
+                (robot * episodes / robots..(robot + 1) * episodes / robots)
+                    .map(|index| run(&mut env, &mut controller, index))
+                    .collect()
+            })
+            .collect();
+        blocks.into_iter().flatten().collect()
+    };
     let summary = summarise(
         cell,
         options,
@@ -170,6 +207,7 @@ fn summarise(
         noise_scale: options.noise_scale,
         calibration_scale: options.calibration_scale,
         fault: options.fault.map(|f| f.code().to_string()),
+        kept_robots: options.kept_robots,
         successes: successes.len(),
         success_rate: successes.len() as f64 / n,
         avg_steps: (!successes.is_empty()).then(|| {

@@ -224,6 +224,13 @@ pub struct EnvOptions {
     /// A fault injected mid-episode (`sim::fault`), none by default.
     pub fault: Option<Fault>,
     pub initial: InitialConditions,
+    /// 0: every episode has a robot the cell has never seen (a new calibration error), and the
+    /// cell remembers nothing of the last one. n ≥ 1: the cell keeps its robot, drawn from
+    /// `robot_seed`, and starts each episode from the drift it learned in the ones before
+    /// (docs/estimation.md §3a); an evaluation shares its episodes among n such robots.
+    pub kept_robots: u32,
+    /// Which robot is kept (with `kept_robots` ≥ 1).
+    pub robot_seed: u64,
 }
 
 impl EnvOptions {
@@ -233,6 +240,8 @@ impl EnvOptions {
             calibration_scale: 1.0,
             fault: None,
             initial: InitialConditions::from_cell(cell),
+            kept_robots: 0,
+            robot_seed: 0,
         }
     }
 }
@@ -271,6 +280,9 @@ pub struct AssemblyEnv {
     /// The fused estimate of {F} in {M} the supervisor judges the next move against (a snapshot
     /// of the state filter; none when the last capture could not be used).
     belief: Option<StateFilter>,
+    /// The last episode ended in contact or a robot fault: the next one tells ingestion to
+    /// forget what it remembers of the robot's drift.
+    robot_suspect: bool,
     /// What [`AssemblyEnv::act`] found, until [`AssemblyEnv::settle`].
     pending: Option<PendingMove>,
     observation: Observation,
@@ -282,11 +294,17 @@ impl AssemblyEnv {
     pub fn new(cell: &CellConfig, options: EnvOptions) -> Self {
         let frames = CellFrames::from_config(cell);
         let parts = PartGeometry::from_config(cell);
+        let mut robot = TwinRobot::new(cell).with_calibration_scale(options.calibration_scale);
+        let mut ingest = Ingest::new(cell, &frames);
+        if options.kept_robots > 0 {
+            robot = robot.with_kept_calibration(options.robot_seed);
+            ingest = ingest.remembering_drift();
+        }
         AssemblyEnv {
             camera: SimCamera::new(cell, &frames, options.noise_scale),
-            ingest: Ingest::new(cell, &frames),
+            ingest,
             supervisor: Supervisor::new(cell),
-            robot: TwinRobot::new(cell).with_calibration_scale(options.calibration_scale),
+            robot,
             bore_obb: parts.bore_obb(),
             parts,
             frames,
@@ -301,6 +319,7 @@ impl AssemblyEnv {
             uncertain_holds: 0,
             unarrived: None,
             belief: None,
+            robot_suspect: false,
             pending: None,
             observation: Observation {
                 state: [0.0; 12],
@@ -314,6 +333,18 @@ impl AssemblyEnv {
             reward: None,
             outcome: Some(Outcome::Failure(FailureReason::StepLimit)),
         }
+    }
+
+    /// Puts another robot in the cell from the next episode on, kept and drawn from `seed`,
+    /// without telling the cell: what it remembers of the last robot's drift is now wrong (a
+    /// robot replaced or knocked between jobs).
+    pub fn swap_robot(&mut self, seed: u64) {
+        self.robot = self.robot.clone().with_kept_calibration(seed);
+    }
+
+    /// What the cell remembers of its robot's drift (with kept robots, after the first episode).
+    pub fn drift_memory(&self) -> Option<&crate::camera::DriftKnowledge> {
+        self.ingest.drift_memory()
     }
 
     pub fn cell(&self) -> &CellConfig {
@@ -382,6 +413,7 @@ impl AssemblyEnv {
         let platform = *self.robot.true_platform();
         self.capture(&platform, None, None);
         self.shot.new_episode = new_episode;
+        self.shot.forget_robot = new_episode && std::mem::take(&mut self.robot_suspect);
         &self.shot
     }
 
@@ -535,6 +567,13 @@ impl AssemblyEnv {
             None
         };
         self.outcome = outcome;
+        // A robot that hit something or faulted may no longer be the robot the cell learned.
+        self.robot_suspect |= matches!(
+            outcome,
+            Some(Outcome::Failure(
+                FailureReason::Contact | FailureReason::RobotFault | FailureReason::RobotShort
+            ))
+        );
         let ending = outcome.map(|o| match o {
             Outcome::Success => Ending::Success,
             Outcome::Failure(_) => Ending::Failure,

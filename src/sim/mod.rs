@@ -17,3 +17,4 @@ pub use env::{
 };
 pub use fault::{Fault, Mismatch, UnknownFault};
 pub use reward::RewardTerms;
+pub use robot::CELL_ROBOT_SEED;

@@ -47,6 +47,13 @@ impl TwinRig {
         }
     }
 
+    /// Keeps one robot from episode to episode, its calibration error drawn from `seed`, as
+    /// [`EnvOptions::kept_robots`](super::EnvOptions) does.
+    pub fn with_kept_robot(mut self, seed: u64) -> Self {
+        self.robot = self.robot.with_kept_calibration(seed);
+        self
+    }
+
     /// Draws an episode from `seed`: Segment I at the initial offset and orientation error
     /// from the mouth pose, the robot's calibration error; the captures count from 1 again.
     pub fn begin_episode(

@@ -16,8 +16,13 @@ use crate::geometry::{CellFrames, Move, Pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
 use crate::robot::{Robot, RobotError};
 use nalgebra::Vector3;
-use rand::Rng;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+
+/// The robot the service's twin and `celld twin-server` keep from episode to episode (its
+/// calibration error is drawn from this seed), as a real cell keeps its robot.
+pub const CELL_ROBOT_SEED: u64 = 1;
 
 #[derive(Debug, Clone)]
 pub struct TwinRobot {
@@ -26,6 +31,9 @@ pub struct TwinRobot {
     calibration_error_mm: f64,
     /// Multiplies each drawn joint displacement (1: the cell file's calibration error).
     calibration_scale: f64,
+    /// The robot is kept from episode to episode: its joint displacements are drawn from this
+    /// seed, not from the episode's random stream.
+    kept: Option<u64>,
     resolution_mm: f64,
     leg_error_sd_mm: f64,
     /// Segment I's frame {M} in the platform's {P}: turns a move in {M} into a platform pose.
@@ -66,6 +74,7 @@ impl TwinRobot {
                 0.0
             },
             calibration_scale: 1.0,
+            kept: None,
             encoders_mm: nominal.leg_lengths_mm(&home),
             legs_mm: nominal.leg_lengths_mm(&home),
             commanded_mm: None,
@@ -85,6 +94,13 @@ impl TwinRobot {
         self
     }
 
+    /// Keeps one robot from episode to episode, its calibration error drawn from `seed` (a real
+    /// cell's robot), instead of a new one each episode.
+    pub fn with_kept_calibration(mut self, seed: u64) -> Self {
+        self.kept = Some(seed);
+        self
+    }
+
     /// The faults the next moves suffer (none by default; [`TwinRobot::reset`] keeps them).
     pub fn set_faults(&mut self, faults: RobotFaults) {
         self.faults = faults;
@@ -96,7 +112,8 @@ impl TwinRobot {
 
     /// Starts an episode with the platform truly at `true_platform`; draws a new calibration error
     /// (each joint centre displaced uniformly within a ball of the configured radius, times the
-    /// calibration scale).
+    /// calibration scale). A kept robot draws its own again from its seed; the episode's draws
+    /// are still taken, so its other random numbers are the same either way.
     pub fn reset(
         &mut self,
         true_platform: Pose,
@@ -104,8 +121,14 @@ impl TwinRobot {
     ) -> Result<(), KinematicsError> {
         let scale = self.calibration_scale;
         let mut draw = || random_in_ball(rng, self.calibration_error_mm) * scale;
-        let base: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
-        let platform: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
+        let mut base: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
+        let mut platform: [Vector3<f64>; 6] = std::array::from_fn(|_| draw());
+        if let Some(seed) = self.kept {
+            let mut kept = ChaCha8Rng::seed_from_u64(seed);
+            let mut draw = || random_in_ball(&mut kept, self.calibration_error_mm) * scale;
+            base = std::array::from_fn(|_| draw());
+            platform = std::array::from_fn(|_| draw());
+        }
         self.truth = self.nominal.with_joint_offsets(&base, &platform);
         self.true_platform = true_platform;
         let legs = self.truth.leg_lengths_mm(&true_platform);

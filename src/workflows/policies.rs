@@ -157,9 +157,14 @@ pub async fn spawn_evaluation(
                 .build()
                 .map_err(|e| e.to_string())?;
             let (summary, _) = pool.install(|| {
+                // Kept robots, as `celld eval` by default: the cell remembers each one's drift.
+                let kept = EnvOptions {
+                    kept_robots: eval::DEFAULT_KEPT_ROBOTS,
+                    ..EnvOptions::from_cell(&cell)
+                };
                 eval::evaluate(
                     &cell,
-                    mismatch.apply(EnvOptions::from_cell(&cell)),
+                    mismatch.apply(kept),
                     episodes as usize,
                     seed,
                     &factory,
