@@ -5,8 +5,10 @@
 //! error belongs to the robot, not to the episode: a cell that keeps its robot keeps what it
 //! learned. The next episode starts from the last one's drift and covariance, widened by how
 //! much the drift may differ from one episode to the next (`FusionTuning::drift_change_sd`).
-//! A robot that has changed since shows up as moves that land where the drift does not say;
-//! the filter's innovation test then widens the drift again (docs/estimation.md §3a).
+//! What an episode adds is what its own frames said, so the memory never feeds on itself, and
+//! an episode that disagrees with it starts it again (`DriftKnowledge::updated_with`). Camera
+//! ingestion also checks the memory frame by frame against a filter that does not have it
+//! (`camera::ingest`, docs/estimation.md §3a).
 
 use nalgebra::{Matrix6, Vector6};
 use serde::{Deserialize, Serialize};
@@ -23,13 +25,6 @@ pub struct Updated {
     /// The episode disagreed with the memory: only the episode's knowledge is kept.
     pub changed: bool,
 }
-
-/// A drift that cannot serve as a prior.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[error(
-    "the robot's drift is not usable: a value is not finite, or its covariance is not symmetric positive definite"
-)]
-pub struct UnusableDrift;
 
 /// The learned drift and its uncertainty, as the filter held them at the end of an episode.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

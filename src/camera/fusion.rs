@@ -380,6 +380,21 @@ impl StateFilter {
         Some((gap.transpose() * inverse * gap)[(0, 0)])
     }
 
+    /// Takes `reference`'s drift and covariance but keeps this filter's estimate of {F} in {M},
+    /// the covariance widened by the gap between the two estimates: right whichever of the two
+    /// was, and no jump in the estimate for the supervisor to act on. For a remembering filter
+    /// that has fallen out with the one that does not remember (`camera::ingest`).
+    pub fn give_way_to(&mut self, reference: &StateFilter) {
+        let mut next = *reference;
+        if let (Some(mine), Some(theirs)) = (self.m_f, reference.m_f) {
+            let gap = Vector6::from(difference(&mine, &theirs));
+            let mut pose = next.covariance.fixed_view_mut::<6, 6>(0, 0);
+            pose += gap * gap.transpose();
+            next.m_f = Some(mine);
+        }
+        *self = next;
+    }
+
     /// The same once `step` is executed (the filter's prediction, leaving the filter as it is).
     pub fn covariance_after(&self, step: &Move) -> Matrix6<f64> {
         let mut after = *self;

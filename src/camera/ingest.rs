@@ -2,7 +2,7 @@
 //! sees, one [`Shot`] in and one [`Estimate`] out. The twin's environment calls it inline; the
 //! service runs it on a thread of its own (`cell::ingestion`).
 
-use super::drift::{DriftKnowledge, UnusableDrift};
+use super::drift::DriftKnowledge;
 use super::uncertainty::{NoiseScale, relative_covariance_of};
 use super::{
     CameraError, CameraFrame, Fusion, FusionTuning, StateEstimator, StateFilter, state_vector,
@@ -466,7 +466,7 @@ impl Ingest {
     /// What would be remembered if the episode ended now: the memory updated with what this
     /// episode's frames alone said of the drift (`DriftKnowledge::updated_with`); the memory as
     /// it was if the episode cannot teach anything.
-    pub fn learned_drift(&self) -> Option<DriftKnowledge> {
+    fn learned_drift(&self) -> Option<DriftKnowledge> {
         if !self.remember_drift {
             return None;
         }
@@ -489,16 +489,6 @@ impl Ingest {
             }
             None => episode,
         })
-    }
-
-    /// Starts the next episodes from `memory` (a stored one, after a restart); one that is not
-    /// usable is refused and the memory left as it was.
-    pub fn set_drift_memory(&mut self, memory: DriftKnowledge) -> Result<(), UnusableDrift> {
-        if !memory.is_usable() {
-            return Err(UnusableDrift);
-        }
-        self.drift_memory = Some(memory);
-        Ok(())
     }
 
     /// Takes in one shot: forgets the last episode if this one is new, predicts the executed
@@ -577,6 +567,41 @@ impl Ingest {
         }
     }
 
+    /// Feeds the frame the filter just took (`fusion`) to the filter that does not remember the
+    /// drift, if the episode runs from a remembered one, and compares the two. The remembered
+    /// drift is wrong if the filter that remembers it is far sideways from the one that does
+    /// not, or sees a jump that the other explains: the memory is forgotten, and the episode
+    /// goes on with the other filter's drift and its answer to the frame, from the estimate it
+    /// had, its covariance widened by the gap (`StateFilter::give_way_to`). Either filter may
+    /// be the one that erred, so the estimate does not jump to the other's: a jump the
+    /// supervisor believed could centre the shaft into the wall.
+    fn check_remembered_drift(
+        &mut self,
+        fusion: Fusion,
+        m_f: &Pose,
+        covariance: &Matrix6<f64>,
+    ) -> Fusion {
+        let Some(mut unremembering) = self.unremembering else {
+            return fusion;
+        };
+        let fresh = unremembering.update(m_f, covariance);
+        let wrong = self
+            .filter
+            .sideways_disagreement_with(&unremembering)
+            .is_some_and(|d| d > ROBOT_CHANGED_CHI2)
+            || (matches!(fusion, Fusion::Jumped { .. })
+                && matches!(fresh, Fusion::Blended | Fusion::Reset));
+        if !wrong {
+            self.unremembering = Some(unremembering);
+            return fusion;
+        }
+        self.filter.give_way_to(&unremembering);
+        self.unremembering = None;
+        self.drift_memory = None;
+        self.robot_changed = true;
+        fresh
+    }
+
     /// The state filter and, while the episode runs from a remembered drift, the one that does
     /// not remember it.
     fn filters(&mut self) -> impl Iterator<Item = &mut StateFilter> {
@@ -634,27 +659,8 @@ impl Ingest {
         let m_f = measurement.w_m.inverse() * w_f;
         let covariance =
             relative_covariance_of(&measurement.w_m, &m_f, &measurement.c1) * variance_factor;
-        let mut fusion = self.filter.update(&m_f, &covariance);
-        if let Some(mut unremembering) = self.unremembering {
-            let fresh = unremembering.update(&m_f, &covariance);
-            // The remembered drift is wrong if the filter that remembers it is far from the
-            // one that does not, or sees a jump that the other explains.
-            let wrong = self
-                .filter
-                .sideways_disagreement_with(&unremembering)
-                .is_some_and(|d| d > ROBOT_CHANGED_CHI2)
-                || (matches!(fusion, Fusion::Jumped { .. })
-                    && matches!(fresh, Fusion::Blended | Fusion::Reset));
-            if wrong {
-                self.filter = unremembering;
-                self.unremembering = None;
-                self.drift_memory = None;
-                self.robot_changed = true;
-                fusion = fresh;
-            } else {
-                self.unremembering = Some(unremembering);
-            }
-        }
+        let fusion = self.filter.update(&m_f, &covariance);
+        let fusion = self.check_remembered_drift(fusion, &m_f, &covariance);
         let shifted = match fusion {
             Fusion::HeldBack { sigmas } => {
                 self.estimated_m_f = None;

@@ -135,4 +135,53 @@ impl CellBackend for TwinBackend {
     /// The twin's robot moves only inside `act`, so between moves it already holds; ending
     /// the episode is the caller's part.
     fn hold(&mut self) {}
+
+    /// As with a real robot, the robot may have been serviced while the e-stop was latched:
+    /// the next episode forgets what the cell remembers of its drift.
+    fn reset(&mut self) -> Result<(), BackendError> {
+        self.env.forget_robot();
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::policy::{Controller, expert::Expert};
+
+    /// Runs one expert episode from `seed`; the drift's σ per mm along the axis the next
+    /// episode starts from.
+    fn episode_then_next_drift_sd(backend: &mut TwinBackend, cell: &CellConfig, seed: u64) -> f64 {
+        let initial = InitialConditions::from_cell(cell);
+        let mut expert = Expert::new(cell);
+        expert.reset(seed);
+        let mut observation = backend.start(seed, initial).unwrap();
+        loop {
+            backend.act(&expert.act(&observation).action).unwrap();
+            let result = backend.settle().unwrap();
+            observation = result.observation;
+            if result.done {
+                break;
+            }
+        }
+        let next = backend.start(seed + 1, initial).unwrap();
+        next.estimate.drift_knowledge(0).sd_per_mm()[2]
+    }
+
+    #[test]
+    fn the_twin_remembers_its_robot_from_job_to_job_until_an_operators_reset() {
+        let cell = CellConfig::reference();
+        let mut backend = TwinBackend::new(&cell, None);
+        let prior_sd = crate::camera::FusionTuning::default().drift_prior_sd;
+        let remembered = episode_then_next_drift_sd(&mut backend, &cell, 1);
+        assert!(remembered < prior_sd / 3.0, "{remembered} per mm");
+        backend.reset().unwrap();
+        let initial = InitialConditions::from_cell(&cell);
+        let after_reset = backend.start(5, initial).unwrap();
+        let sd = after_reset.estimate.drift_knowledge(0).sd_per_mm()[2];
+        assert!(
+            (sd - prior_sd).abs() < prior_sd * 0.01,
+            "{sd} per mm after a reset"
+        );
+    }
 }

@@ -234,7 +234,17 @@ impl Supervisor {
         let standing = self.spread(m_f, from, &[covariances[0], covariances[0]]);
         let now = clearance_grown(&self.parts, from, &standing.scaled(self.sigmas));
         let no_nearer = |after: f64, before: f64| after >= before - GAP_ROUNDING_MM;
-        if no_nearer(grown.wall_mm, now.wall_mm) && no_nearer(grown.seat_mm, now.seat_mm) {
+        // Backing away is worth its risk only to a place the cell is sure of: where the estimate
+        // is so uncertain that even there the grown shaft would touch, the cell holds, and its
+        // frames make it surer, rather than move on a mean that may be far off.
+        let ends_sure = || {
+            let after = self.spread(m_f, to, &[covariances[1], covariances[1]]);
+            clearance_grown(&self.parts, to, &after.scaled(self.sigmas)).is_clear()
+        };
+        if no_nearer(grown.wall_mm, now.wall_mm)
+            && no_nearer(grown.seat_mm, now.seat_mm)
+            && ends_sure()
+        {
             return Ok(risk);
         }
         Err(VetoReason::Uncertain {

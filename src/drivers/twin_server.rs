@@ -11,8 +11,8 @@ use super::gcs::twin::{MOTION_STATUS_CHAR, READY_CHAR, STOP_CHAR, TwinController
 use super::igtl::codec::{Content, HEADER_BYTES, Header, Message, PointElement, Timestamp};
 use crate::camera::{CameraFrame, Fixture};
 use crate::config::cell::CellConfig;
-use crate::sim::{CELL_ROBOT_SEED, InitialConditions};
 use crate::sim::rig::TwinRig;
+use crate::sim::{CELL_ROBOT_SEED, InitialConditions};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::{Arc, Mutex, PoisonError};

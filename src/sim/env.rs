@@ -342,6 +342,12 @@ impl AssemblyEnv {
         self.robot = self.robot.clone().with_kept_calibration(seed);
     }
 
+    /// The next episode forgets what the cell remembers of its robot's drift: the robot may
+    /// have been serviced or moved by hand (an operator's reset after an e-stop).
+    pub fn forget_robot(&mut self) {
+        self.robot_suspect = true;
+    }
+
     /// What the cell remembers of its robot's drift (with kept robots, after the first episode).
     pub fn drift_memory(&self) -> Option<&crate::camera::DriftKnowledge> {
         self.ingest.drift_memory()
