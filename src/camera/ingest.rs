@@ -541,7 +541,8 @@ impl Ingest {
     fn reset(&mut self) {
         self.filter.reset();
         self.unremembering = None;
-        if let Some(memory) = self.drift_memory.filter(|_| self.remember_drift) {
+        // Only a remembering ingest has a memory (`learned_drift`).
+        if let Some(memory) = self.drift_memory {
             self.unremembering = Some(self.filter);
             let change_sd = self.filter.tuning().drift_change_sd;
             self.filter.reset_from(&memory.carried(change_sd));
@@ -549,10 +550,7 @@ impl Ingest {
         self.episode_trusted = true;
         self.robot_changed = false;
         self.noise = NoiseScale::default();
-        let scale = self.noise.scale();
-        for filter in self.filters() {
-            filter.set_noise_scale(scale);
-        }
+        self.pass_noise_scale();
         self.watch = FrameWatch::default();
         self.segment_two = StaticSegment::default();
         self.state = [0.0; 12];
@@ -602,6 +600,14 @@ impl Ingest {
         fresh
     }
 
+    /// Gives every filter the camera's noise as now learned.
+    fn pass_noise_scale(&mut self) {
+        let scale = self.noise.scale();
+        for filter in self.filters() {
+            filter.set_noise_scale(scale);
+        }
+    }
+
     /// The state filter and, while the episode runs from a remembered drift, the one that does
     /// not remember it.
     fn filters(&mut self) -> impl Iterator<Item = &mut StateFilter> {
@@ -631,10 +637,7 @@ impl Ingest {
         }
         self.noise
             .add(measurement.residual_squares, measurement.residual_dof);
-        let scale = self.noise.scale();
-        for filter in self.filters() {
-            filter.set_noise_scale(scale);
-        }
+        self.pass_noise_scale();
         let variance_factor = self.noise.cautious_variance_factor();
         // Segment II from the episode's mean, not from this frame alone; this frame's view of
         // it goes into the mean unless it is gross.

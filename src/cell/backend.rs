@@ -7,10 +7,9 @@
 //! its own ([`Ingestion`]).
 
 use super::ingestion::{Ingestion, IngestionStopped};
-use crate::camera::ingest::Ingest;
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move};
-use crate::sim::env::first_usable_estimate;
+use crate::sim::env::{first_usable_estimate, ingest_for};
 use crate::sim::{AssemblyEnv, EnvError, EnvOptions, InitialConditions, Observation, StepResult};
 
 /// Stops the robot from any thread (see [`CellBackend::emergency_stop`]).
@@ -76,16 +75,15 @@ impl TwinBackend {
     /// Like a real cell it has one robot, kept from job to job, and each job starts from the
     /// drift the ones before learned of it.
     pub fn new(cell: &CellConfig, cpu: Option<usize>) -> Self {
-        let ingest = Ingest::new(cell, &CellFrames::from_config(cell)).remembering_drift();
+        let options = Self::options(cell);
+        let ingest = ingest_for(cell, &CellFrames::from_config(cell), &options);
         TwinBackend {
-            env: AssemblyEnv::new(cell, Self::options(cell)),
+            env: AssemblyEnv::new(cell, options),
             ingestion: Ingestion::spawn(ingest, cpu),
             awaiting_estimate: false,
         }
     }
-}
 
-impl TwinBackend {
     /// The twin's options: the cell file's, with its one robot kept.
     pub fn options(cell: &CellConfig) -> EnvOptions {
         EnvOptions {

@@ -323,9 +323,8 @@ impl CellBackend for DriverBackend {
     }
 
     /// The operator's reset: the robot driver reconnects if it must, checks the controller
-    /// and unlatches.
-    /// After an e-stop or a latched fault the robot may have hit something or been moved by
-    /// hand: the next episode forgets what the cell remembers of its drift.
+    /// and unlatches. After an e-stop or a latched fault the robot may have hit something or
+    /// been moved by hand, so the next episode forgets what the cell remembers of its drift.
     fn reset(&mut self) -> Result<(), BackendError> {
         self.robot_suspect = true;
         Ok(self.robot.reset()?)

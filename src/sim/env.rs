@@ -246,6 +246,18 @@ impl EnvOptions {
     }
 }
 
+/// Camera ingestion for a twin with `options`: remembering the robot's drift when the robot is
+/// kept. Whoever runs ingestion outside the twin (the service's `TwinBackend`) builds it here
+/// too, so that it matches the twin's robot.
+pub fn ingest_for(cell: &CellConfig, frames: &CellFrames, options: &EnvOptions) -> Ingest {
+    let ingest = Ingest::new(cell, frames);
+    if options.kept_robots > 0 {
+        ingest.remembering_drift()
+    } else {
+        ingest
+    }
+}
+
 /// The digital twin of one cell, running one episode at a time. Deterministic under a seed.
 #[derive(Debug, Clone)]
 pub struct AssemblyEnv {
@@ -295,14 +307,12 @@ impl AssemblyEnv {
         let frames = CellFrames::from_config(cell);
         let parts = PartGeometry::from_config(cell);
         let mut robot = TwinRobot::new(cell).with_calibration_scale(options.calibration_scale);
-        let mut ingest = Ingest::new(cell, &frames);
         if options.kept_robots > 0 {
             robot = robot.with_kept_calibration(options.robot_seed);
-            ingest = ingest.remembering_drift();
         }
         AssemblyEnv {
             camera: SimCamera::new(cell, &frames, options.noise_scale),
-            ingest,
+            ingest: ingest_for(cell, &frames, &options),
             supervisor: Supervisor::new(cell),
             robot,
             bore_obb: parts.bore_obb(),
