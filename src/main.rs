@@ -67,8 +67,9 @@ enum PolicyCommand {
 
 #[derive(Args)]
 struct EvalArgs {
-    /// A built-in controller (expert, expert-state-only, expert-careful, visual-servo, spiral,
-    /// da-dmp, hierarchical, bc, td3, hierarchical-cells) or a policy file (.safetensors).
+    /// A built-in controller (expert, expert-state-only, expert-careful, expert-swift,
+    /// visual-servo, spiral, da-dmp, hierarchical, bc, td3, hierarchical-cells) or a policy file
+    /// (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).

@@ -4,8 +4,9 @@
 //! orientation agent: the same with λO·r_O).
 //!
 //! The moves are the policy file's forward pass with Gaussian exploration noise on the acting
-//! actor's tanh output. Updates run after each episode, one per step the agent took (TD3's one
-//! update per environment step). By default each agent stays within a trust region around its
+//! actor's tanh output. Training episodes run [`RefineConfig::parallel_episodes`] at a time on
+//! all cores; updates run after each episode, one per step the agent took (TD3's one update
+//! per environment step). By default each agent stays within a trust region around its
 //! BC actor ([`TRUST_REGION`]): plain TD3 undoes behaviour cloning here within 20 episodes. The
 //! policy is evaluated every `eval_every` episodes on validation episodes (seeds disjoint from
 //! the report's) and the best one is kept.
@@ -22,14 +23,16 @@ use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig};
 use crate::policy::inputs::PolicyInputs;
 use crate::policy::record::DEFAULT_DEMONSTRATOR;
 use crate::sim::randomise::CellRanges;
-use crate::sim::{AssemblyEnv, EnvOptions, RewardTerms};
+use crate::sim::{EnvOptions, RewardTerms};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
-use episode::Driver;
+use episode::{Driver, Gathered};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
+use std::collections::VecDeque;
 
 /// The default trust region around the BC actors (tanh units, 6 µm of a full 3 mm step). Plain
 /// TD3 wrecks the BC policy within 20 episodes; regions of 0.001 to 0.01 keep it over 500
@@ -66,6 +69,10 @@ pub struct RefineConfig {
     /// Critic updates on the demonstrations alone, with the actors frozen, before the first
     /// training episode.
     pub critic_pretraining_updates: usize,
+    /// Training episodes run at once, each on its own twin, with the policy as it stood before
+    /// the first of them; the agents then learn from them one by one, as from episodes run in
+    /// turn. 1: every episode with the policy updated after the one before.
+    pub parallel_episodes: usize,
 }
 
 impl Default for RefineConfig {
@@ -88,9 +95,13 @@ impl Default for RefineConfig {
             demonstrations: 0,
             demonstrator: DEFAULT_DEMONSTRATOR,
             critic_pretraining_updates: 0,
+            parallel_episodes: PARALLEL_EPISODES,
         }
     }
 }
+
+/// Training episodes run at once by default ([`RefineConfig::parallel_episodes`]).
+pub const PARALLEL_EPISODES: usize = 8;
 
 impl RefineConfig {
     /// TD3 that learns beside its demonstrator (docs/learning.md): asymmetric critics,
@@ -164,8 +175,8 @@ pub struct Refinement {
     buffers: [ReplayBuffer; 2],
     /// The demonstrator's transitions, per agent ([`RefineConfig::demonstrations`]).
     demo_buffers: [ReplayBuffer; 2],
-    env: AssemblyEnv,
-    rng: ChaCha8Rng,
+    /// Episodes run at once and not yet learnt from, in order.
+    ahead: VecDeque<Gathered>,
     episode: usize,
     curve: Vec<EpisodeRecord>,
     validations: Vec<ValidationRecord>,
@@ -245,8 +256,7 @@ impl Refinement {
                 ReplayBuffer::new(config.td3.replay_capacity),
                 ReplayBuffer::new(config.td3.replay_capacity),
             ],
-            env: AssemblyEnv::new(cell, options),
-            rng: ChaCha8Rng::seed_from_u64(seed),
+            ahead: VecDeque::new(),
             episode: 0,
             curve: Vec::new(),
             validations: Vec::new(),
@@ -309,9 +319,17 @@ impl Refinement {
         if self.config.demonstrations == 0 {
             return Ok(());
         }
-        for index in 0..self.config.demonstrations {
-            let seed = episode_seed(self.seed ^ 0xDE_3057, index);
-            self.run_episode(Driver::Demonstrator, seed)?;
+        let episodes = (0..self.config.demonstrations)
+            .into_par_iter()
+            .map(|index| {
+                let seed = episode_seed(self.seed ^ 0xDE_3057, index);
+                self.gather(Driver::Demonstrator, seed, index)
+            })
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        for episode in episodes {
+            for (buffer, transitions) in self.demo_buffers.iter_mut().zip(episode.transitions) {
+                transitions.into_iter().for_each(|t| buffer.push(t));
+            }
         }
         let no_online_data = ReplayBuffer::new(1);
         for (agent, demos) in self.agents.iter_mut().zip(&self.demo_buffers) {
@@ -329,19 +347,30 @@ impl Refinement {
         for agent in &mut self.agents {
             agent.freeze_actor(!warm);
         }
-        let seed = episode_seed(self.seed ^ 0x7D3, self.episode);
-        let (success, steps, return_, taken) = self.run_episode(Driver::Policy, seed)?;
+        if self.ahead.is_empty() {
+            let left = self.config.episodes.saturating_sub(self.episode).max(1);
+            let count = self.config.parallel_episodes.clamp(1, left);
+            self.ahead = self.gather_policy_episodes(self.episode, count)?.into();
+        }
+        let gathered = self
+            .ahead
+            .pop_front()
+            .ok_or_else(|| candle_core::Error::Msg("no training episode was gathered".into()))?;
         for (k, agent) in self.agents.iter_mut().enumerate() {
-            for _ in 0..taken[k] {
+            let taken = gathered.transitions[k].len();
+            for t in gathered.transitions[k].iter().cloned() {
+                self.buffers[k].push(t);
+            }
+            for _ in 0..taken {
                 agent.update_with(&self.buffers[k], &self.demo_buffers[k])?;
             }
         }
         self.sync_actors()?;
         let record = EpisodeRecord {
             episode: self.episode,
-            return_,
-            success,
-            steps,
+            return_: gathered.return_,
+            success: gathered.success,
+            steps: gathered.steps,
         };
         self.curve.push(record);
         self.episode += 1;
@@ -398,7 +427,8 @@ impl Refinement {
     }
 
     /// Continues from a [`Refinement::checkpoint`]. The replay buffers start empty (they are
-    /// not saved) and the exploration noise is re-seeded from the episode reached.
+    /// not saved); each episode's exploration noise is seeded from the episode, so the episodes
+    /// after it are driven as in an uninterrupted run with the same weights.
     pub fn restore(
         &mut self,
         tensors: &HashMap<String, Tensor>,
@@ -425,7 +455,7 @@ impl Refinement {
         self.episode = progress.episode;
         self.curve = progress.curve;
         self.validations = progress.validations;
-        self.rng = ChaCha8Rng::seed_from_u64(self.seed ^ self.episode as u64);
+        self.ahead.clear();
         self.sync_actors()
     }
 }
@@ -641,6 +671,53 @@ mod tests {
         again.train_episode().unwrap();
         assert_eq!(snapshot(&run.policy_vars), snapshot(&again.policy_vars));
         assert_eq!(run.curve(), again.curve());
+    }
+
+    /// Runs `episodes` training episodes of a tiny refinement, `parallel` at a time, on
+    /// `threads` threads; returns its curve, its policy and its replay buffers' sizes.
+    fn run_at_once(
+        parallel: usize,
+        threads: usize,
+        warmup: usize,
+    ) -> (Vec<EpisodeRecord>, Vec<(String, Vec<f32>)>, [usize; 2]) {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut run = tiny_refinement_with(true, |config| RefineConfig {
+                episodes: 3,
+                parallel_episodes: parallel,
+                critic_warmup_episodes: warmup,
+                ..config
+            });
+            for _ in 0..3 {
+                run.train_episode().unwrap();
+            }
+            let sizes = [run.buffers[0].len(), run.buffers[1].len()];
+            (run.curve().to_vec(), snapshot(&run.policy_vars), sizes)
+        })
+    }
+
+    #[test]
+    fn episodes_run_at_once_give_the_same_run_on_any_number_of_threads() {
+        let one = run_at_once(3, 1, 0);
+        assert_eq!(one, run_at_once(3, 2, 0));
+        assert_eq!(one.0.len(), 3);
+        assert!(one.2[0] > 0);
+    }
+
+    #[test]
+    fn episodes_run_at_once_are_the_episodes_run_in_turn_while_the_actors_are_frozen() {
+        // While only the critics learn, the policy is the same for every episode: the episodes
+        // and the transitions they gather cannot depend on how many ran at once.
+        let at_once = run_at_once(3, 2, 10);
+        let in_turn = run_at_once(1, 2, 10);
+        assert_eq!(at_once, in_turn);
+        // And the actors did learn once unfrozen, or the comparison above would say nothing
+        // about episodes run with a stale policy.
+        let learning = run_at_once(3, 2, 0);
+        assert_ne!(learning.1, at_once.1);
     }
 
     #[test]

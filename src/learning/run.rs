@@ -80,7 +80,7 @@ pub struct TrainingSettings {
     pub bc_bore_lateral_weight: f64,
     /// The demonstrator recorded when the run is given no stored demonstrations (one of
     /// [`super::demos::DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
-    #[schema(pattern = "^(expert-state-only|expert-careful|expert)$")]
+    #[schema(pattern = "^(expert-state-only|expert-careful|expert-swift|expert)$")]
     pub demonstrator: String,
     /// Train a policy for cells it was not trained on: it reads cell-relative inputs (a
     /// version 2 file), and every recorded demonstration and TD3 episode is on a cell of its

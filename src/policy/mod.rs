@@ -68,10 +68,11 @@ pub trait Controller: Send {
 /// The controllers that need no learning, by name. `expert-state-only` is the demonstrator
 /// `celld train` records by default and `expert-careful` the one the bundled policy learnt from
 /// (both decide on what the policy sees; see [`expert`]).
-pub const BUILTIN_CONTROLLERS: [&str; 6] = [
+pub const BUILTIN_CONTROLLERS: [&str; 7] = [
     "expert",
     "expert-state-only",
     "expert-careful",
+    "expert-swift",
     "visual-servo",
     "spiral",
     "da-dmp",
@@ -121,6 +122,7 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
         "expert" => Ok(Box::new(expert::Expert::new(cell))),
         "expert-state-only" => Ok(Box::new(expert::Expert::state_only(cell))),
         "expert-careful" => Ok(Box::new(expert::Expert::careful(cell))),
+        "expert-swift" => Ok(Box::new(expert::Expert::swift(cell))),
         "visual-servo" => Ok(Box::new(visual_servo::VisualServo::new(cell))),
         "spiral" => Ok(Box::new(spiral::SpiralSearch::new(cell))),
         "da-dmp" => Ok(Box::new(dmp::default_dmp(cell))),

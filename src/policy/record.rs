@@ -39,7 +39,12 @@ pub struct DemoEpisode {
 pub const DEFAULT_DEMONSTRATOR: &str = "expert-state-only";
 
 /// The demonstrators a run may record: the scripted experts.
-pub const DEMONSTRATORS: [&str; 3] = ["expert-state-only", "expert-careful", "expert"];
+pub const DEMONSTRATORS: [&str; 4] = [
+    "expert-state-only",
+    "expert-careful",
+    "expert-swift",
+    "expert",
+];
 
 /// Refuses a name that is not one of [`DEMONSTRATORS`], listing them.
 pub fn check_demonstrator(name: &str) -> Result<(), String> {

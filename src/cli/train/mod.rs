@@ -186,6 +186,11 @@ pub struct TrainArgs {
     /// TD3 episodes at the start in which only the critics learn.
     #[arg(long, default_value_t = RefineConfig::default().critic_warmup_episodes)]
     td3_critic_warmup: usize,
+    /// TD3 training episodes run at once on all cores, each with the policy as it stood
+    /// before the first of them; the agents then learn from each in turn (1: one at a time).
+    #[arg(long, default_value_t = RefineConfig::default().parallel_episodes,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1024))]
+    td3_parallel_episodes: usize,
     /// Episodes of the demonstrator kept in TD3's replay (0: plain TD3 with the trust region).
     /// With any, TD3 learns beside its demonstrator: critics that also read the true pose,
     /// pre-trained on the demonstrations, and Q-filtered TD3+BC actor updates.

@@ -62,6 +62,7 @@ impl Run {
                 ..defaults.td3
             },
             critic_warmup_episodes: self.args.td3_critic_warmup,
+            parallel_episodes: self.args.td3_parallel_episodes,
             inputs: self.inputs,
             randomise: self.recording().randomise,
             ..defaults

@@ -1,56 +1,95 @@
 //! One episode of the refinement in the twin, driven by the policy (with exploration) or by
 //! the demonstrator, each decision kept as a transition of the agent whose actor made it.
+//!
+//! An episode reads the refinement's settings and weights and writes nothing of it: it gathers
+//! its transitions on its own twin with its own exploration noise (seeded from the episode),
+//! so that [`super::RefineConfig::parallel_episodes`] episodes can run at once and give the
+//! same transitions on any number of threads.
 
 use super::{Refinement, agent_index, local_reward};
 use crate::learning::dataset::StepLabels;
 use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
+use crate::policy::eval::episode_seed;
+use crate::policy::hierarchical::HierarchicalPolicy;
 use crate::policy::hierarchical::deepest_move_mm;
 use crate::policy::record::demonstrator_seed;
 use crate::sim::randomise::randomised;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
-use rand::Rng;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+use rayon::prelude::*;
 
 /// Who moves the shaft in an episode of the refinement.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Driver {
-    /// The policy being refined, with exploration noise.
-    Policy,
+    /// The policy being refined, with Gaussian exploration noise drawn from the generator.
+    Policy(HierarchicalPolicy, ChaCha8Rng),
     /// The scripted demonstrator ([`super::RefineConfig::demonstrator`]).
     Demonstrator,
 }
 
+/// What one episode gathered: its figures and each agent's transitions, in order.
+pub(super) struct Gathered {
+    pub success: bool,
+    pub steps: u32,
+    pub return_: f64,
+    /// Per agent ([`agent_index`]).
+    pub transitions: [Vec<Transition>; 2],
+}
+
 impl Refinement {
-    /// Runs one episode on `seed`'s cell (drawn when randomising) and keeps each agent's
-    /// transitions: the policy's in the replay buffers, the demonstrator's in the
-    /// demonstration buffers. Returns success, steps, return and the transitions per agent.
-    pub(super) fn run_episode(
-        &mut self,
+    /// Runs the training episodes `first..first + count` at once on all cores with the
+    /// current policy and its exploration noise, each on its own twin; returns what each
+    /// gathered, in episode order.
+    pub(super) fn gather_policy_episodes(
+        &self,
+        first: usize,
+        count: usize,
+    ) -> candle_core::Result<Vec<Gathered>> {
+        let policies = (0..count)
+            .map(|_| self.policy())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        policies
+            .into_par_iter()
+            .enumerate()
+            .map(|(k, policy)| {
+                let index = first + k;
+                let seed = episode_seed(self.seed ^ 0x7D3, index);
+                let noise = ChaCha8Rng::seed_from_u64(episode_seed(self.seed ^ 0x401_5E, index));
+                self.gather(Driver::Policy(policy, noise), seed, index)
+            })
+            .collect()
+    }
+
+    /// Runs one episode on `seed`'s cell (drawn when randomising) and returns each agent's
+    /// transitions: the policy's as it explored, or the demonstrator's, labelled as behaviour
+    /// cloning labels them. `index` names the episode in errors.
+    pub(super) fn gather(
+        &self,
         driver: Driver,
         seed: u64,
-    ) -> candle_core::Result<(bool, u32, f64, [usize; 2])> {
-        if let Some(ranges) = &self.config.randomise {
-            let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
-            self.env = AssemblyEnv::new(&drawn, mismatch);
-        }
+        index: usize,
+    ) -> candle_core::Result<Gathered> {
+        let mut env = match &self.config.randomise {
+            Some(ranges) => {
+                let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
+                AssemblyEnv::new(&drawn, mismatch)
+            }
+            None => AssemblyEnv::new(&self.cell, self.options),
+        };
         let normaliser = normaliser_of(&self.policy_vars)?;
-        let mut policy = self.policy()?;
-        let mut demonstrator = match driver {
-            Driver::Policy => None,
+        let (mut policy, mut noise, mut demonstrator) = match driver {
+            Driver::Policy(policy, noise) => (Some(policy), Some(noise), None),
             Driver::Demonstrator => {
-                let mut expert = crate::policy::builtin(self.config.demonstrator, self.env.cell())
+                let mut expert = crate::policy::builtin(self.config.demonstrator, env.cell())
                     .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
                 expert.reset(demonstrator_seed(seed));
-                Some(expert)
+                (None, None, Some(expert))
             }
         };
         let limits = step_limits(&self.cell);
-        let buffers = match driver {
-            Driver::Policy => &mut self.buffers,
-            Driver::Demonstrator => &mut self.demo_buffers,
-        };
         let inputs = self.config.inputs;
         let asymmetric = self.config.asymmetric;
         // What each agent's critics read at the current step beside the actor's inputs.
@@ -64,14 +103,17 @@ impl Refinement {
             };
             normaliser.apply(&inputs.of(&truth)).to_vec()
         };
-        let mut observation = self
-            .env
+        let mut observation = env
             .reset(seed)
             .map_err(|e| candle_core::Error::Msg(format!("twin reset failed: {e}")))?;
         let sigma = self.config.td3.exploration_noise;
+        let mut gathered = Gathered {
+            success: false,
+            steps: 0,
+            return_: 0.0,
+            transitions: [Vec::new(), Vec::new()],
+        };
         let mut pending: Option<(Actor, Transition)> = None;
-        let mut taken = [0usize; 2];
-        let mut return_ = 0.0;
         loop {
             let mut action = [0.0f64; 6];
             let decision = match &mut demonstrator {
@@ -84,45 +126,34 @@ impl Refinement {
             };
             if observation.measurement_fresh {
                 let x = normaliser.apply(&inputs.of(&observation));
-                let critic_x = privileged(&self.env, &observation);
+                let critic_x = privileged(&env, &observation);
                 if let Some((actor, mut t)) = pending.take() {
                     t.next_state = x.to_vec();
                     t.next_privileged = critic_x.clone();
-                    buffers[agent_index(actor)].push(t);
+                    gathered.transitions[agent_index(actor)].push(t);
                 }
-                let chosen = match &demonstrator {
-                    Some(_) => decision,
-                    None => {
+                let chosen = match (&mut policy, &mut noise) {
+                    (Some(policy), Some(noise)) => {
                         let out = policy.step(&inputs.of(&observation))?;
                         if !out.is_finite() {
                             candle_core::bail!(
-                                "the policy's output is not finite at episode {}",
-                                self.episode
+                                "the policy's output is not finite at episode {index}"
                             );
                         }
                         action = out.action.map(f64::from);
-                        Some((out.actor, f64::from(out.scale)))
-                    }
-                };
-                if let Some((actor, scale)) = chosen {
-                    let a: [f32; 3] = if demonstrator.is_some() {
-                        // The demonstrator's move as behaviour cloning labels it: the
-                        // direction the actor learnt, its length the selector's.
-                        let label = StepLabels::of_move(actor, &action, &limits);
-                        label.direction.map(|d| d as f32)
-                    } else {
+                        let actor = out.actor;
                         let (offset, limit) = match actor {
                             Actor::Position => (0, limits.position_mm),
                             Actor::Orientation => (3, limits.orientation_deg),
                         };
-                        let span = scale * limit;
+                        let span = f64::from(out.scale) * limit;
                         let mut a: [f32; 3] = std::array::from_fn(|i| {
                             let clean = if span > 0.0 {
                                 action[offset + i] / span
                             } else {
                                 0.0
                             };
-                            let noise: f64 = self.rng.sample(StandardNormal);
+                            let noise: f64 = noise.sample(StandardNormal);
                             (clean + sigma * noise).clamp(-1.0, 1.0) as f32
                         });
                         // As the policy acts as a controller: not past the goal, and no
@@ -134,9 +165,16 @@ impl Refinement {
                         for i in 0..3 {
                             action[offset + i] = f64::from(a[i]) * span;
                         }
-                        a
-                    };
-                    taken[agent_index(actor)] += 1;
+                        Some((actor, a))
+                    }
+                    // The demonstrator's move as behaviour cloning labels it: the direction
+                    // the actor learnt, its length the selector's.
+                    _ => decision.map(|(actor, _)| {
+                        let label = StepLabels::of_move(actor, &action, &limits);
+                        (actor, label.direction.map(|d| d as f32))
+                    }),
+                };
+                if let Some((actor, a)) = chosen {
                     let state = Transition {
                         state: x.to_vec(),
                         action: a.to_vec(),
@@ -146,27 +184,23 @@ impl Refinement {
                     pending = Some((actor, state));
                 }
             }
-            let result = self
-                .env
+            let result = env
                 .step(&crate::geometry::Move::from_array(action))
                 .map_err(|e| candle_core::Error::Msg(format!("twin step failed: {e}")))?;
-            return_ += result.reward.total;
+            gathered.return_ += result.reward.total;
             if let Some((actor, t)) = pending.as_mut() {
                 t.reward += local_reward(*actor, &result.reward) as f32;
             }
             if let Some(outcome) = result.outcome {
                 if let Some((actor, mut t)) = pending.take() {
                     t.next_state = normaliser.apply(&inputs.of(&result.observation)).to_vec();
-                    t.next_privileged = privileged(&self.env, &result.observation);
+                    t.next_privileged = privileged(&env, &result.observation);
                     t.done = true;
-                    buffers[agent_index(actor)].push(t);
+                    gathered.transitions[agent_index(actor)].push(t);
                 }
-                return Ok((
-                    outcome == Outcome::Success,
-                    self.env.steps(),
-                    return_,
-                    taken,
-                ));
+                gathered.success = outcome == Outcome::Success;
+                gathered.steps = env.steps();
+                return Ok(gathered);
             }
             observation = result.observation;
         }
