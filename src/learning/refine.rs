@@ -673,13 +673,12 @@ mod tests {
         assert_eq!(run.curve(), again.curve());
     }
 
-    /// Runs `episodes` training episodes of a tiny refinement, `parallel` at a time, on
-    /// `threads` threads; returns its curve, its policy and its replay buffers' sizes.
-    fn run_at_once(
-        parallel: usize,
-        threads: usize,
-        warmup: usize,
-    ) -> (Vec<EpisodeRecord>, Vec<(String, Vec<f32>)>, [usize; 2]) {
+    /// A run's curve, its policy's weights by name and its replay buffers' sizes.
+    type RunSummary = (Vec<EpisodeRecord>, Vec<(String, Vec<f32>)>, [usize; 2]);
+
+    /// Runs 3 training episodes of a tiny refinement, `parallel` at a time, on `threads`
+    /// threads, the actors frozen for the first `warmup`.
+    fn run_at_once(parallel: usize, threads: usize, warmup: usize) -> RunSummary {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()

@@ -441,7 +441,7 @@ mod tests {
             other = env.step(&Move::default()).unwrap().observation;
         }
         let with_other_filter = Observation {
-            estimate: other.estimate.clone(),
+            estimate: other.estimate,
             ..first.clone()
         };
         for (observation, label) in [(&first, "own"), (&with_other_filter, "other")] {

@@ -25,7 +25,7 @@ use rayon::prelude::*;
 /// Who moves the shaft in an episode of the refinement.
 pub(super) enum Driver {
     /// The policy being refined, with Gaussian exploration noise drawn from the generator.
-    Policy(HierarchicalPolicy, ChaCha8Rng),
+    Policy(Box<(HierarchicalPolicy, ChaCha8Rng)>),
     /// The scripted demonstrator ([`super::RefineConfig::demonstrator`]).
     Demonstrator,
 }
@@ -57,8 +57,8 @@ impl Refinement {
             .map(|(k, policy)| {
                 let index = first + k;
                 let seed = episode_seed(self.seed ^ 0x7D3, index);
-                let noise = ChaCha8Rng::seed_from_u64(episode_seed(self.seed ^ 0x401_5E, index));
-                self.gather(Driver::Policy(policy, noise), seed, index)
+                let noise = ChaCha8Rng::seed_from_u64(episode_seed(self.seed ^ 0x0004_015E, index));
+                self.gather(Driver::Policy(Box::new((policy, noise))), seed, index)
             })
             .collect()
     }
@@ -81,7 +81,10 @@ impl Refinement {
         };
         let normaliser = normaliser_of(&self.policy_vars)?;
         let (mut policy, mut noise, mut demonstrator) = match driver {
-            Driver::Policy(policy, noise) => (Some(policy), Some(noise), None),
+            Driver::Policy(explorer) => {
+                let (policy, noise) = *explorer;
+                (Some(policy), Some(noise), None)
+            }
             Driver::Demonstrator => {
                 let mut expert = crate::policy::builtin(self.config.demonstrator, env.cell())
                     .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
