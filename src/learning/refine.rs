@@ -356,13 +356,13 @@ impl Refinement {
             .ahead
             .pop_front()
             .ok_or_else(|| candle_core::Error::Msg("no training episode was gathered".into()))?;
-        for (k, agent) in self.agents.iter_mut().enumerate() {
-            let taken = gathered.transitions[k].len();
-            for t in gathered.transitions[k].iter().cloned() {
-                self.buffers[k].push(t);
-            }
+        for (k, transitions) in gathered.transitions.into_iter().enumerate() {
+            let taken = transitions.len();
+            transitions
+                .into_iter()
+                .for_each(|t| self.buffers[k].push(t));
             for _ in 0..taken {
-                agent.update_with(&self.buffers[k], &self.demo_buffers[k])?;
+                self.agents[k].update_with(&self.buffers[k], &self.demo_buffers[k])?;
             }
         }
         self.sync_actors()?;
@@ -427,8 +427,8 @@ impl Refinement {
     }
 
     /// Continues from a [`Refinement::checkpoint`]. The replay buffers start empty (they are
-    /// not saved); each episode's exploration noise is seeded from the episode, so the episodes
-    /// after it are driven as in an uninterrupted run with the same weights.
+    /// not saved), and episodes gathered ahead of the checkpoint are gathered again with its
+    /// policy; each episode's exploration noise is seeded from its index.
     pub fn restore(
         &mut self,
         tensors: &HashMap<String, Tensor>,
