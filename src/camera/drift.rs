@@ -39,7 +39,10 @@ pub struct DriftKnowledge {
 }
 
 impl DriftKnowledge {
+    /// The covariance is kept symmetric: its two halves, which rounding may have parted, are
+    /// averaged.
     pub fn new(per_mm: &Vector6<f64>, covariance: &Matrix6<f64>, episodes: u32) -> Self {
+        let covariance = (covariance + covariance.transpose()) * 0.5;
         DriftKnowledge {
             per_mm: (*per_mm).into(),
             covariance: std::array::from_fn(|i| std::array::from_fn(|j| covariance[(i, j)])),
@@ -106,11 +109,7 @@ impl DriftKnowledge {
         let mean = covariance
             * (known_inverse * self.per_mm_vector() + seen_inverse * episode.per_mm_vector());
         Updated {
-            knowledge: DriftKnowledge::new(
-                &mean,
-                &((covariance + covariance.transpose()) * 0.5),
-                self.episodes + 1,
-            ),
+            knowledge: DriftKnowledge::new(&mean, &covariance, self.episodes + 1),
             changed: false,
         }
     }

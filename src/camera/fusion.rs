@@ -316,11 +316,7 @@ impl StateFilter {
     /// What the filter knows now of the robot's drift, as learned over `episodes` episodes.
     pub fn drift_knowledge(&self, episodes: u32) -> DriftKnowledge {
         let covariance = self.covariance.fixed_view::<6, 6>(6, 6).into_owned();
-        DriftKnowledge::new(
-            &self.drift,
-            &((covariance + covariance.transpose()) * 0.5),
-            episodes,
-        )
+        DriftKnowledge::new(&self.drift, &covariance, episodes)
     }
 
     /// Starts again from a measurement, keeping the learned drift.

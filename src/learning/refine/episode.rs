@@ -80,16 +80,13 @@ impl Refinement {
             None => AssemblyEnv::new(&self.cell, self.options),
         };
         let normaliser = normaliser_of(&self.policy_vars)?;
-        let (mut policy, mut noise, mut demonstrator) = match driver {
-            Driver::Policy(explorer) => {
-                let (policy, noise) = *explorer;
-                (Some(policy), Some(noise), None)
-            }
+        let (mut explorer, mut demonstrator) = match driver {
+            Driver::Policy(explorer) => (Some(*explorer), None),
             Driver::Demonstrator => {
                 let mut expert = crate::policy::builtin(self.config.demonstrator, env.cell())
                     .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
                 expert.reset(demonstrator_seed(seed));
-                (None, None, Some(expert))
+                (None, Some(expert))
             }
         };
         let limits = step_limits(&self.cell);
@@ -135,8 +132,8 @@ impl Refinement {
                     t.next_privileged = critic_x.clone();
                     gathered.transitions[agent_index(actor)].push(t);
                 }
-                let chosen = match (&mut policy, &mut noise) {
-                    (Some(policy), Some(noise)) => {
+                let chosen = match &mut explorer {
+                    Some((policy, noise)) => {
                         let out = policy.step(&inputs.of(&observation))?;
                         if !out.is_finite() {
                             candle_core::bail!(
@@ -172,7 +169,7 @@ impl Refinement {
                     }
                     // The demonstrator's move as behaviour cloning labels it: the direction
                     // the actor learnt, its length the selector's.
-                    _ => decision.map(|(actor, _)| {
+                    None => decision.map(|(actor, _)| {
                         let label = StepLabels::of_move(actor, &action, &limits);
                         (actor, label.direction.map(|d| d as f32))
                     }),
