@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Makes the four bundled policies again, byte for byte:
+# Makes the five bundled policies again, byte for byte:
 #   policies/default.safetensors  the hierarchical policy (controller `hierarchical`)
 #   policies/bc.safetensors       plain behaviour cloning (controller `bc`)
 #   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
 #   policies/across-cells.safetensors  the policy trained across randomised cells
 #                                 (controller `hierarchical-cells`)
+#   policies/swift.safetensors    the fast hierarchical policy, learnt from expert-swift
+#                                 (controller `hierarchical-swift`)
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. The run directories go to runs/bundled/ (ignored by git);
@@ -45,6 +47,18 @@ cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026
 cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 
+# hierarchical-swift 1: behaviour cloning on 800 demonstrations of expert-swift (no holds,
+# steps up to the 5 mm limit), the sideways errors in the bore weighted 30
+step hierarchical-swift-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --demonstrator expert-swift \
+    --bc-bore-lateral-weight 30 --td3-episodes 1
+
+# hierarchical-swift 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
+# (seed 2027: the better of the two seeds tried for this round; docs/learning.md has both)
+step hierarchical-swift-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --demonstrator expert-swift \
+    --bc-bore-lateral-weight 30 --dagger-policy "$RUNS/S30/policy.safetensors" \
+    --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
+cp "$RUNS/S30r1/policy.safetensors" policies/swift.safetensors
+
 # bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default
 # demonstrator), BC at a constant rate; its BC policy is the `bc` baseline
 step bc env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/bcrun" --seed 2026 --bc-anneal-fraction 0
@@ -56,4 +70,4 @@ cp "$RUNS/flat/td3-flat-policy.safetensors" policies/td3.safetensors
 
 echo "== all done in $((SECONDS - total)) s; git status policies/ shows whether any file changed"
 sha256sum policies/default.safetensors policies/bc.safetensors policies/td3.safetensors \
-    policies/across-cells.safetensors
+    policies/across-cells.safetensors policies/swift.safetensors

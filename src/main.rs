@@ -68,8 +68,8 @@ enum PolicyCommand {
 #[derive(Args)]
 struct EvalArgs {
     /// A built-in controller (expert, expert-state-only, expert-careful, expert-swift,
-    /// visual-servo, spiral, da-dmp, hierarchical, bc, td3, hierarchical-cells) or a policy file
-    /// (.safetensors).
+    /// visual-servo, spiral, da-dmp, hierarchical, bc, td3, hierarchical-cells,
+    /// hierarchical-swift) or a policy file (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).

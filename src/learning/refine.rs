@@ -22,14 +22,13 @@ use crate::policy::eval::{self, EvalSummary, episode_seed};
 use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig};
 use crate::policy::inputs::PolicyInputs;
 use crate::policy::record::DEFAULT_DEMONSTRATOR;
-use crate::sim::randomise::CellRanges;
-use crate::sim::{EnvOptions, RewardTerms};
+use crate::sim::randomise::{CellRanges, randomised};
+use crate::sim::{AssemblyEnv, EnvOptions, RewardTerms};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use episode::{Driver, Gathered};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::collections::VecDeque;
@@ -177,11 +176,40 @@ pub struct Refinement {
     demo_buffers: [ReplayBuffer; 2],
     /// Episodes run at once and not yet learnt from, in order.
     ahead: VecDeque<Gathered>,
+    /// The kept robots (`EnvOptions::kept_robots` ≥ 1), each a twin that remembers its drift
+    /// from one episode to the next: episode i runs on robot i mod their number. Empty: every
+    /// episode on a twin of its own with a robot new to the cell.
+    robots: Vec<AssemblyEnv>,
     episode: usize,
     curve: Vec<EpisodeRecord>,
     validations: Vec<ValidationRecord>,
     best: Option<(ValidationRecord, VarMap)>,
     seed: u64,
+}
+
+/// The twins of the kept robots of a refinement seeded with `seed`; when randomising, each on
+/// a cell of its own.
+fn kept_robots(
+    cell: &CellConfig,
+    options: EnvOptions,
+    randomise: Option<&CellRanges>,
+    seed: u64,
+) -> Vec<AssemblyEnv> {
+    (0..options.kept_robots as usize)
+        .map(|robot| {
+            let kept = EnvOptions {
+                robot_seed: eval::robot_seed(seed ^ 0x0DE7_AB07, robot),
+                ..options
+            };
+            match randomise {
+                Some(ranges) => {
+                    let (drawn, kept) = randomised(cell, &kept, ranges, kept.robot_seed);
+                    AssemblyEnv::new(&drawn, kept)
+                }
+                None => AssemblyEnv::new(cell, kept),
+            }
+        })
+        .collect()
 }
 
 fn agent_index(actor: Actor) -> usize {
@@ -257,6 +285,7 @@ impl Refinement {
                 ReplayBuffer::new(config.td3.replay_capacity),
             ],
             ahead: VecDeque::new(),
+            robots: kept_robots(cell, options, config.randomise.as_ref(), seed),
             episode: 0,
             curve: Vec::new(),
             validations: Vec::new(),
@@ -319,13 +348,15 @@ impl Refinement {
         if self.config.demonstrations == 0 {
             return Ok(());
         }
-        let episodes = (0..self.config.demonstrations)
-            .into_par_iter()
-            .map(|index| {
-                let seed = episode_seed(self.seed ^ 0xDE_3057, index);
-                self.gather(Driver::Demonstrator, seed, index)
-            })
-            .collect::<candle_core::Result<Vec<_>>>()?;
+        let mut robots = std::mem::take(&mut self.robots);
+        let episodes = self.gather_on(&mut robots, 0..self.config.demonstrations, &|index| {
+            Ok((
+                Driver::Demonstrator,
+                episode_seed(self.seed ^ 0xDE_3057, index),
+            ))
+        });
+        self.robots = robots;
+        let episodes = episodes?;
         for episode in episodes {
             for (buffer, transitions) in self.demo_buffers.iter_mut().zip(episode.transitions) {
                 transitions.into_iter().for_each(|t| buffer.push(t));
@@ -350,7 +381,10 @@ impl Refinement {
         if self.ahead.is_empty() {
             let left = self.config.episodes.saturating_sub(self.episode).max(1);
             let count = self.config.parallel_episodes.clamp(1, left);
-            self.ahead = self.gather_policy_episodes(self.episode, count)?.into();
+            let mut robots = std::mem::take(&mut self.robots);
+            let gathered = self.gather_policy_episodes(&mut robots, self.episode, count);
+            self.robots = robots;
+            self.ahead = gathered?.into();
         }
         let gathered = self
             .ahead
@@ -557,6 +591,15 @@ mod tests {
         from_bc: bool,
         adjust: impl Fn(RefineConfig) -> RefineConfig,
     ) -> Refinement {
+        tiny_refinement_on(0, from_bc, adjust)
+    }
+
+    /// A tiny refinement whose episodes are shared among `robots` kept robots (0: none).
+    fn tiny_refinement_on(
+        robots: u32,
+        from_bc: bool,
+        adjust: impl Fn(RefineConfig) -> RefineConfig,
+    ) -> Refinement {
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
         let demos = record_expert(&cell, options, 4, 1);
@@ -591,6 +634,10 @@ mod tests {
             critic_warmup_episodes: 0,
             eval_episodes: 2,
             ..RefineConfig::default()
+        };
+        let options = EnvOptions {
+            kept_robots: robots,
+            ..options
         };
         Refinement::new(&cell, options, vars, adjust(config), from_bc, 3).unwrap()
     }
@@ -679,12 +726,16 @@ mod tests {
     /// Runs 3 training episodes of a tiny refinement, `parallel` at a time, on `threads`
     /// threads, the actors frozen for the first `warmup`.
     fn run_at_once(parallel: usize, threads: usize, warmup: usize) -> RunSummary {
+        run_at_once_on(0, parallel, threads, warmup)
+    }
+
+    fn run_at_once_on(robots: u32, parallel: usize, threads: usize, warmup: usize) -> RunSummary {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .unwrap();
         pool.install(|| {
-            let mut run = tiny_refinement_with(true, |config| RefineConfig {
+            let mut run = tiny_refinement_on(robots, true, |config| RefineConfig {
                 episodes: 3,
                 parallel_episodes: parallel,
                 critic_warmup_episodes: warmup,
@@ -717,6 +768,40 @@ mod tests {
         // about episodes run with a stale policy.
         let learning = run_at_once(3, 2, 0);
         assert_ne!(learning.1, at_once.1);
+    }
+
+    #[test]
+    fn episodes_on_kept_robots_are_the_same_on_any_number_of_threads_and_at_once_or_in_turn() {
+        // Two robots, three episodes at once: robot 0 runs episodes 0 and 2 in turn.
+        let one = run_at_once_on(2, 3, 1, 10);
+        assert_eq!(one, run_at_once_on(2, 3, 2, 10));
+        assert_eq!(one, run_at_once_on(2, 1, 2, 10));
+        // On kept robots the episodes are not those on robots new to the cell.
+        assert_ne!(one.0, run_at_once(3, 2, 10).0);
+    }
+
+    #[test]
+    fn a_kept_robot_remembers_its_drift_from_one_episode_to_the_next() {
+        // Four demonstrations on two robots: each robot ran two episodes, and the cell takes
+        // in what the first taught it when the second starts.
+        let run = tiny_refinement_on(2, true, |config| RefineConfig {
+            demonstrations: 4,
+            demonstrator: "expert",
+            ..config
+        });
+        assert_eq!(run.robots.len(), 2);
+        assert!(run.robots.iter().all(|env| env.drift_memory().is_some()));
+        let fresh = tiny_refinement_on(0, true, |config| RefineConfig {
+            demonstrations: 4,
+            demonstrator: "expert",
+            ..config
+        });
+        assert!(fresh.robots.is_empty());
+        // The demonstrator's episodes on remembered robots are not those on new ones.
+        assert_ne!(
+            run.demo_buffers[0].len() + run.demo_buffers[1].len(),
+            fresh.demo_buffers[0].len() + fresh.demo_buffers[1].len()
+        );
     }
 
     #[test]

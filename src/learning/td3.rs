@@ -67,6 +67,23 @@ pub struct Td3Config {
     pub demo_regularisation: Option<f64>,
 }
 
+impl Td3Config {
+    /// Target-policy smoothing of σ `sigma`, clipped at half of it (Table 1's ratio); `None`
+    /// keeps the current one. Table 1's 0.2 is made for exploration of the same order: next to
+    /// the refinement's σ 0.002 it asks the critics for the value of moves a hundred times
+    /// further from the policy's than any they have seen.
+    pub fn with_target_noise(self, sigma: Option<f64>) -> Self {
+        match sigma {
+            Some(sigma) => Td3Config {
+                target_noise: sigma,
+                noise_clip: sigma / 2.0,
+                ..self
+            },
+            None => self,
+        }
+    }
+}
+
 /// Replayed states on which each actor update is checked against the trust region.
 pub const TRUST_REGION_PROBES: usize = 256;
 

@@ -124,6 +124,28 @@ pub fn robot_seed(seed: u64, index: usize) -> u64 {
     episode_seed(seed ^ 0x0B07_C0DE_5EED_0001, index)
 }
 
+/// The kept robots of `episodes` episodes seeded with `seed` (`options.kept_robots` ≥ 1): each
+/// robot's options and the consecutive block of episode indices it runs in order.
+pub fn robot_blocks(
+    options: EnvOptions,
+    episodes: usize,
+    seed: u64,
+) -> Vec<(EnvOptions, std::ops::Range<usize>)> {
+    let robots = (options.kept_robots as usize).clamp(1, episodes.max(1));
+    (0..robots)
+        .map(|robot| {
+            let kept = EnvOptions {
+                robot_seed: robot_seed(seed, robot),
+                ..options
+            };
+            (
+                kept,
+                robot * episodes / robots..(robot + 1) * episodes / robots,
+            )
+        })
+        .collect()
+}
+
 /// Runs `episodes` episodes on all cores; `make_controller` builds one controller per worker;
 /// `on_episode` is called after each episode (for a progress bar).
 ///
@@ -155,17 +177,12 @@ pub fn evaluate(
             )
             .collect()
     } else {
-        let robots = (options.kept_robots as usize).clamp(1, episodes.max(1));
-        let blocks: Vec<Vec<EpisodeReport>> = (0..robots)
+        let blocks: Vec<Vec<EpisodeReport>> = robot_blocks(options, episodes, seed)
             .into_par_iter()
-            .map(|robot| {
-                let kept = EnvOptions {
-                    robot_seed: robot_seed(seed, robot),
-                    ..options
-                };
+            .map(|(kept, block)| {
                 let mut env = AssemblyEnv::new(cell, kept);
                 let mut controller = make_controller();
-                (robot * episodes / robots..(robot + 1) * episodes / robots)
+                block
                     .map(|index| run(&mut env, &mut controller, index))
                     .collect()
             })

@@ -84,8 +84,15 @@ pub const BUILTIN_CONTROLLERS: [&str; 7] = [
 /// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
 /// flat`), and `hierarchical-cells` (BC + LSTM on cell-relative inputs, every demonstration
 /// on a randomised cell, then a DAgger round for the actors: the policy for cells none was
-/// trained on). See the README.
-pub const LEARNED_CONTROLLERS: [&str; 4] = ["hierarchical", "bc", "td3", "hierarchical-cells"];
+/// trained on), and `hierarchical-swift` (BC + LSTM on `expert-swift`, then a DAgger round:
+/// the fast policy, a quarter fewer steps than `hierarchical`). See the README.
+pub const LEARNED_CONTROLLERS: [&str; 5] = [
+    "hierarchical",
+    "bc",
+    "td3",
+    "hierarchical-cells",
+    "hierarchical-swift",
+];
 
 /// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
 pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
@@ -94,6 +101,7 @@ pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
         "bc" => Some(include_bytes!("../../policies/bc.safetensors")),
         "td3" => Some(include_bytes!("../../policies/td3.safetensors")),
         "hierarchical-cells" => Some(include_bytes!("../../policies/across-cells.safetensors")),
+        "hierarchical-swift" => Some(include_bytes!("../../policies/swift.safetensors")),
         _ => None,
     }
 }

@@ -3,7 +3,7 @@
 //! actor and step size (the LSTM selector's labels). `learning::demos` reads and writes them as
 //! JSON Lines; the DA-DMP baseline ([`super::dmp`]) is fitted to them.
 
-use super::eval::episode_seed;
+use super::eval::{episode_seed, robot_blocks};
 use super::inputs::PolicyInputs;
 use super::{Actor, Controller};
 use crate::config::cell::CellConfig;
@@ -176,73 +176,100 @@ fn record_driven(
     let noise = recording.noise;
     let demonstrator_for =
         |cell: &CellConfig| super::builtin(demonstrator, cell).expect("a demonstrator is built in");
-    (0..episodes)
-        .into_par_iter()
-        .map_init(
-            || {
-                (
-                    AssemblyEnv::new(cell, options),
-                    demonstrator_for(cell),
-                    driver.map(|make| make()),
-                )
-            },
-            |(env, expert, driver), index| {
-                let seed = episode_seed(seed, index);
-                if let Some(ranges) = &recording.randomise {
-                    let (drawn, mismatch) = randomised(cell, &options, ranges, seed);
-                    *env = AssemblyEnv::new(&drawn, mismatch);
-                    *expert = demonstrator_for(&drawn);
+    let run = |env: &mut AssemblyEnv,
+               expert: &mut Box<dyn Controller>,
+               driver: &mut Option<Box<dyn Controller>>,
+               index: usize| {
+        let seed = episode_seed(seed, index);
+        expert.reset(demonstrator_seed(seed));
+        if let Some(driver) = driver {
+            driver.reset(seed);
+        }
+        let mut noise_rng = ChaCha8Rng::seed_from_u64(seed ^ 0xDA57_0000);
+        let mut steps = Vec::new();
+        let Ok(mut observation) = env.reset(seed) else {
+            return DemoEpisode {
+                steps,
+                succeeded: false,
+            };
+        };
+        loop {
+            let decision = expert.act(&observation);
+            if let (Some(actor), Some(scale)) = (decision.actor, decision.scale) {
+                steps.push(DemoStep {
+                    episode: index as u32,
+                    step: observation.step,
+                    state: recording.inputs.of(&observation),
+                    action: decision.action.to_array(),
+                    actor,
+                    scale,
+                });
+            }
+            let mut executed = match driver {
+                Some(driver) => driver.act(&observation).action,
+                None => decision.action,
+            };
+            if noise.lateral_mm > 0.0
+                && driver.is_none()
+                && decision.actor == Some(Actor::Position)
+                && executed.translation_mm != nalgebra::Vector3::zeros()
+            {
+                for axis in 0..2 {
+                    let z: f64 = noise_rng.sample(StandardNormal);
+                    executed.translation_mm[axis] += noise.lateral_mm * z;
                 }
-                expert.reset(demonstrator_seed(seed));
-                if let Some(driver) = driver {
-                    driver.reset(seed);
-                }
-                let mut noise_rng = ChaCha8Rng::seed_from_u64(seed ^ 0xDA57_0000);
-                let mut steps = Vec::new();
-                let Ok(mut observation) = env.reset(seed) else {
-                    return DemoEpisode {
-                        steps,
-                        succeeded: false,
-                    };
+            }
+            let result = env.step(&executed).expect("stepped until done");
+            observation = result.observation;
+            if let Some(outcome) = result.outcome {
+                return DemoEpisode {
+                    steps,
+                    succeeded: outcome == Outcome::Success,
                 };
-                loop {
-                    let decision = expert.act(&observation);
-                    if let (Some(actor), Some(scale)) = (decision.actor, decision.scale) {
-                        steps.push(DemoStep {
-                            episode: index as u32,
-                            step: observation.step,
-                            state: recording.inputs.of(&observation),
-                            action: decision.action.to_array(),
-                            actor,
-                            scale,
-                        });
+            }
+        }
+    };
+    if options.kept_robots == 0 {
+        return (0..episodes)
+            .into_par_iter()
+            .map_init(
+                || {
+                    (
+                        AssemblyEnv::new(cell, options),
+                        demonstrator_for(cell),
+                        driver.map(|make| make()),
+                    )
+                },
+                |(env, expert, driver), index| {
+                    if let Some(ranges) = &recording.randomise {
+                        let (drawn, mismatch) =
+                            randomised(cell, &options, ranges, episode_seed(seed, index));
+                        *env = AssemblyEnv::new(&drawn, mismatch);
+                        *expert = demonstrator_for(&drawn);
                     }
-                    let mut executed = match driver {
-                        Some(driver) => driver.act(&observation).action,
-                        None => decision.action,
-                    };
-                    if noise.lateral_mm > 0.0
-                        && driver.is_none()
-                        && decision.actor == Some(Actor::Position)
-                        && executed.translation_mm != nalgebra::Vector3::zeros()
-                    {
-                        for axis in 0..2 {
-                            let z: f64 = noise_rng.sample(StandardNormal);
-                            executed.translation_mm[axis] += noise.lateral_mm * z;
-                        }
-                    }
-                    let result = env.step(&executed).expect("stepped until done");
-                    observation = result.observation;
-                    if let Some(outcome) = result.outcome {
-                        return DemoEpisode {
-                            steps,
-                            succeeded: outcome == Outcome::Success,
-                        };
-                    }
-                }
-            },
-        )
-        .collect()
+                    run(env, expert, driver, index)
+                },
+            )
+            .collect();
+    }
+    // Kept robots, as a cell keeps its robot: each runs its block of episodes in order,
+    // remembering its drift; when randomising, each robot is on a cell of its own.
+    let blocks: Vec<Vec<DemoEpisode>> = robot_blocks(options, episodes, seed)
+        .into_par_iter()
+        .map(|(kept, block)| {
+            let (cell, kept) = match &recording.randomise {
+                Some(ranges) => randomised(cell, &kept, ranges, kept.robot_seed),
+                None => (cell.clone(), kept),
+            };
+            let mut env = AssemblyEnv::new(&cell, kept);
+            let mut expert = demonstrator_for(&cell);
+            let mut driver = driver.map(|make| make());
+            block
+                .map(|index| run(&mut env, &mut expert, &mut driver, index))
+                .collect()
+        })
+        .collect();
+    blocks.into_iter().flatten().collect()
 }
 
 #[cfg(test)]
@@ -317,6 +344,31 @@ mod tests {
             labels,
             replayed_labels(&cell, episode_seed(4, 0), &noisy[0])
         );
+    }
+
+    #[test]
+    fn on_kept_robots_a_recording_is_the_same_on_any_number_of_threads() {
+        let cell = CellConfig::reference();
+        let kept = EnvOptions {
+            kept_robots: 2,
+            ..EnvOptions::from_cell(&cell)
+        };
+        let on = |threads: usize, options: EnvOptions| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| record(&cell, options, "expert-swift", 4, 5))
+        };
+        let one = on(1, kept);
+        assert_eq!(one.len(), 4);
+        assert_eq!(one, on(2, kept));
+        // Each episode is still labelled with its own index, in order.
+        for (index, episode) in one.iter().enumerate() {
+            assert!(episode.steps.iter().all(|s| s.episode == index as u32));
+        }
+        // Robots the cell keeps are not the robots new to it of every episode.
+        assert_ne!(one, on(2, EnvOptions::from_cell(&cell)));
     }
 
     /// Replays recorded states through a fresh demonstrator: the labels it gives back.

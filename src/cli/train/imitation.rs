@@ -49,7 +49,7 @@ impl Run {
                     );
                     let recorded = demos::record_with(
                         &self.cell,
-                        self.options,
+                        self.demonstration_options(),
                         &self.args.demonstrator,
                         self.args.demos,
                         self.args.seed,

@@ -103,6 +103,12 @@ pub struct TrainArgs {
     /// 0.5-2x, calibration error 0-3x). Needs --inputs cell-relative.
     #[arg(long)]
     randomise_cells: bool,
+    /// Robots the DAgger and TD3 episodes (and TD3's validations) are shared among, each in
+    /// its own cell that remembers its drift from one episode to the next, as a cell keeps its
+    /// robot (`celld eval --robots`); 0: every episode on a robot new to the cell. The
+    /// demonstrations for behaviour cloning always run on robots new to the cell.
+    #[arg(long, default_value_t = 0)]
+    robots: u32,
     /// Read the demonstrations from this JSON Lines file instead of recording them.
     #[arg(long)]
     demos_file: Option<PathBuf>,
@@ -180,6 +186,10 @@ pub struct TrainArgs {
     /// σ of TD3's exploration noise [default: 0.002 from BC actors, else 0.1].
     #[arg(long)]
     td3_noise: Option<f64>,
+    /// σ of TD3's target-policy smoothing noise (tanh units), clipped at half of it
+    /// [default: Table 1's 0.2, clipped at 0.1].
+    #[arg(long)]
+    td3_target_noise: Option<f64>,
     /// Trust region (tanh units) around the BC actors' outputs (0: plain TD3).
     #[arg(long, default_value_t = RefineConfig::default().td3.trust_region.unwrap_or(0.0))]
     td3_trust_region: f64,
@@ -371,7 +381,10 @@ impl Run {
         ]
         .into_iter()
         .chain(args.td3_noise.map(|noise| ("--td3-noise", noise)))
-        {
+        .chain(
+            args.td3_target_noise
+                .map(|noise| ("--td3-target-noise", noise)),
+        ) {
             if !(lr.is_finite() && lr > 0.0) {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
@@ -437,7 +450,10 @@ impl Run {
             .transpose()?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
-        let options = EnvOptions::from_cell(&cell);
+        let options = EnvOptions {
+            kept_robots: args.robots,
+            ..EnvOptions::from_cell(&cell)
+        };
         Ok(Run {
             args,
             cell,
@@ -446,6 +462,17 @@ impl Run {
             dagger_drivers,
             init,
         })
+    }
+
+    /// The demonstrator's own episodes each run on a robot new to the cell, whatever
+    /// --robots says: the episodes in which the cell learns its robot's drift show the
+    /// learner more states around the demonstrator's path, and behaviour cloning from them
+    /// succeeded more often (docs/learning.md).
+    fn demonstration_options(&self) -> EnvOptions {
+        EnvOptions {
+            kept_robots: 0,
+            ..self.options
+        }
     }
 
     fn path(&self, name: &str) -> PathBuf {

@@ -59,7 +59,7 @@ impl Run {
                     defaults.td3.exploration_noise
                 }),
                 trust_region: Some(self.args.td3_trust_region).filter(|&r| r > 0.0),
-                ..defaults.td3
+                ..defaults.td3.with_target_noise(self.args.td3_target_noise)
             },
             critic_warmup_episodes: self.args.td3_critic_warmup,
             parallel_episodes: self.args.td3_parallel_episodes,

@@ -21,6 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
+use std::ops::Range;
 
 /// Who moves the shaft in an episode of the refinement.
 pub(super) enum Driver {
@@ -41,44 +42,81 @@ pub(super) struct Gathered {
 
 impl Refinement {
     /// Runs the training episodes `first..first + count` at once on all cores with the
-    /// current policy and its exploration noise, each on its own twin; returns what each
-    /// gathered, in episode order.
+    /// current policy and its exploration noise; returns what each gathered, in episode order.
     pub(super) fn gather_policy_episodes(
         &self,
+        robots: &mut [AssemblyEnv],
         first: usize,
         count: usize,
     ) -> candle_core::Result<Vec<Gathered>> {
-        let policies = (0..count)
-            .map(|_| self.policy())
-            .collect::<candle_core::Result<Vec<_>>>()?;
-        policies
-            .into_par_iter()
-            .enumerate()
-            .map(|(k, policy)| {
-                let index = first + k;
-                let seed = episode_seed(self.seed ^ 0x7D3, index);
-                let noise = ChaCha8Rng::seed_from_u64(episode_seed(self.seed ^ 0x0004_015E, index));
-                self.gather(Driver::Policy(Box::new((policy, noise))), seed, index)
-            })
-            .collect()
+        self.gather_on(robots, first..first + count, &|index| {
+            let noise = ChaCha8Rng::seed_from_u64(episode_seed(self.seed ^ 0x0004_015E, index));
+            let driver = Driver::Policy(Box::new((self.policy()?, noise)));
+            Ok((driver, episode_seed(self.seed ^ 0x7D3, index)))
+        })
     }
 
-    /// Runs one episode on `seed`'s cell (drawn when randomising) and returns each agent's
-    /// transitions: the policy's as it explored, or the demonstrator's, labelled as behaviour
-    /// cloning labels them. `index` names the episode in errors.
-    pub(super) fn gather(
+    /// Runs the episodes `indices` at once on all cores, each with the driver and seed that
+    /// `drive` gives it: on a twin of its own (on `seed`'s cell, drawn when randomising), or
+    /// with kept `robots`, on robot index mod their number, each robot's episodes in turn.
+    /// Returns what each gathered, in episode order, the same on any number of threads.
+    pub(super) fn gather_on(
         &self,
-        driver: Driver,
-        seed: u64,
-        index: usize,
-    ) -> candle_core::Result<Gathered> {
-        let mut env = match &self.config.randomise {
+        robots: &mut [AssemblyEnv],
+        indices: Range<usize>,
+        drive: &(dyn Fn(usize) -> candle_core::Result<(Driver, u64)> + Sync),
+    ) -> candle_core::Result<Vec<Gathered>> {
+        let run = |env: Option<&mut AssemblyEnv>, index: usize| {
+            let (driver, seed) = drive(index)?;
+            match env {
+                Some(env) => self.gather(driver, seed, index, env),
+                None => self.gather(driver, seed, index, &mut self.fresh_twin(seed)),
+            }
+        };
+        if robots.is_empty() {
+            return indices
+                .into_par_iter()
+                .map(|index| run(None, index))
+                .collect();
+        }
+        let count = robots.len();
+        let per_robot = robots
+            .par_iter_mut()
+            .enumerate()
+            .map(|(robot, env)| {
+                indices
+                    .clone()
+                    .filter(|index| index % count == robot)
+                    .map(|index| Ok((index, run(Some(env), index)?)))
+                    .collect::<candle_core::Result<Vec<_>>>()
+            })
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let mut gathered: Vec<(usize, Gathered)> = per_robot.into_iter().flatten().collect();
+        gathered.sort_by_key(|(index, _)| *index);
+        Ok(gathered.into_iter().map(|(_, episode)| episode).collect())
+    }
+
+    /// A twin for one episode on a robot new to the cell: on `seed`'s cell when randomising.
+    fn fresh_twin(&self, seed: u64) -> AssemblyEnv {
+        match &self.config.randomise {
             Some(ranges) => {
                 let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
                 AssemblyEnv::new(&drawn, mismatch)
             }
             None => AssemblyEnv::new(&self.cell, self.options),
-        };
+        }
+    }
+
+    /// Runs one episode (`seed`) on `env` and returns each agent's transitions: the policy's
+    /// as it explored, or the demonstrator's, labelled as behaviour cloning labels them.
+    /// `index` names the episode in errors.
+    fn gather(
+        &self,
+        driver: Driver,
+        seed: u64,
+        index: usize,
+        env: &mut AssemblyEnv,
+    ) -> candle_core::Result<Gathered> {
         let normaliser = normaliser_of(&self.policy_vars)?;
         let (mut explorer, mut demonstrator) = match driver {
             Driver::Policy(explorer) => (Some(*explorer), None),
@@ -126,7 +164,7 @@ impl Refinement {
             };
             if observation.measurement_fresh {
                 let x = normaliser.apply(&inputs.of(&observation));
-                let critic_x = privileged(&env, &observation);
+                let critic_x = privileged(env, &observation);
                 if let Some((actor, mut t)) = pending.take() {
                     t.next_state = x.to_vec();
                     t.next_privileged = critic_x.clone();
@@ -194,7 +232,7 @@ impl Refinement {
             if let Some(outcome) = result.outcome {
                 if let Some((actor, mut t)) = pending.take() {
                     t.next_state = normaliser.apply(&inputs.of(&result.observation)).to_vec();
-                    t.next_privileged = privileged(&env, &result.observation);
+                    t.next_privileged = privileged(env, &result.observation);
                     t.done = true;
                     gathered.transitions[agent_index(actor)].push(t);
                 }
