@@ -69,9 +69,10 @@ pub struct Td3Config {
 
 impl Td3Config {
     /// Target-policy smoothing of σ `sigma`, clipped at half of it (Table 1's ratio); `None`
-    /// keeps the current one. Table 1's 0.2 is made for exploration of the same order: next to
-    /// the refinement's σ 0.002 it asks the critics for the value of moves a hundred times
-    /// further from the policy's than any they have seen.
+    /// keeps the current one. Table 1's 0.2 (clipped at 0.1) suits exploration of the same
+    /// order; next to the refinement's σ 0.002 it asks the critics for the value of moves up
+    /// to fifty times further from the policy's than any explored. Matching it to the
+    /// exploration did not keep plain TD3 from undoing BC (docs/learning.md).
     pub fn with_target_noise(self, sigma: Option<f64>) -> Self {
         match sigma {
             Some(sigma) => Td3Config {
