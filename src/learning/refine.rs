@@ -22,7 +22,7 @@ use crate::policy::eval::{self, EvalSummary, episode_seed};
 use crate::policy::hierarchical::{HierarchicalPolicy, PolicyConfig};
 use crate::policy::inputs::PolicyInputs;
 use crate::policy::record::DEFAULT_DEMONSTRATOR;
-use crate::sim::randomise::{CellRanges, randomised};
+use crate::sim::randomise::{CellRanges, cell_for};
 use crate::sim::{AssemblyEnv, EnvOptions, RewardTerms};
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
@@ -201,13 +201,8 @@ fn kept_robots(
                 robot_seed: eval::robot_seed(seed ^ 0x0DE7_AB07, robot),
                 ..options
             };
-            match randomise {
-                Some(ranges) => {
-                    let (drawn, kept) = randomised(cell, &kept, ranges, kept.robot_seed);
-                    AssemblyEnv::new(&drawn, kept)
-                }
-                None => AssemblyEnv::new(cell, kept),
-            }
+            let (cell, kept) = cell_for(cell, &kept, randomise, kept.robot_seed);
+            AssemblyEnv::new(&cell, kept)
         })
         .collect()
 }
@@ -348,15 +343,12 @@ impl Refinement {
         if self.config.demonstrations == 0 {
             return Ok(());
         }
-        let mut robots = std::mem::take(&mut self.robots);
-        let episodes = self.gather_on(&mut robots, 0..self.config.demonstrations, &|index| {
-            Ok((
-                Driver::Demonstrator,
-                episode_seed(self.seed ^ 0xDE_3057, index),
-            ))
-        });
-        self.robots = robots;
-        let episodes = episodes?;
+        let episodes = self.with_robots(|refinement, robots| {
+            refinement.gather_on(robots, 0..refinement.config.demonstrations, &|index| {
+                let seed = episode_seed(refinement.seed ^ 0xDE_3057, index);
+                Ok((Driver::Demonstrator, seed))
+            })
+        })?;
         for episode in episodes {
             for (buffer, transitions) in self.demo_buffers.iter_mut().zip(episode.transitions) {
                 transitions.into_iter().for_each(|t| buffer.push(t));
@@ -372,6 +364,15 @@ impl Refinement {
         Ok(())
     }
 
+    /// Calls `f` with the refinement and its kept robots, lent apart so that episodes can run
+    /// on the robots while reading the rest.
+    fn with_robots<T>(&mut self, f: impl FnOnce(&Self, &mut [AssemblyEnv]) -> T) -> T {
+        let mut robots = std::mem::take(&mut self.robots);
+        let out = f(self, &mut robots);
+        self.robots = robots;
+        out
+    }
+
     /// Runs one training episode with exploration, then the agents' updates.
     pub fn train_episode(&mut self) -> candle_core::Result<EpisodeRecord> {
         let warm = self.episode >= self.config.critic_warmup_episodes;
@@ -381,10 +382,12 @@ impl Refinement {
         if self.ahead.is_empty() {
             let left = self.config.episodes.saturating_sub(self.episode).max(1);
             let count = self.config.parallel_episodes.clamp(1, left);
-            let mut robots = std::mem::take(&mut self.robots);
-            let gathered = self.gather_policy_episodes(&mut robots, self.episode, count);
-            self.robots = robots;
-            self.ahead = gathered?.into();
+            let first = self.episode;
+            self.ahead = self
+                .with_robots(|refinement, robots| {
+                    refinement.gather_policy_episodes(robots, first, count)
+                })?
+                .into();
         }
         let gathered = self
             .ahead

@@ -7,7 +7,7 @@ use super::eval::{episode_seed, robot_blocks};
 use super::inputs::PolicyInputs;
 use super::{Actor, Controller};
 use crate::config::cell::CellConfig;
-use crate::sim::randomise::{CellRanges, randomised};
+use crate::sim::randomise::{CellRanges, cell_for, randomised};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -257,10 +257,7 @@ fn record_driven(
     let blocks: Vec<Vec<DemoEpisode>> = robot_blocks(options, episodes, seed)
         .into_par_iter()
         .map(|(kept, block)| {
-            let (cell, kept) = match &recording.randomise {
-                Some(ranges) => randomised(cell, &kept, ranges, kept.robot_seed),
-                None => (cell.clone(), kept),
-            };
+            let (cell, kept) = cell_for(cell, &kept, recording.randomise.as_ref(), kept.robot_seed);
             let mut env = AssemblyEnv::new(&cell, kept);
             let mut expert = demonstrator_for(&cell);
             let mut driver = driver.map(|make| make());

@@ -88,6 +88,20 @@ pub fn randomised(
     }
 }
 
+/// The cell and options of what `seed` names (an episode, or a kept robot): drawn around
+/// `base` by [`randomised`] when there are `ranges`, else `base` and `options` as they are.
+pub fn cell_for(
+    base: &CellConfig,
+    options: &EnvOptions,
+    ranges: Option<&CellRanges>,
+    seed: u64,
+) -> (CellConfig, EnvOptions) {
+    match ranges {
+        Some(ranges) => randomised(base, options, ranges, seed),
+        None => (base.clone(), *options),
+    }
+}
+
 fn uniform(rng: &mut ChaCha8Rng, (low, high): (f64, f64)) -> f64 {
     if high > low {
         rng.random_range(low..=high)

@@ -15,7 +15,7 @@ use crate::policy::eval::episode_seed;
 use crate::policy::hierarchical::HierarchicalPolicy;
 use crate::policy::hierarchical::deepest_move_mm;
 use crate::policy::record::demonstrator_seed;
-use crate::sim::randomise::randomised;
+use crate::sim::randomise::cell_for;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -98,13 +98,9 @@ impl Refinement {
 
     /// A twin for one episode on a robot new to the cell: on `seed`'s cell when randomising.
     fn fresh_twin(&self, seed: u64) -> AssemblyEnv {
-        match &self.config.randomise {
-            Some(ranges) => {
-                let (drawn, mismatch) = randomised(&self.cell, &self.options, ranges, seed);
-                AssemblyEnv::new(&drawn, mismatch)
-            }
-            None => AssemblyEnv::new(&self.cell, self.options),
-        }
+        let randomise = self.config.randomise.as_ref();
+        let (cell, options) = cell_for(&self.cell, &self.options, randomise, seed);
+        AssemblyEnv::new(&cell, options)
     }
 
     /// Runs one episode (`seed`) on `env` and returns each agent's transitions: the policy's
