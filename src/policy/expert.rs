@@ -19,6 +19,13 @@ use rand_chacha::ChaCha8Rng;
 pub struct ExpertTuning {
     /// Tilt (deg) above which the orientation is corrected before moving on, outside the bore.
     pub tilt_tolerance_deg: f64,
+    /// Outside the bore the tilt is also corrected down to this share of the tilt at which the
+    /// seated shaft would touch the wall margin (the radial clearance beside the margin over
+    /// the bore's depth): a deep, tight bore takes less tilt than a shallow, loose one. On the
+    /// reference cell that is 0.014°; on a Φ100 bore 100 mm deep with 0.03 mm clearance,
+    /// 0.003°, where the fixed 0.02° left the seated shaft against the margin and `expert`
+    /// succeeded 0.726 instead of 0.997 (docs/learning.md).
+    pub tilt_clearance_share: f64,
     /// Tilt tolerated once the tip is in the bore (a correction there swings the tip).
     pub tilt_tolerance_inside_deg: f64,
     /// Hole misalignment (deg about the axis) above which the roll is corrected.
@@ -69,6 +76,7 @@ impl Default for ExpertTuning {
     fn default() -> Self {
         ExpertTuning {
             tilt_tolerance_deg: 0.02,
+            tilt_clearance_share: 0.5,
             tilt_tolerance_inside_deg: 0.05,
             roll_tolerance_deg: 0.025,
             lateral_tolerance_mm: 0.012,
@@ -146,6 +154,9 @@ pub struct Expert {
     limit_mm: f64,
     limit_deg: f64,
     shaft_length_mm: f64,
+    /// The tilt (deg) at which a shaft seated in the bore would touch the supervisor's wall
+    /// margin: the radial clearance beside the margin over the bore's depth.
+    clearance_tilt_deg: f64,
     rng: ChaCha8Rng,
 }
 
@@ -187,6 +198,10 @@ impl Expert {
             limit_mm: cell.steps.position_mm,
             limit_deg: cell.steps.orientation_deg,
             shaft_length_mm: cell.shaft.engaged_length_mm,
+            clearance_tilt_deg: ((cell.radial_clearance_mm() - cell.supervisor.wall_margin_mm)
+                / cell.bore.depth_mm)
+                .atan()
+                .to_degrees(),
             rng: ChaCha8Rng::seed_from_u64(0),
         }
     }
@@ -209,6 +224,7 @@ impl Expert {
             t.tilt_tolerance_inside_deg
         } else {
             t.tilt_tolerance_deg
+                .min(t.tilt_clearance_share * self.clearance_tilt_deg)
         };
         if tilt > tilt_tolerance || o.z.abs() > t.roll_tolerance_deg {
             let factor = if o.norm() > 0.2 {
@@ -348,6 +364,7 @@ impl Controller for Expert {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::{FusionTuning, StateFilter};
     use crate::sim::{AssemblyEnv, EnvOptions};
 
     /// Runs one episode of `expert`; returns (insertion depth before the move in mm, the
@@ -426,6 +443,45 @@ mod tests {
         }
         // The careful expert's first 35 mm allow no step over 2 mm: the swift one's do.
         assert!(long_steps > 20, "{long_steps}");
+    }
+
+    #[test]
+    fn above_the_entrance_the_tilt_is_corrected_to_half_what_the_seated_shaft_could_take() {
+        // The reference cell: (0.05 − 0.02) mm of clearance beside the wall margin over 60 mm
+        // is 0.0286°, half of it 0.0143°. A Φ100 bore 100 mm deep with 0.03 mm: (0.03 − 0.02)
+        // mm over 100 mm is 0.0057°, half of it 0.0029°.
+        let reference = CellConfig::reference();
+        let mut deep = reference.clone();
+        deep.bore.depth_mm = 100.0;
+        deep.shaft.engaged_length_mm = 100.0;
+        deep.shaft.diameter_mm = deep.bore.diameter_mm - 0.06;
+        let actor = |cell: &CellConfig, tilt_deg: f64| {
+            // The tip 20 mm above the entrance, on the axis.
+            let z_mm = -cell.shaft.engaged_length_mm - 20.0;
+            let state = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, z_mm, tilt_deg, 0.0, 0.0];
+            let observation = Observation {
+                state,
+                raw_state: state,
+                estimate: StateFilter::new(FusionTuning::default()),
+                step: 3,
+                measurement_fresh: true,
+                last_veto: None,
+                cell: cell.shape(),
+            };
+            let mut expert = Expert::swift(cell);
+            expert.reset(1);
+            expert.act(&observation).actor
+        };
+        assert_eq!(actor(&reference, 0.013), Some(Actor::Position));
+        assert_eq!(actor(&reference, 0.016), Some(Actor::Orientation));
+        assert_eq!(actor(&deep, 0.0027), Some(Actor::Position));
+        assert_eq!(actor(&deep, 0.0031), Some(Actor::Orientation));
+        // Beyond 0.02° it is corrected whatever the cell.
+        let mut loose = reference.clone();
+        loose.bore.depth_mm = 40.0;
+        loose.shaft.diameter_mm = loose.bore.diameter_mm - 0.2;
+        assert_eq!(actor(&loose, 0.019), Some(Actor::Position));
+        assert_eq!(actor(&loose, 0.021), Some(Actor::Orientation));
     }
 
     #[test]

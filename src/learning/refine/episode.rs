@@ -12,11 +12,11 @@ use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
 use crate::policy::eval::episode_seed;
-use crate::policy::hierarchical::HierarchicalPolicy;
-use crate::policy::hierarchical::deepest_move_mm;
+use crate::policy::hierarchical::{HierarchicalPolicy, deepest_move_mm, not_past_the_axis};
 use crate::policy::record::demonstrator_seed;
 use crate::sim::randomise::cell_for;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
+use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -190,10 +190,13 @@ impl Refinement {
                             let noise: f64 = noise.sample(StandardNormal);
                             (clean + sigma * noise).clamp(-1.0, 1.0) as f32
                         });
-                        // As the policy acts as a controller: not past the goal, and no
-                        // deeper after a refusal for contact.
+                        // As the policy acts as a controller: not past the goal, no deeper
+                        // after a refusal for contact, not past the axis.
                         if actor == Actor::Position && span > 0.0 {
                             a[2] = a[2].max((deepest_move_mm(&observation) / span) as f32);
+                            let asked = Vector3::new(a[0], a[1], a[2]).map(|v| f64::from(v) * span);
+                            let cut = not_past_the_axis(&observation, asked);
+                            a = std::array::from_fn(|i| (cut[i] / span) as f32);
                         }
                         action = [0.0; 6];
                         for i in 0..3 {
