@@ -785,17 +785,19 @@ mod tests {
 
     #[test]
     fn a_kept_robot_remembers_its_drift_from_one_episode_to_the_next() {
-        // Four demonstrations on two robots: each robot ran two episodes, and the cell takes
-        // in what the first taught it when the second starts.
+        // Six demonstrations on two robots: each robot ran three episodes, and the cell takes
+        // in what an episode taught it when the next starts. An episode teaches only if the
+        // shaft went far enough in for the drift to show (`DriftKnowledge::is_usable`): with
+        // three, at least one of a robot's first two did.
         let run = tiny_refinement_on(2, true, |config| RefineConfig {
-            demonstrations: 4,
+            demonstrations: 6,
             demonstrator: "expert",
             ..config
         });
         assert_eq!(run.robots.len(), 2);
         assert!(run.robots.iter().all(|env| env.drift_memory().is_some()));
         let fresh = tiny_refinement_on(0, true, |config| RefineConfig {
-            demonstrations: 4,
+            demonstrations: 6,
             demonstrator: "expert",
             ..config
         });

@@ -458,7 +458,9 @@ mod tests {
         let actor = |cell: &CellConfig, tilt_deg: f64| {
             // The tip 20 mm above the entrance, on the axis.
             let z_mm = -cell.shaft.engaged_length_mm - 20.0;
-            let state = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, z_mm, tilt_deg, 0.0, 0.0];
+            let state = [
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, z_mm, tilt_deg, 0.0, 0.0,
+            ];
             let observation = Observation {
                 state,
                 raw_state: state,

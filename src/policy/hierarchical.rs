@@ -766,7 +766,10 @@ mod tests {
         observation.state[7] = -0.5;
         let cut_is = |asked: [f64; 3], expected: [f64; 3]| {
             let cut = not_past_the_axis(&observation, Vector3::from(asked));
-            assert!((cut - Vector3::from(expected)).norm() < 1e-12, "{asked:?}: {cut}");
+            assert!(
+                (cut - Vector3::from(expected)).norm() < 1e-12,
+                "{asked:?}: {cut}"
+            );
         };
         cut_is([3.5, -0.2, -1.0], [1.65, -0.2, -1.0]);
         cut_is([1.0, -0.9, 0.0], [1.0, -0.55, 0.0]);
