@@ -42,12 +42,13 @@ cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 # hierarchical-cells: `celld train policy` with its defaults, one command: behaviour cloning
 # on 800 demonstrations of expert-careful, each on a cell of its own drawn over the ranges the
 # product is specified for, the policy reading cell-relative inputs (a version 2 file), the
-# sideways errors in the bore weighted 30, the TD3 stage one episode (round-0); then one DAgger
-# round on randomised cells, that policy driving 800 episodes whose labels teach the actors only
-# (round-1)
+# sideways errors in the bore weighted 30, the TD3 stage one episode (round-0, and no DAgger
+# round by default)
 step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026
 cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 
+# hierarchical-swift was made by the two runs below before the demonstrators corrected the tilt
+# to what each cell takes; run today they make another policy (docs/learning.md)
 # hierarchical-swift 1: behaviour cloning on 800 demonstrations of expert-swift (no holds,
 # steps up to the 5 mm limit), the sideways errors in the bore weighted 30
 step hierarchical-swift-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --demonstrator expert-swift \

@@ -680,6 +680,8 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
         out.to_str().unwrap(),
         "--seed",
         "7",
+        "--dagger-rounds",
+        "1",
     ];
     args.push("--");
     args.extend(tiny_policy());

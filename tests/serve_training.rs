@@ -254,6 +254,8 @@ fn a_run_with_a_dagger_round_learns_what_celld_train_policy_learns() {
             out.to_str().unwrap(),
             "--seed",
             "5",
+            "--dagger-rounds",
+            "1",
         ])
         .args([
             "--",

@@ -1,6 +1,6 @@
 //! `celld train policy`: the recommended policy in one command. It runs `train all` once on the
-//! demonstrator's episodes, then `--dagger-rounds` more times, each with the last round's policy
-//! driving DAgger episodes that teach the actors only. With the defaults it makes
+//! demonstrator's episodes, then `--dagger-rounds` (default none) more times, each with the last
+//! round's policy driving DAgger episodes that teach the actors only. With the defaults it makes
 //! `policies/across-cells.safetensors` (controller `hierarchical-cells`) byte for byte.
 //!
 //! The recipe is written as `train all` flags ([`RECIPE`], [`DAGGER_ROUND`]) and parsed into the
@@ -32,9 +32,11 @@ const RECIPE: &[&str] = &[
 /// only, and the position actor trains for half the epochs on the twice as many episodes.
 const DAGGER_ROUND: &[&str] = &["--dagger-actors-only", "--bc-epochs", "100"];
 
-/// DAgger rounds after the first pass by default: a second one traded the reference cell for
-/// others (docs/experiments/2026-11-25-02e8490-dagger-across-cells-actors-only.md).
-const DEFAULT_DAGGER_ROUNDS: usize = 1;
+/// DAgger rounds after the first pass by default: none. Since the demonstrator corrects the
+/// tilt to what each cell takes, one round has raised the deep, tight cells and lowered others,
+/// by how much depending on the episodes it drew (a shallow Φ250 cell from 0.944 to 0.908 in
+/// one run and to 0.420 in another; docs/learning.md § Across cells).
+const DEFAULT_DAGGER_ROUNDS: usize = 0;
 
 /// Flags a round sets itself; after `--` they would break the chain of rounds.
 const OWN_FLAGS: [&str; 7] = [
