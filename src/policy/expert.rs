@@ -24,7 +24,7 @@ pub struct ExpertTuning {
     /// the bore's depth): a deep, tight bore takes less tilt than a shallow, loose one. On the
     /// reference cell that is 0.014°; on a Φ100 bore 100 mm deep with 0.03 mm clearance,
     /// 0.003°, where the fixed 0.02° left the seated shaft against the margin and `expert`
-    /// succeeded 0.726 instead of 0.997 (docs/learning.md).
+    /// succeeded 0.737 instead of 0.998 (decision 0019).
     pub tilt_clearance_share: f64,
     /// Tilt tolerated once the tip is in the bore (a correction there swings the tip).
     pub tilt_tolerance_inside_deg: f64,
