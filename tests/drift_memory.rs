@@ -50,10 +50,10 @@ fn a_kept_robot_is_learned_and_its_episodes_get_faster() {
         if remembered && kept.drift_memory().is_none() {
             false_alarms.push(i);
         }
-        if let Some(memory) = kept.drift_memory().copied() {
-            if longest_memory.is_none_or(|m: DriftKnowledge| m.episodes < memory.episodes) {
-                longest_memory = Some(memory);
-            }
+        if let Some(memory) = kept.drift_memory().copied()
+            && longest_memory.is_none_or(|m: DriftKnowledge| m.episodes < memory.episodes)
+        {
+            longest_memory = Some(memory);
         }
         let (unseen_outcome, unseen_episode_steps, _) = episode(&mut unseen, seed);
         assert_eq!(
