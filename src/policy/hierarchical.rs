@@ -113,6 +113,18 @@ pub fn not_past_the_axis(observation: &Observation, translation_mm: Vector3<f64>
     cut
 }
 
+/// A position move (mm in {M}) as the policy may make it: no deeper than [`deepest_move_mm`],
+/// and no further sideways than [`not_past_the_axis`]. The controller and TD3's episodes both
+/// limit the actor's move here, so TD3 learns from the moves the deployed policy makes.
+pub fn limit_position_move(
+    observation: &Observation,
+    translation_mm: Vector3<f64>,
+) -> Vector3<f64> {
+    let mut limited = translation_mm;
+    limited.z = limited.z.max(deepest_move_mm(observation));
+    not_past_the_axis(observation, limited)
+}
+
 /// Sizes and step limits of a policy.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PolicyConfig {
@@ -605,9 +617,9 @@ impl Controller for HierarchicalPolicy {
 
     /// The policy's move; a step that fails or is not finite holds still (a zero move). Without
     /// a fresh frame the cell holds still and the LSTM does not advance (the expert's
-    /// demonstrations have no such steps). A position move goes no deeper than
-    /// [`deepest_move_mm`]: not past the goal, and not deeper after a refusal for contact; and
-    /// no further sideways than [`not_past_the_axis`].
+    /// demonstrations have no such steps). A position move is limited by
+    /// [`limit_position_move`]: not past the goal, not deeper after a refusal for contact, and
+    /// not past the axis.
     fn act(&mut self, observation: &Observation) -> Decision {
         if !observation.measurement_fresh {
             return Decision::hold();
@@ -617,9 +629,7 @@ impl Controller for HierarchicalPolicy {
             Ok(out) if out.is_finite() => {
                 let mut action = out.to_move();
                 if out.actor == Actor::Position {
-                    action.translation_mm.z =
-                        action.translation_mm.z.max(deepest_move_mm(observation));
-                    action.translation_mm = not_past_the_axis(observation, action.translation_mm);
+                    action.translation_mm = limit_position_move(observation, action.translation_mm);
                 }
                 Decision {
                     action,
@@ -775,6 +785,14 @@ mod tests {
         cut_is([1.0, -0.9, 0.0], [1.0, -0.55, 0.0]);
         cut_is([-2.0, 1.0, 4.0], [-2.0, 1.0, 4.0]);
         cut_is([1.6, -0.5, 0.0], [1.6, -0.5, 0.0]);
+        // A position move takes both limits: 0.3 mm above the goal, and the axis.
+        observation.state[8] = -0.3;
+        assert!(observation.last_veto.is_none());
+        let limited = limit_position_move(&observation, Vector3::new(3.5, -0.2, -1.0));
+        assert!(
+            (limited - Vector3::new(1.65, -0.2, -0.3)).norm() < 1e-12,
+            "{limited}"
+        );
     }
 
     /// A position move goes no deeper than the goal the estimate sees, and one from past the

@@ -12,7 +12,7 @@ use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
 use crate::policy::eval::episode_seed;
-use crate::policy::hierarchical::{HierarchicalPolicy, deepest_move_mm, not_past_the_axis};
+use crate::policy::hierarchical::{HierarchicalPolicy, limit_position_move};
 use crate::policy::record::demonstrator_seed;
 use crate::sim::randomise::cell_for;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
@@ -193,10 +193,9 @@ impl Refinement {
                         // As the policy acts as a controller: not past the goal, no deeper
                         // after a refusal for contact, not past the axis.
                         if actor == Actor::Position && span > 0.0 {
-                            a[2] = a[2].max((deepest_move_mm(&observation) / span) as f32);
-                            let asked = Vector3::new(a[0], a[1], a[2]).map(|v| f64::from(v) * span);
-                            let cut = not_past_the_axis(&observation, asked);
-                            a = std::array::from_fn(|i| (cut[i] / span) as f32);
+                            let asked = Vector3::from(a).map(|v| f64::from(v) * span);
+                            let limited = limit_position_move(&observation, asked);
+                            a = std::array::from_fn(|i| (limited[i] / span) as f32);
                         }
                         action = [0.0; 6];
                         for i in 0..3 {
