@@ -293,6 +293,11 @@ fn bad_training_requests_are_refused_before_any_work() {
             "0",
             "--td3-noise must be a finite number > 0",
         ),
+        (
+            "--bc-orientation-label-floor",
+            "1.5",
+            "--bc-orientation-label-floor must be in (0, 1], got 1.5",
+        ),
     ] {
         let bad = celld(&["train", "bc", "--out", out.to_str().unwrap(), flag, value]);
         assert!(!bad.status.success());

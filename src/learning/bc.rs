@@ -59,6 +59,9 @@ pub struct BcConfig {
     pub goal_scales: GoalScales,
     /// What the policy reads (`policy::inputs`).
     pub inputs: PolicyInputs,
+    /// The orientation actor's errors relative to its labels' size, down to this label
+    /// ([`RelativeToLabel`]); `None` weighs every sample alike.
+    pub orientation_label_floor: Option<f64>,
 }
 
 impl BcConfig {
@@ -90,6 +93,7 @@ impl Default for BcConfig {
             insertion_from_pz_mm: -61.5,
             goal_scales: GoalScales::default(),
             inputs: PolicyInputs::Absolute,
+            orientation_label_floor: None,
         }
     }
 }
@@ -211,6 +215,52 @@ pub struct LossWeights {
     /// The normalised P_z input (column 8) at the entrance: samples at or above it are in the
     /// bore.
     pub bore_from_input: f32,
+    /// Each sample's error relative to its label's size, if set ([`RelativeToLabel`]).
+    pub relative_to_label: Option<RelativeToLabel>,
+}
+
+/// Weights each sample's squared error by 1 / max(|label|∞, `floor`)², over the mean of that
+/// weight across the samples (so the loss keeps its scale): a small correction's error counts
+/// as much, relative to it, as a large one's. Unweighted, an actor that must size moves from
+/// its full step down to a hundredth of it fits the small ones to within its overall error and
+/// answers a small tilt with no move at all.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RelativeToLabel {
+    /// The label size (tanh units) below which errors count no more.
+    pub floor: f32,
+    /// The mean of the raw weights over the samples ([`RelativeToLabel::over`]).
+    pub mean_weight: f32,
+}
+
+impl RelativeToLabel {
+    /// The weighting with `floor` for `samples`.
+    pub fn over(samples: &[([f32; 12], [f32; 3])], floor: f32) -> Self {
+        let raw = |label: &[f32; 3]| Self::raw_weight(label, floor) as f64;
+        let sum: f64 = samples.iter().map(|(_, label)| raw(label)).sum();
+        RelativeToLabel {
+            floor,
+            mean_weight: (sum / samples.len().max(1) as f64) as f32,
+        }
+    }
+
+    fn raw_weight(label: &[f32; 3], floor: f32) -> f32 {
+        let largest = label.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        largest.max(floor).powi(-2)
+    }
+
+    /// A sample's weight in the loss.
+    pub fn weight(&self, label: &[f32; 3]) -> f32 {
+        Self::raw_weight(label, self.floor) / self.mean_weight
+    }
+
+    /// The rows' weights, (N, 1), for labels `y` (N, 3).
+    fn of(&self, y: &Tensor) -> candle_core::Result<Tensor> {
+        y.abs()?
+            .max_keepdim(1)?
+            .maximum(f64::from(self.floor))?
+            .powf(-2.0)?
+            / f64::from(self.mean_weight)
+    }
 }
 
 impl LossWeights {
@@ -220,6 +270,7 @@ impl LossWeights {
             components,
             bore_lateral: 1.0,
             bore_from_input: f32::INFINITY,
+            relative_to_label: None,
         }
     }
 }
@@ -279,6 +330,9 @@ fn loss(
         let lateral = ((in_bore * (f64::from(weights.bore_lateral) - 1.0))? + 1.0)?;
         let per_row = Tensor::cat(&[&lateral, &lateral, &Tensor::ones_like(&lateral)?], 1)?;
         squared = (squared * per_row)?;
+    }
+    if let Some(relative) = weights.relative_to_label {
+        squared = squared.broadcast_mul(&relative.of(y)?)?;
     }
     squared.sum_all()? / (2.0 * n)
 }
@@ -424,6 +478,7 @@ mod tests {
             components,
             bore_lateral,
             bore_from_input: -12.0,
+            relative_to_label: None,
         };
         let loss =
             |samples: &[([f32; 12], [f32; 3])], w| weighted_loss(&actor, samples, w).unwrap();
@@ -437,6 +492,45 @@ mod tests {
         assert_eq!(
             loss(&outside, with([1.0, 1.0, 1.0], 30.0)),
             loss(&outside, LossWeights::uniform([1.0; 3]))
+        );
+    }
+
+    /// Weights 1 / max(|label|∞, floor)² over their mean, checked by hand; the loss is the
+    /// per-sample losses so weighted.
+    #[test]
+    fn relative_weights_count_each_error_against_its_label() {
+        let varmap = VarMap::new();
+        init_actor(&varmap, "ori", 8, &mut ChaCha8Rng::seed_from_u64(5)).unwrap();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        let actor = Mlp::load(vb.pp("ori"), &actor_config(8)).unwrap();
+        // Largest components 0.5, 0.05 (below the floor: counts as 0.1) and 0.2: raw weights
+        // 4, 100 and 25, mean 43.
+        let samples = [
+            ([0.1; 12], [0.5, -0.2, 0.0]),
+            ([-0.3; 12], [0.01, -0.05, 0.02]),
+            ([0.7; 12], [0.0, 0.0, -0.2]),
+        ];
+        let relative = RelativeToLabel::over(&samples, 0.1);
+        assert!((relative.mean_weight - 43.0).abs() < 1e-4);
+        let expected = [4.0 / 43.0, 100.0 / 43.0, 25.0 / 43.0];
+        for ((_, label), expected) in samples.iter().zip(expected) {
+            assert!((relative.weight(label) - expected).abs() < 1e-6);
+        }
+        let weights = LossWeights {
+            relative_to_label: Some(relative),
+            ..LossWeights::uniform([1.0; 3])
+        };
+        let each = |sample| weighted_loss(&actor, &[sample], LossWeights::uniform([1.0; 3]));
+        let by_hand: f64 = samples
+            .iter()
+            .zip(expected)
+            .map(|(sample, w)| f64::from(w) * each(*sample).unwrap())
+            .sum::<f64>()
+            / 3.0;
+        let weighted = weighted_loss(&actor, &samples, weights).unwrap();
+        assert!(
+            (weighted - by_hand).abs() < 1e-5 * by_hand,
+            "{weighted} against {by_hand}"
         );
     }
 

@@ -4,7 +4,10 @@
 //! Every stage works on one `VarMap` holding tensors by the policy file's names, so a stage's
 //! output is a checkpoint (`save_vars`) and the last stage's output is the policy file.
 
-use super::bc::{BcConfig, LossWeights, actor_samples, init_actor, position_samples, train_actor};
+use super::bc::{
+    BcConfig, LossWeights, RelativeToLabel, actor_samples, init_actor, position_samples,
+    train_actor,
+};
 use super::dataset::{Normaliser, StepLimits};
 use super::demos::DemoEpisode;
 use super::selector::{SelectorConfig, agreement, init_selector, sequences, train_selector};
@@ -115,11 +118,18 @@ pub fn behaviour_clone(
             }
             Actor::Orientation => [1.0; 3],
         };
+        let relative_to_label = match actor {
+            Actor::Position => None,
+            Actor::Orientation => config
+                .orientation_label_floor
+                .map(|floor| RelativeToLabel::over(&samples, floor as f32)),
+        };
         let weights = LossWeights {
             components,
             bore_lateral: config.bore_lateral_weight as f32,
             bore_from_input: ((config.bore_from_pz_mm - normaliser.mean[8]) / normaliser.std[8])
                 as f32,
+            relative_to_label,
         };
         let config = match actor {
             Actor::Position => *config,

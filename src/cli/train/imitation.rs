@@ -139,6 +139,7 @@ impl Run {
                 tilt_deg: self.args.norm_tilt_std_deg,
             },
             inputs: self.inputs,
+            orientation_label_floor: self.args.bc_orientation_label_floor,
         }
     }
 

@@ -153,6 +153,11 @@ pub struct TrainArgs {
     /// Further weight of x, y in the BC losses with the tip in the bore (1: none).
     #[arg(long, default_value_t = TrainingSettings::default().bc_bore_lateral_weight)]
     bc_bore_lateral_weight: f64,
+    /// Count each orientation label's BC error relative to the label's size, down to this size
+    /// (tanh units, e.g. 0.2): small tilt corrections are then fitted as closely as large ones
+    /// (default: every error counts alike).
+    #[arg(long)]
+    bc_orientation_label_floor: Option<f64>,
     /// Repeats of each insertion step in the position actor's BC samples.
     #[arg(long, default_value_t = BcConfig::default().insertion_repeat)]
     bc_insertion_repeat: usize,
@@ -388,6 +393,11 @@ impl Run {
             if !(lr.is_finite() && lr > 0.0) {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
+        }
+        if let Some(floor) = args.bc_orientation_label_floor
+            && !(floor.is_finite() && floor > 0.0 && floor <= 1.0)
+        {
+            bail!("--bc-orientation-label-floor must be in (0, 1], got {floor}");
         }
         if !(args.td3_trust_region.is_finite() && args.td3_trust_region >= 0.0) {
             bail!(

@@ -14,8 +14,8 @@ use clap::{Args, Parser};
 use std::path::{Path, PathBuf};
 
 /// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
-/// weighted 30 in the BC loss, cell-relative inputs, a cell of its own for every episode, and
-/// one TD3 episode (TD3 does not improve on BC yet; docs/learning.md § Where the policies stand).
+/// weighted 30 in the BC loss, cell-relative inputs, a cell of its own for every episode, the
+/// orientation actor's errors relative to its labels down to 0.2, and one TD3 episode (TD3 does not improve on BC yet; docs/learning.md § Where the policies stand).
 const RECIPE: &[&str] = &[
     "--demonstrator",
     "expert-careful",
@@ -24,6 +24,8 @@ const RECIPE: &[&str] = &[
     "--inputs",
     "cell-relative",
     "--randomise-cells",
+    "--bc-orientation-label-floor",
+    "0.2",
     "--td3-episodes",
     "1",
 ];
