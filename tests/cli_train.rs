@@ -704,8 +704,11 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
         "--inputs",
         "cell-relative",
         "--randomise-cells",
+        "--bc-orientation-label-floor",
+        "0.2",
         "--td3-episodes",
         "1",
+        // The recipe's `--demos 1600 --bc-epochs 100` are tiny's here.
     ];
     let (first, second) = (dir.path().join("first"), dir.path().join("second"));
     let by_hand = |to: &Path, dagger: &[&str]| {

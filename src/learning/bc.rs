@@ -219,6 +219,11 @@ pub struct LossWeights {
     pub relative_to_label: Option<RelativeToLabel>,
 }
 
+/// The orientation label floor of the recipe for any cell (`celld train policy`, and the
+/// service's training `for_any_cell`): it lifted the cross-cell policy on the cells it was not
+/// trained on (docs/learning.md § Across cells).
+pub const ACROSS_CELLS_ORIENTATION_LABEL_FLOOR: f64 = 0.2;
+
 /// Weights each sample's squared error by 1 / max(|label|∞, `floor`)², over the mean of that
 /// weight across the samples (so the loss keeps its scale): a small correction's error counts
 /// as much, relative to it, as a large one's. Unweighted, an actor that must size moves from

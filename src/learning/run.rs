@@ -4,7 +4,7 @@
 //! hierarchy), with the same defaults, and any DAgger rounds after them as `celld train policy`
 //! runs them.
 
-use super::bc::BcConfig;
+use super::bc::{ACROSS_CELLS_ORIENTATION_LABEL_FLOOR, BcConfig};
 use super::dagger;
 use super::demos::{DEFAULT_DEMONSTRATOR, DemoEpisode, Recording, check_demonstrator};
 use super::pipeline::{self, step_limits};
@@ -372,6 +372,9 @@ fn pass(
         insertion_from_pz_mm: pipeline::insertion_from_input_mm(cell, inputs),
         bore_from_pz_mm: inputs.entrance_input_mm(cell),
         inputs,
+        orientation_label_floor: settings
+            .for_any_cell
+            .then_some(ACROSS_CELLS_ORIENTATION_LABEL_FLOOR),
         ..BcConfig::default()
     };
     let varmap = pipeline::behaviour_clone(

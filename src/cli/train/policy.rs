@@ -15,7 +15,10 @@ use std::path::{Path, PathBuf};
 
 /// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
 /// weighted 30 in the BC loss, cell-relative inputs, a cell of its own for every episode, the
-/// orientation actor's errors relative to its labels down to 0.2, and one TD3 episode (TD3 does not improve on BC yet; docs/learning.md § Where the policies stand).
+/// orientation actor's errors relative to its labels down to 0.2, one TD3 episode (TD3 does
+/// not improve on BC yet; docs/learning.md § Where the policies stand), and 1600
+/// demonstrations with the position actor's epochs halved (as many updates, on twice the
+/// states).
 const RECIPE: &[&str] = &[
     "--demonstrator",
     "expert-careful",
@@ -28,11 +31,15 @@ const RECIPE: &[&str] = &[
     "0.2",
     "--td3-episodes",
     "1",
+    "--demos",
+    "1600",
+    "--bc-epochs",
+    "100",
 ];
 
-/// The further flags of a DAgger round (before `--dagger-policy`): its episodes teach the actors
-/// only, and the position actor trains for half the epochs on the twice as many episodes.
-const DAGGER_ROUND: &[&str] = &["--dagger-actors-only", "--bc-epochs", "100"];
+/// The further flag of a DAgger round (before `--dagger-policy`): its episodes teach the actors
+/// only.
+const DAGGER_ROUND: &[&str] = &["--dagger-actors-only"];
 
 /// DAgger rounds after the first pass by default: none. Since the demonstrator corrects the
 /// tilt to what each cell takes, one round has raised the deep, tight cells and lowered others,
