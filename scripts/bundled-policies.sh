@@ -41,7 +41,7 @@ cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 
 # hierarchical-cells: `celld train policy` with its defaults, one command: behaviour cloning
 # on 1600 demonstrations of expert-careful, each on a cell of its own drawn over the ranges the
-# product is specified for, the policy reading cell-relative inputs (a version 2 file), the
+# product is specified for, the policy reading cell-scaled inputs (a version 2 file), the
 # sideways errors in the bore weighted 30, the orientation errors counted relative to their
 # labels down to 0.2, the TD3 stage one episode (round-0, and no DAgger round by default)
 step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026

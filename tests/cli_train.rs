@@ -702,7 +702,7 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
         "--bc-bore-lateral-weight",
         "30",
         "--inputs",
-        "cell-relative",
+        "cell-scaled",
         "--randomise-cells",
         "--bc-orientation-label-floor",
         "0.2",

@@ -261,7 +261,7 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     browser.screenshot(&shots.join("5-policy-gate.png"));
 
     // A run for any cell with a DAgger round, started from the training page: the page sends
-    // both settings, the run records cell-relative demonstrations; it is cancelled before it
+    // both settings, the run records cell-scaled demonstrations; it is cancelled before it
     // learns for long.
     browser.goto(&format!("{}/#/training", server.base));
     browser.wait_until("the training form", WAIT, |b| {
@@ -297,8 +297,8 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         .is_some_and(|status| status.contains("cancelled"))
     });
     browser.goto(&format!("{}/#/demonstrations", server.base));
-    browser.wait_until("the recorded demonstrations, cell-relative", WAIT, |b| {
-        text_of(b, "#demonstration-list").contains("cell-relative")
+    browser.wait_until("the recorded demonstrations, cell-scaled", WAIT, |b| {
+        text_of(b, "#demonstration-list").contains("cell-scaled")
     });
 
     // A tablet: nothing wider than the window.

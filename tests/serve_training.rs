@@ -151,11 +151,11 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
     assert!(actions.contains(&"training.start") && actions.contains(&"training.cancel"));
 }
 
-/// A run for any cell records its demonstrations on randomised cells with cell-relative inputs,
+/// A run for any cell records its demonstrations on randomised cells with cell-scaled inputs,
 /// stores them as such, and makes a version 2 policy that drives the cell; demonstrations of
 /// the other kind are refused by name.
 #[test]
-fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
+fn a_run_for_any_cell_learns_cell_scaled_inputs_and_keeps_the_kinds_apart() {
     let dir = tempfile::tempdir().unwrap();
     let server = Server::start(dir.path(), &[("CELLD_STEP_PERIOD_MS", "5")]);
     let admin = server.admin.clone();
@@ -169,7 +169,7 @@ fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
     assert_eq!(done["settings"]["for_any_cell"], true, "{done}");
 
     let (demonstration, listed) = recorded_demonstration(&server, &done);
-    assert_eq!(listed["inputs"], "cell-relative", "{listed}");
+    assert_eq!(listed["inputs"], "cell-scaled", "{listed}");
     assert!(
         listed["name"]
             .as_str()
@@ -180,7 +180,7 @@ fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
     let policy_id = done["policy_id"].as_i64().unwrap();
     let (_, policy) = server.get(&format!("/api/policies/{policy_id}"), Some(&admin));
     assert_eq!(policy["metadata"]["format_version"], "2", "{policy}");
-    assert_eq!(policy["metadata"]["inputs"], "cell-relative", "{policy}");
+    assert_eq!(policy["metadata"]["inputs"], "cell-scaled", "{policy}");
     let job = server.create_job(&admin, json!({"controller": format!("policy:{policy_id}")}));
     let finished = server.wait_final(job["id"].as_i64().unwrap());
     assert!(finished["steps"].as_i64().unwrap() > 0, "{finished}");
@@ -194,7 +194,7 @@ fn a_run_for_any_cell_learns_cell_relative_inputs_and_keeps_the_kinds_apart() {
     assert_eq!(status, 422, "{refused}");
     let message = refused["error"]["message"].as_str().unwrap();
     assert!(
-        message.contains("cell-relative") && message.contains(&demonstration.to_string()),
+        message.contains("cell-scaled") && message.contains(&demonstration.to_string()),
         "{message}"
     );
 }

@@ -58,6 +58,19 @@ pub struct CellShape {
     pub radial_clearance_mm: f64,
     /// Angular pitch of the connecting holes (deg).
     pub hole_pitch_deg: f64,
+    /// How far off the bore wall the supervisor keeps the shaft (mm).
+    pub wall_margin_mm: f64,
+}
+
+impl CellShape {
+    /// The tilt (deg) at which a shaft seated in the bore would touch the supervisor's wall
+    /// margin: the radial clearance beside the margin over the bore's depth. 0.029° on the
+    /// reference cell, 0.0057° on a Φ100 bore 100 mm deep with 0.03 mm clearance.
+    pub fn clearance_tilt_deg(&self) -> f64 {
+        ((self.radial_clearance_mm - self.wall_margin_mm) / self.bore_depth_mm)
+            .atan()
+            .to_degrees()
+    }
 }
 
 /// Segment I: the shaft the robot carries.
@@ -345,6 +358,7 @@ impl CellConfig {
             bore_depth_mm: self.shaft.engaged_length_mm,
             radial_clearance_mm: self.radial_clearance_mm(),
             hole_pitch_deg: self.hole_pitch_deg(),
+            wall_margin_mm: self.supervisor.wall_margin_mm,
         }
     }
 

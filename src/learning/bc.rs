@@ -422,6 +422,7 @@ mod tests {
         let limits = StepLimits {
             position_mm: 5.0,
             orientation_deg: 1.0,
+            inputs: PolicyInputs::Absolute,
         };
         let normaliser = Normaliser::fit(&demos);
         let config = BcConfig {
@@ -547,6 +548,7 @@ mod tests {
         let limits = StepLimits {
             position_mm: 5.0,
             orientation_deg: 1.0,
+            inputs: PolicyInputs::Absolute,
         };
         let samples = actor_samples(&demos, Actor::Position, &normaliser, &limits);
         assert!(samples.len() > 100);

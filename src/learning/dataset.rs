@@ -80,7 +80,9 @@ impl Normaliser {
     pub fn goal_centred(mut self, scales: GoalScales, inputs: PolicyInputs) -> Self {
         let relative: &[(usize, f64)] = match inputs {
             PolicyInputs::Absolute => &[],
-            PolicyInputs::CellRelative => &[(0, scales.depth_mm), (4, 1.0), (5, 1.0)],
+            PolicyInputs::CellRelative | PolicyInputs::CellScaled => {
+                &[(0, scales.depth_mm), (4, 1.0), (5, 1.0)]
+            }
         };
         let fixed = [
             (6, scales.lateral_mm),
@@ -120,11 +122,13 @@ impl Default for GoalScales {
     }
 }
 
-/// The step limits a policy is trained with (mm, deg).
+/// The step limits a policy is trained with (mm, deg), and the inputs that say in which unit
+/// the orientation actor tilts (`PolicyInputs::move_in_units`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepLimits {
     pub position_mm: f64,
     pub orientation_deg: f64,
+    pub inputs: PolicyInputs,
 }
 
 /// What the networks learn from one demonstrated step.
@@ -139,11 +143,18 @@ pub struct StepLabels {
 
 impl StepLabels {
     pub fn of(step: &DemoStep, limits: &StepLimits) -> Self {
-        Self::of_move(step.actor, &step.action, limits)
+        Self::of_move(step.actor, &step.action, &step.state, limits)
     }
 
-    /// The labels of a move `[Δx, Δy, Δz, θx, θy, θz]` (mm, deg) made by `actor`.
-    pub fn of_move(actor: Actor, action: &[f64; 6], limits: &StepLimits) -> Self {
+    /// The labels of a move `[Δx, Δy, Δz, θx, θy, θz]` (mm, deg) made by `actor` where the
+    /// policy reads `inputs`.
+    pub fn of_move(
+        actor: Actor,
+        action: &[f64; 6],
+        inputs: &[f64; 12],
+        limits: &StepLimits,
+    ) -> Self {
+        let action = limits.inputs.move_in_units(inputs, *action);
         let (components, limit, floor) = match actor {
             Actor::Position => (&action[0..3], limits.position_mm, MIN_POSITION_SCALE),
             Actor::Orientation => (&action[3..6], limits.orientation_deg, MIN_ORIENTATION_SCALE),
@@ -171,8 +182,9 @@ impl StepLabels {
         self.direction == [0.0; 3]
     }
 
-    /// The move the labels stand for (what the policy does when it hits them exactly).
-    pub fn to_action(&self, limits: &StepLimits) -> [f64; 6] {
+    /// The move the labels stand for where the policy reads `inputs` (what it does when it
+    /// hits them exactly).
+    pub fn to_action(&self, inputs: &[f64; 12], limits: &StepLimits) -> [f64; 6] {
         let mut action = [0.0; 6];
         let (offset, limit) = match self.actor {
             Actor::Position => (0, limits.position_mm),
@@ -181,7 +193,7 @@ impl StepLabels {
         for i in 0..3 {
             action[offset + i] = self.direction[i] * self.scale * limit;
         }
-        action
+        limits.inputs.move_from_units(inputs, action)
     }
 }
 
@@ -203,6 +215,7 @@ mod tests {
     const LIMITS: StepLimits = StepLimits {
         position_mm: 5.0,
         orientation_deg: 1.0,
+        inputs: PolicyInputs::Absolute,
     };
 
     #[test]
@@ -214,7 +227,7 @@ mod tests {
         );
         assert!((labels.scale - 2.0 / 4.5).abs() < 1e-12);
         assert!((labels.direction[0] - 0.9).abs() < 1e-12);
-        let back = labels.to_action(&LIMITS);
+        let back = labels.to_action(&[0.0; 12], &LIMITS);
         for (a, b) in back.iter().zip([2.0, 1.0, -0.5, 0.0, 0.0, 0.0]) {
             assert!((a - b).abs() < 1e-12);
         }
@@ -232,7 +245,7 @@ mod tests {
         );
         assert!((orientation.scale - 0.8).abs() < 1e-12);
         assert!((orientation.direction[1] - 0.9).abs() < 1e-12);
-        assert!((orientation.to_action(&LIMITS)[4] - 0.72).abs() < 1e-12);
+        assert!((orientation.to_action(&[0.0; 12], &LIMITS)[4] - 0.72).abs() < 1e-12);
         // Small moves: the scale stops at its floor (0.2 for position, 0.5 for orientation),
         // the actor is proportional.
         let fine = StepLabels::of(
@@ -251,11 +264,40 @@ mod tests {
     }
 
     #[test]
+    fn cell_scaled_labels_measure_the_tilt_in_the_cells_unit() {
+        // On a cell whose tilt unit is 0.2, a 0.004° tilt about x is 0.02 units: the scale's
+        // floor 0.5 and a = 0.02 / 0.5 = 0.04, ten times its label in degrees. The roll and
+        // the position moves keep their units, and the labels give back the move.
+        let scaled = StepLimits {
+            inputs: PolicyInputs::CellScaled,
+            ..LIMITS
+        };
+        let mut tilt = step(Actor::Orientation, [0.0, 0.0, 0.0, -0.004, 0.0, 0.01]);
+        tilt.state[3] = 0.2;
+        let labels = StepLabels::of(&tilt, &scaled);
+        assert_eq!(labels.scale, 0.5);
+        assert!((labels.direction[0] + 0.04).abs() < 1e-12);
+        assert!((labels.direction[2] - 0.02).abs() < 1e-12);
+        let back = labels.to_action(&tilt.state, &scaled);
+        for (a, b) in back.iter().zip(tilt.action) {
+            assert!((a - b).abs() < 1e-12);
+        }
+        let in_degrees = StepLabels::of(&tilt, &LIMITS);
+        assert!((in_degrees.direction[0] + 0.008).abs() < 1e-12);
+        let mut shift = step(Actor::Position, [0.01, -0.02, 0.0, 0.0, 0.0, 0.0]);
+        shift.state[3] = 0.2;
+        assert_eq!(
+            StepLabels::of(&shift, &scaled),
+            StepLabels::of(&shift, &LIMITS)
+        );
+    }
+
+    #[test]
     fn a_hold_is_a_tiny_scale_and_no_direction() {
         let hold = StepLabels::of(&step(Actor::Position, [0.0; 6]), &LIMITS);
         assert!(hold.is_hold());
         assert_eq!(hold.scale, HOLD_SCALE);
-        assert_eq!(hold.to_action(&LIMITS), [0.0; 6]);
+        assert_eq!(hold.to_action(&[0.0; 12], &LIMITS), [0.0; 6]);
     }
 
     #[test]

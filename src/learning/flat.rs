@@ -21,6 +21,7 @@
 
 use super::dataset::{Normaliser, StepLimits};
 use super::demos::DemoEpisode;
+use super::pipeline::step_limits;
 use super::refine::{EpisodeRecord, RefineConfig};
 use super::td3::{ReplayBuffer, Td3, Td3Config, Transition, clone_varmap};
 use crate::config::cell::CellConfig;
@@ -29,6 +30,7 @@ use crate::policy::ControllerFactory;
 use crate::policy::eval::{self, episode_seed};
 use crate::policy::file::{PolicyFileError, PolicyKind};
 use crate::policy::flat::{ACTION_DIM, FlatPolicy, FlatPolicyFile};
+use crate::policy::inputs::PolicyInputs;
 use crate::policy::mlp::LAYER_NAMES;
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
 use candle_core::{Device, Tensor};
@@ -152,10 +154,7 @@ impl FlatTraining {
             cell: cell.clone(),
             options,
             config,
-            limits: StepLimits {
-                position_mm: cell.steps.position_mm,
-                orientation_deg: cell.steps.orientation_deg,
-            },
+            limits: step_limits(cell, PolicyInputs::Absolute),
             normaliser: stored(normaliser),
             agent,
             buffer: ReplayBuffer::new(config.td3.replay_capacity),

@@ -22,11 +22,12 @@ use rand_chacha::ChaCha8Rng;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
-/// The step limits of a cell, as the policy composes its moves with them.
-pub fn step_limits(cell: &CellConfig) -> StepLimits {
+/// The step limits of a cell, as a policy that reads `inputs` composes its moves with them.
+pub fn step_limits(cell: &CellConfig, inputs: PolicyInputs) -> StepLimits {
     StepLimits {
         position_mm: cell.steps.position_mm,
         orientation_deg: cell.steps.orientation_deg,
+        inputs,
     }
 }
 
@@ -333,7 +334,7 @@ mod tests {
     fn stages_make_a_policy_file_that_round_trips() {
         let cell = CellConfig::reference();
         let demos = record_expert(&cell, EnvOptions::from_cell(&cell), 6, 5);
-        let limits = step_limits(&cell);
+        let limits = step_limits(&cell, PolicyInputs::Absolute);
         let bc = BcConfig {
             epochs: 2,
             orientation_epochs: 3,
@@ -412,7 +413,7 @@ mod tests {
     fn both_actors_at_once_train_as_one_after_the_other() {
         let cell = CellConfig::reference();
         let demos = record_expert(&cell, EnvOptions::from_cell(&cell), 6, 5);
-        let limits = step_limits(&cell);
+        let limits = step_limits(&cell, PolicyInputs::Absolute);
         let bc = BcConfig {
             epochs: 3,
             orientation_epochs: 5,
@@ -474,6 +475,7 @@ mod tests {
         let limits = StepLimits {
             position_mm: 5.0,
             orientation_deg: 1.0,
+            inputs: PolicyInputs::Absolute,
         };
         let error =
             policy_file(&varmap, &limits, PolicyInputs::Absolute, &BTreeMap::new()).unwrap_err();

@@ -606,7 +606,7 @@ mod tests {
         let cell = CellConfig::reference();
         let options = EnvOptions::from_cell(&cell);
         let demos = record_expert(&cell, options, 4, 1);
-        let limits = step_limits(&cell);
+        let limits = step_limits(&cell, PolicyInputs::Absolute);
         let bc = BcConfig {
             epochs: 1,
             ..BcConfig::default()

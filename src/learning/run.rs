@@ -82,7 +82,7 @@ pub struct TrainingSettings {
     /// [`super::demos::DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
     #[schema(pattern = "^(expert-state-only|expert-careful|expert-swift|expert)$")]
     pub demonstrator: String,
-    /// Train a policy for cells it was not trained on: it reads cell-relative inputs (a
+    /// Train a policy for cells it was not trained on: it reads cell-scaled inputs (a
     /// version 2 file), and every recorded demonstration and TD3 episode is on a cell of its
     /// own, drawn around this one over the ranges the product is specified for (the recipe of
     /// the bundled `hierarchical-cells`). False: the paper's absolute state, on this cell.
@@ -188,7 +188,7 @@ impl TrainingSettings {
     /// What the policy reads.
     pub fn inputs(&self) -> PolicyInputs {
         if self.for_any_cell {
-            PolicyInputs::CellRelative
+            PolicyInputs::CellScaled
         } else {
             PolicyInputs::Absolute
         }
@@ -362,7 +362,7 @@ fn pass(
 ) -> Result<(PolicyFile, Value), RunError> {
     let recording = settings.recording();
     let inputs = recording.inputs;
-    let limits = step_limits(cell);
+    let limits = step_limits(cell, inputs);
     let bc = BcConfig {
         epochs: bc_epochs,
         orientation_epochs: settings.bc_orientation_epochs,

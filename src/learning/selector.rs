@@ -248,6 +248,7 @@ mod tests {
         let limits = StepLimits {
             position_mm: 5.0,
             orientation_deg: 1.0,
+            inputs: PolicyInputs::Absolute,
         };
         let config = SelectorConfig {
             hidden_size: 64,

@@ -518,14 +518,16 @@ mod tests {
     }
 
     #[test]
-    fn a_cell_relative_policy_is_a_version_2_file_that_names_its_inputs() {
-        let mut meta = PolicyFile::standard_metadata(5.0, 1.0);
-        PolicyInputs::CellRelative.mark(&mut meta);
-        let p = PolicyFile::new(tiny(4, 8), meta).unwrap();
-        let back = PolicyFile::from_bytes(&p.to_bytes()).unwrap();
-        assert_eq!(back.metadata().format_version, "2");
-        assert_eq!(back.metadata().inputs, PolicyInputs::CellRelative);
-        assert!(!back.metadata().extra.contains_key("inputs"));
+    fn a_policy_that_reads_the_cell_is_a_version_2_file_that_names_its_inputs() {
+        for inputs in [PolicyInputs::CellRelative, PolicyInputs::CellScaled] {
+            let mut meta = PolicyFile::standard_metadata(5.0, 1.0);
+            inputs.mark(&mut meta);
+            let p = PolicyFile::new(tiny(4, 8), meta).unwrap();
+            let back = PolicyFile::from_bytes(&p.to_bytes()).unwrap();
+            assert_eq!(back.metadata().format_version, "2");
+            assert_eq!(back.metadata().inputs, inputs);
+            assert!(!back.metadata().extra.contains_key("inputs"));
+        }
         // A version 1 file with an `inputs` key reads the paper's state, as version 1 says.
         let mut meta = PolicyFile::standard_metadata(5.0, 1.0);
         meta.insert("inputs".into(), "cell-relative".into());

@@ -15,6 +15,9 @@
 //!                orientation: (0, a · scale · step_limit_deg)
 //! ```
 //!
+//! A policy with cell-scaled inputs multiplies the orientation move's x and y by the tilt
+//! unit its inputs carry in slot 3 ([`super::inputs`]).
+//!
 //! Two implementations read the same weights by name. Plain f32 loops (`plain.rs`) run
 //! [`HierarchicalPolicy::step`] (one episode) and [`HierarchicalPolicy::step_batch`] (B episodes,
 //! on all cores): at these sizes candle's per-op overhead dominates, and the loops evaluate only
@@ -193,9 +196,11 @@ pub fn select(omega: [f32; 3]) -> (Actor, f32) {
     (actor, sigmoid(omega[2]))
 }
 
-/// Assembles the output from ω and both actors' outputs (only the chosen one is used).
+/// Assembles the output from ω and both actors' outputs (only the chosen one is used), for
+/// the cell of `inputs` (cell-scaled inputs carry the unit of the tilting moves).
 fn compose(
     config: &PolicyConfig,
+    inputs: &[f64; 12],
     omega: [f32; 3],
     actor: Actor,
     scale: f32,
@@ -213,7 +218,7 @@ fn compose(
         omega,
         actor,
         scale,
-        action,
+        action: config.inputs.move_from_units(inputs, action),
     }
 }
 
@@ -528,14 +533,15 @@ impl HierarchicalPolicy {
             .to_vec1::<f32>()?;
         let rows = all
             .chunks_exact(9)
-            .map(|row| {
+            .zip(states)
+            .map(|(row, inputs)| {
                 let omega = [row[0], row[1], row[2]];
                 let (actor, scale) = select(omega);
                 let a = match actor {
                     Actor::Position => [row[3], row[4], row[5]],
                     Actor::Orientation => [row[6], row[7], row[8]],
                 };
-                compose(&self.net.config, omega, actor, scale, a)
+                compose(&self.net.config, inputs, omega, actor, scale, a)
             })
             .collect();
         let h_new: Vec<f32> = out.state.h.flatten_all()?.to_vec1()?;
@@ -649,6 +655,11 @@ mod tests {
 
     /// A small policy with deterministic pseudo-random weights.
     fn tiny() -> HierarchicalPolicy {
+        tiny_reading(PolicyInputs::Absolute)
+    }
+
+    /// [`tiny`] reading `inputs`.
+    fn tiny_reading(inputs: PolicyInputs) -> HierarchicalPolicy {
         let (h, d) = (4, 8);
         let shape = |name: &str| -> Vec<usize> {
             match name {
@@ -680,8 +691,45 @@ mod tests {
                 (n.to_string(), s, data)
             })
             .collect();
-        let file = PolicyFile::new(tensors, PolicyFile::standard_metadata(5.0, 1.0)).unwrap();
+        let mut metadata = PolicyFile::standard_metadata(5.0, 1.0);
+        inputs.mark(&mut metadata);
+        let file = PolicyFile::new(tensors, metadata).unwrap();
         HierarchicalPolicy::from_file(&file).unwrap()
+    }
+
+    #[test]
+    fn a_cell_scaled_policy_tilts_in_the_unit_its_inputs_carry() {
+        init_cpu_threads();
+        // The same weights read the same twelve numbers; only the tilt about x and y of an
+        // orientation move is multiplied by the unit in slot 3, on both paths.
+        let mut degrees = tiny_reading(PolicyInputs::CellRelative);
+        let mut scaled = tiny_reading(PolicyInputs::CellScaled);
+        let mut tilts = 0;
+        for t in 0..40 {
+            let mut state: [f64; 12] =
+                std::array::from_fn(|i| ((t * 5 + i * 7) % 13) as f64 * 0.4 - 2.4);
+            state[3] = 0.25;
+            let a = degrees.step(&state).unwrap();
+            let b = scaled.step(&state).unwrap();
+            let mut batch = BatchState::new(1, 4);
+            let c = scaled.step_batch_candle(&[state], &mut batch).unwrap()[0];
+            assert_eq!((a.actor, a.scale), (b.actor, b.scale));
+            let expected = PolicyInputs::CellScaled.move_from_units(&state, a.action);
+            for (got, want) in b.action.iter().zip(expected) {
+                assert!((got - want).abs() < 1e-12);
+            }
+            if b.actor == Actor::Orientation && a.action[3] != 0.0 {
+                tilts += 1;
+                assert!((b.action[3] - 0.25 * a.action[3]).abs() < 1e-12);
+                assert_eq!(b.action[5], a.action[5]);
+            }
+            if t == 0 {
+                for (got, want) in c.action.iter().zip(b.action) {
+                    assert!((got - want).abs() < 1e-5);
+                }
+            }
+        }
+        assert!(tilts > 0, "no orientation move among the states");
     }
 
     #[test]

@@ -179,7 +179,7 @@ mod tests {
         assert_eq!(e, PolicyFile::from_bytes(b"12345678").unwrap_err());
     }
 
-    /// The policy trained across randomised cells reads cell-relative inputs and assembles on
+    /// The policy trained across randomised cells reads cell-scaled inputs and assembles on
     /// a cell none of its demonstrations was recorded on (the report measures it over 1000
     /// episodes on each generalisation cell).
     #[test]
@@ -189,7 +189,7 @@ mod tests {
         use crate::sim::EnvOptions;
         let bytes = crate::policy::bundled_policy("hierarchical-cells").unwrap();
         let file = LearnedPolicyFile::from_bytes(bytes).unwrap();
-        assert_eq!(file.metadata().inputs, PolicyInputs::CellRelative);
+        assert_eq!(file.metadata().inputs, PolicyInputs::CellScaled);
         let cell =
             CellConfig::parse(include_str!("../../cells/phi250-shallow.toml"), "cell").unwrap();
         let make = crate::policy::builtin_factory("hierarchical-cells", &cell).unwrap();

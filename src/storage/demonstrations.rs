@@ -15,8 +15,9 @@ pub struct Demonstration {
     pub job_id: Option<i64>,
     pub episodes: i64,
     pub steps: i64,
-    /// What the recorded states are: `absolute` (the paper's state) or `cell-relative` (the
-    /// inputs of a policy for any cell); a training run learns only from its own kind.
+    /// What the recorded states are: `absolute` (the paper's state), `cell-relative` or
+    /// `cell-scaled` (the inputs of a policy for any cell); a training run learns only from its
+    /// own kind.
     pub inputs: String,
     pub created_by: Option<String>,
     pub created_at: String,
@@ -99,4 +100,77 @@ pub async fn delete(db: &Db, id: i64) -> Result<bool, DbError> {
         .execute(&db.writer)
         .await?;
     Ok(done.rows_affected() > 0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
+
+    const INSERT: &str = "INSERT INTO demonstrations \
+        (name, source, cell_hash, job_id, episodes, steps, body, created_by, inputs) \
+        VALUES ('kept', 'scripted', 'c0ffee', NULL, 2, 30, '{}', 'admin', ?)";
+
+    /// A database made before demonstrations could hold cell-scaled inputs keeps every row,
+    /// field for field, when it is opened by this build, which then stores the new kind.
+    #[tokio::test]
+    async fn demonstrations_stored_before_cell_scaled_inputs_are_kept_field_for_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cell.db");
+        let options = SqliteConnectOptions::new()
+            .filename(&path)
+            .create_if_missing(true)
+            .foreign_keys(true);
+        let old = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options)
+            .await
+            .unwrap();
+        let mut before = sqlx::migrate!();
+        before.migrations = before
+            .migrations
+            .iter()
+            .filter(|m| m.version <= 7)
+            .cloned()
+            .collect::<Vec<_>>()
+            .into();
+        before.run(&old).await.unwrap();
+        for inputs in ["absolute", "cell-relative"] {
+            sqlx::query(INSERT)
+                .bind(inputs)
+                .execute(&old)
+                .await
+                .unwrap();
+        }
+        let refused = sqlx::query(INSERT).bind("cell-scaled").execute(&old).await;
+        assert!(refused.is_err(), "the old table takes cell-scaled inputs");
+        let rows: Vec<Demonstration> =
+            sqlx::query_as(&format!("SELECT {COLUMNS} FROM demonstrations ORDER BY id"))
+                .fetch_all(&old)
+                .await
+                .unwrap();
+        old.close().await;
+
+        let db = Db::open(&path).await.unwrap();
+        let mut listed = list(&db).await.unwrap();
+        listed.sort_by_key(|d| d.id);
+        assert_eq!(listed, rows);
+        assert_eq!(body(&db, rows[1].id).await.unwrap().as_deref(), Some("{}"));
+        let id = insert(
+            &db.writer,
+            &NewDemonstration {
+                name: "scaled",
+                source: "scripted",
+                cell_hash: "c0ffee",
+                job_id: None,
+                inputs: "cell-scaled",
+                created_by: "admin",
+            },
+            &[],
+        )
+        .await
+        .unwrap();
+        assert_eq!(get(&db, id).await.unwrap().unwrap().inputs, "cell-scaled");
+        assert_eq!(db.integrity_check().await.unwrap(), "ok");
+    }
 }

@@ -204,7 +204,7 @@ impl Run {
         let mut last = BTreeMap::new();
         let varmap = pipeline::behaviour_clone(
             train,
-            &step_limits(&self.cell),
+            &step_limits(&self.cell, self.inputs),
             self.args.actor_width,
             &config,
             self.init.as_ref(),
@@ -258,7 +258,7 @@ impl Run {
             &varmap,
             train,
             held_out,
-            &step_limits(&self.cell),
+            &step_limits(&self.cell, self.inputs),
             &config,
             self.init.as_ref(),
             &mut |epoch, loss| {
@@ -288,7 +288,7 @@ impl Run {
     /// Writes the selector stage's checkpoint (actors, normaliser, selector) and the BC policy.
     fn save_lstm(&self, lstm: &Fitted) -> Result<()> {
         pipeline::save_vars(&lstm.varmap, &self.path(LSTM))?;
-        let limits = step_limits(&self.cell);
+        let limits = step_limits(&self.cell, self.inputs);
         let file =
             pipeline::policy_file(&lstm.varmap, &limits, self.inputs, &self.provenance("bc"))?;
         file.save(self.path(BC_POLICY))?;

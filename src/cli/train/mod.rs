@@ -93,14 +93,16 @@ pub struct TrainArgs {
     demo_lateral_noise_mm: f64,
     /// What the policy reads: `absolute` (the paper's state; a version 1 file) or
     /// `cell-relative` (the pose from the goal and the entrance, with the cell's depth,
-    /// clearance and hole pitch; a version 2 file that works on cells it was not trained on).
-    /// Every stage of a run must be given the same.
+    /// clearance and hole pitch; a version 2 file that works on cells it was not trained on),
+    /// or `cell-scaled` (the same with the tilt, and the orientation actor's tilting moves, in
+    /// the cell's own unit: a deep, tight bore's small tilts read as large as the reference
+    /// cell's). Every stage of a run must be given the same.
     #[arg(long, default_value = "absolute")]
     inputs: String,
     /// Run every demonstration, DAgger and TD3 episode on a cell of its own, drawn around --cell
     /// over the ranges the product is specified for (diameter 100-250 mm, clearance 0.03-0.1
     /// mm, depth 40-100 mm, 4-16 holes, robot size, camera placement and latency, camera noise
-    /// 0.5-2x, calibration error 0-3x). Needs --inputs cell-relative.
+    /// 0.5-2x, calibration error 0-3x). Needs --inputs cell-relative or cell-scaled.
     #[arg(long)]
     randomise_cells: bool,
     /// Robots the DAgger and TD3 episodes (and TD3's validations) are shared among, each in
@@ -426,10 +428,10 @@ impl Run {
                 PolicyInputs::ALL.map(PolicyInputs::name).join(", ")
             )
         })?;
-        if args.randomise_cells && inputs != PolicyInputs::CellRelative {
+        if args.randomise_cells && !inputs.reads_the_cell() {
             bail!(
-                "--randomise-cells needs --inputs cell-relative: a policy that reads the absolute \
-                 pose cannot tell the drawn cells apart"
+                "--randomise-cells needs --inputs cell-relative or cell-scaled: a policy that \
+                 reads the absolute pose cannot tell the drawn cells apart"
             );
         }
         if let Some(path) = &args.demos_file

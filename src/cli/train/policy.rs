@@ -14,7 +14,8 @@ use clap::{Args, Parser};
 use std::path::{Path, PathBuf};
 
 /// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
-/// weighted 30 in the BC loss, cell-relative inputs, a cell of its own for every episode, the
+/// weighted 30 in the BC loss, cell-scaled inputs (the tilt in each cell's own unit), a cell of
+/// its own for every episode, the
 /// orientation actor's errors relative to its labels down to 0.2, one TD3 episode (TD3 does
 /// not improve on BC yet; docs/learning.md § Where the policies stand), and 1600
 /// demonstrations with the position actor's epochs halved (as many updates, on twice the
@@ -25,7 +26,7 @@ const RECIPE: &[&str] = &[
     "--bc-bore-lateral-weight",
     "30",
     "--inputs",
-    "cell-relative",
+    "cell-scaled",
     "--randomise-cells",
     "--bc-orientation-label-floor",
     "0.2",

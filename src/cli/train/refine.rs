@@ -130,7 +130,7 @@ impl Run {
         bar.finish_and_clear();
         self.write_curve(&refinement)?;
         let (best, vars) = refinement.best();
-        let limits = step_limits(&self.cell);
+        let limits = step_limits(&self.cell, self.inputs);
         pipeline::policy_file(vars, &limits, self.inputs, &self.provenance("hierarchical"))?
             .save(self.path(POLICY))?;
         if let Some(best) = best {

@@ -123,8 +123,8 @@ impl Refinement {
                 (None, Some(expert))
             }
         };
-        let limits = step_limits(&self.cell);
         let inputs = self.config.inputs;
+        let limits = step_limits(&self.cell, inputs);
         let asymmetric = self.config.asymmetric;
         // What each agent's critics read at the current step beside the actor's inputs.
         let privileged = |env: &AssemblyEnv, observation: &Observation| -> Vec<f32> {
@@ -159,7 +159,8 @@ impl Refinement {
                 None => None,
             };
             if observation.measurement_fresh {
-                let x = normaliser.apply(&inputs.of(&observation));
+                let read = inputs.of(&observation);
+                let x = normaliser.apply(&read);
                 let critic_x = privileged(env, &observation);
                 if let Some((actor, mut t)) = pending.take() {
                     t.next_state = x.to_vec();
@@ -168,13 +169,14 @@ impl Refinement {
                 }
                 let chosen = match &mut explorer {
                     Some((policy, noise)) => {
-                        let out = policy.step(&inputs.of(&observation))?;
+                        let out = policy.step(&read)?;
                         if !out.is_finite() {
                             candle_core::bail!(
                                 "the policy's output is not finite at episode {index}"
                             );
                         }
-                        action = out.action.map(f64::from);
+                        // The move in the network's units, where the actor's output lives.
+                        action = inputs.move_in_units(&read, out.action);
                         let actor = out.actor;
                         let (offset, limit) = match actor {
                             Actor::Position => (0, limits.position_mm),
@@ -201,12 +203,13 @@ impl Refinement {
                         for i in 0..3 {
                             action[offset + i] = f64::from(a[i]) * span;
                         }
+                        action = inputs.move_from_units(&read, action);
                         Some((actor, a))
                     }
                     // The demonstrator's move as behaviour cloning labels it: the direction
                     // the actor learnt, its length the selector's.
                     None => decision.map(|(actor, _)| {
-                        let label = StepLabels::of_move(actor, &action, &limits);
+                        let label = StepLabels::of_move(actor, &action, &read, &limits);
                         (actor, label.direction.map(|d| d as f32))
                     }),
                 };

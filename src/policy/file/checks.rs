@@ -319,7 +319,7 @@ fn check_metadata(
                 key: "format_version".into(),
                 value: format!("{version:?}"),
                 reason: format!(
-                    "this build reads format_version \"1\" and \"2\" ({FORMAT_VERSION:?} with cell-relative inputs)"
+                    "this build reads format_version \"1\" and \"2\" ({FORMAT_VERSION:?} with cell-relative or cell-scaled inputs)"
                 ),
             });
         }

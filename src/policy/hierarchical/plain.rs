@@ -118,6 +118,6 @@ impl PlainNet {
         };
         let mut a = [0f32; ACTOR_DIM];
         actor_net.forward(x, &mut s.s1, &mut s.s2, &mut a);
-        Ok(compose(&self.config, omega, actor, scale, a))
+        Ok(compose(&self.config, state, omega, actor, scale, a))
     }
 }
