@@ -266,7 +266,7 @@ mod tests {
     #[test]
     fn cell_scaled_labels_measure_the_tilt_in_the_cells_unit() {
         // On a cell whose tilt unit is 0.2, a 0.004° tilt about x is 0.02 units: the scale's
-        // floor 0.5 and a = 0.02 / 0.5 = 0.04, ten times its label in degrees. The roll and
+        // floor 0.5 and a = 0.02 / 0.5 = 0.04, five times its label in degrees. The roll and
         // the position moves keep their units, and the labels give back the move.
         let scaled = StepLimits {
             inputs: PolicyInputs::CellScaled,

@@ -43,9 +43,10 @@
 //! (docs/experiments/2026-11-27-15ddca6-tilt-in-the-cells-unit.md). The hole pitch is not
 //! needed: the roll error O_z is already the offset to the nearest hole.
 //!
-//! Slots 6–11 keep their places and units, so the training code that reads P and O from them
-//! (the goal-centred normaliser, the insertion weighting of behaviour cloning) works on all
-//! three, with the entrance at slot 8 = 0 instead of −depth.
+//! Slots 6–11 keep their places, and their units but for the cell-scaled tilt, so the training
+//! code that reads P and O from them (the goal-centred normaliser, the insertion weighting of
+//! behaviour cloning) works on all three, with the entrance at slot 8 = 0 instead of −depth;
+//! the normaliser's tilt σ of 0.03 is then in the cell's unit.
 
 use crate::config::cell::{CellConfig, CellShape};
 use crate::sim::Observation;
