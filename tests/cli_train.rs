@@ -298,6 +298,11 @@ fn bad_training_requests_are_refused_before_any_work() {
             "1.5",
             "--bc-orientation-label-floor must be in (0, 1], got 1.5",
         ),
+        (
+            "--bc-position-label-floor",
+            "0",
+            "--bc-position-label-floor must be in (0, 1], got 0",
+        ),
     ] {
         let bad = celld(&["train", "bc", "--out", out.to_str().unwrap(), flag, value]);
         assert!(!bad.status.success());

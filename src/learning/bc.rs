@@ -62,6 +62,10 @@ pub struct BcConfig {
     /// The orientation actor's errors relative to its labels' size, down to this label
     /// ([`RelativeToLabel`]); `None` weighs every sample alike.
     pub orientation_label_floor: Option<f64>,
+    /// The same for the position actor. Its last step to the seat is a few hundredths of a
+    /// millimetre, a hundredth of an insertion step: unweighted, the actor answered it with no
+    /// move and held just short of the depth tolerance (docs/learning.md).
+    pub position_label_floor: Option<f64>,
 }
 
 impl BcConfig {
@@ -94,6 +98,7 @@ impl Default for BcConfig {
             goal_scales: GoalScales::default(),
             inputs: PolicyInputs::Absolute,
             orientation_label_floor: None,
+            position_label_floor: None,
         }
     }
 }

@@ -119,12 +119,12 @@ pub fn behaviour_clone(
             }
             Actor::Orientation => [1.0; 3],
         };
-        let relative_to_label = match actor {
-            Actor::Position => None,
-            Actor::Orientation => config
-                .orientation_label_floor
-                .map(|floor| RelativeToLabel::over(&samples, floor as f32)),
+        let label_floor = match actor {
+            Actor::Position => config.position_label_floor,
+            Actor::Orientation => config.orientation_label_floor,
         };
+        let relative_to_label =
+            label_floor.map(|floor| RelativeToLabel::over(&samples, floor as f32));
         let weights = LossWeights {
             components,
             bore_lateral: config.bore_lateral_weight as f32,

@@ -117,8 +117,7 @@ pub fn not_past_the_axis(observation: &Observation, translation_mm: Vector3<f64>
 }
 
 /// A position move (mm in {M}) as the policy may make it: no deeper than [`deepest_move_mm`],
-/// and no further sideways than [`not_past_the_axis`]. The controller and TD3's episodes both
-/// limit the actor's move here, so TD3 learns from the moves the deployed policy makes.
+/// and no further sideways than [`not_past_the_axis`].
 pub fn limit_position_move(
     observation: &Observation,
     translation_mm: Vector3<f64>,
@@ -126,6 +125,37 @@ pub fn limit_position_move(
     let mut limited = translation_mm;
     limited.z = limited.z.max(deepest_move_mm(observation));
     not_past_the_axis(observation, limited)
+}
+
+/// `rotation_deg` with each component (θx, θy, θz in {M}) kept between zero and the
+/// orientation error the estimate sees (O_x, O_y, O_z): a tilting move never carries the shaft
+/// past level, nor the holes past their line, and never turns away from them.
+///
+/// The demonstrators turn by the error times a factor of at most 1, so a cloned actor's longer
+/// or opposite turn is an error of the imitation: a policy 11 mm off the axis above the
+/// entrance answered a 0.026° tilt with 0.06° each way and swung there until the step limit
+/// (docs/learning.md).
+pub fn not_past_level(observation: &Observation, rotation_deg: Vector3<f64>) -> Vector3<f64> {
+    Vector3::from_fn(|axis, _| {
+        let error_deg = observation.state[9 + axis];
+        rotation_deg[axis].clamp(error_deg.min(0.0), error_deg.max(0.0))
+    })
+}
+
+/// A move of `actor` as the policy may make it: a position move by [`limit_position_move`], an
+/// orientation move by [`not_past_level`]. The controller and TD3's episodes both limit the
+/// actor's move here, so TD3 learns from the moves the deployed policy makes.
+pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
+    match actor {
+        Actor::Position => Move {
+            translation_mm: limit_position_move(observation, step.translation_mm),
+            ..step
+        },
+        Actor::Orientation => Move {
+            rotation_deg: not_past_level(observation, step.rotation_deg),
+            ..step
+        },
+    }
 }
 
 /// Sizes and step limits of a policy.
@@ -623,26 +653,20 @@ impl Controller for HierarchicalPolicy {
 
     /// The policy's move; a step that fails or is not finite holds still (a zero move). Without
     /// a fresh frame the cell holds still and the LSTM does not advance (the expert's
-    /// demonstrations have no such steps). A position move is limited by
-    /// [`limit_position_move`]: not past the goal, not deeper after a refusal for contact, and
-    /// not past the axis.
+    /// demonstrations have no such steps). The move is limited by [`limit_move`]: a position
+    /// move not past the goal, not deeper after a refusal for contact, and not past the axis;
+    /// an orientation move not past level.
     fn act(&mut self, observation: &Observation) -> Decision {
         if !observation.measurement_fresh {
             return Decision::hold();
         }
         let inputs = self.config().inputs.of(observation);
         match self.step(&inputs) {
-            Ok(out) if out.is_finite() => {
-                let mut action = out.to_move();
-                if out.actor == Actor::Position {
-                    action.translation_mm = limit_position_move(observation, action.translation_mm);
-                }
-                Decision {
-                    action,
-                    actor: Some(out.actor),
-                    scale: Some(out.scale as f64),
-                }
-            }
+            Ok(out) if out.is_finite() => Decision {
+                action: limit_move(observation, out.actor, out.to_move()),
+                actor: Some(out.actor),
+                scale: Some(out.scale as f64),
+            },
             _ => Decision::hold(),
         }
     }
@@ -840,6 +864,41 @@ mod tests {
         assert!(
             (limited - Vector3::new(1.65, -0.2, -0.3)).norm() < 1e-12,
             "{limited}"
+        );
+    }
+
+    /// A turn goes at most to level (and the holes to their line), never past it or away from
+    /// it; a move of the other actor keeps its turn, and a position move is limited as before.
+    #[test]
+    fn a_turn_stops_at_level() {
+        use crate::config::cell::CellConfig;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        let cell = CellConfig::reference();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut observation = env.reset(4).unwrap();
+        observation.state[9..12].copy_from_slice(&[0.03, -0.01, 0.2]);
+        let cut_is = |asked: [f64; 3], expected: [f64; 3]| {
+            let cut = not_past_level(&observation, Vector3::from(asked));
+            assert!(
+                (cut - Vector3::from(expected)).norm() < 1e-12,
+                "{asked:?}: {cut}"
+            );
+        };
+        cut_is([0.06, -0.02, 0.1], [0.03, -0.01, 0.1]);
+        cut_is([0.02, 0.005, -0.3], [0.02, 0.0, 0.0]);
+        cut_is([0.03, -0.01, 0.2], [0.03, -0.01, 0.2]);
+        let asked = Move {
+            translation_mm: Vector3::new(3.5, -0.2, -1.0),
+            rotation_deg: Vector3::new(0.06, 0.0, 0.0),
+        };
+        let turned = limit_move(&observation, Actor::Orientation, asked);
+        assert_eq!(turned.translation_mm, asked.translation_mm);
+        assert!((turned.rotation_deg - Vector3::new(0.03, 0.0, 0.0)).norm() < 1e-12);
+        let moved = limit_move(&observation, Actor::Position, asked);
+        assert_eq!(moved.rotation_deg, asked.rotation_deg);
+        assert_eq!(
+            moved.translation_mm,
+            limit_position_move(&observation, asked.translation_mm)
         );
     }
 

@@ -140,6 +140,7 @@ impl Run {
             },
             inputs: self.inputs,
             orientation_label_floor: self.args.bc_orientation_label_floor,
+            position_label_floor: self.args.bc_position_label_floor,
         }
     }
 

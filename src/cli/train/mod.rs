@@ -160,6 +160,11 @@ pub struct TrainArgs {
     /// (default: every error counts alike).
     #[arg(long)]
     bc_orientation_label_floor: Option<f64>,
+    /// The same for the position actor's labels (e.g. 0.2): the last few hundredths of a
+    /// millimetre to the seat are then fitted as closely as an insertion step (default: every
+    /// error counts alike).
+    #[arg(long)]
+    bc_position_label_floor: Option<f64>,
     /// Repeats of each insertion step in the position actor's BC samples.
     #[arg(long, default_value_t = BcConfig::default().insertion_repeat)]
     bc_insertion_repeat: usize,
@@ -396,10 +401,18 @@ impl Run {
                 bail!("{name} must be a finite number > 0, got {lr}");
             }
         }
-        if let Some(floor) = args.bc_orientation_label_floor
-            && !(floor.is_finite() && floor > 0.0 && floor <= 1.0)
-        {
-            bail!("--bc-orientation-label-floor must be in (0, 1], got {floor}");
+        for (name, floor) in [
+            (
+                "--bc-orientation-label-floor",
+                args.bc_orientation_label_floor,
+            ),
+            ("--bc-position-label-floor", args.bc_position_label_floor),
+        ] {
+            if let Some(floor) = floor
+                && !(floor.is_finite() && floor > 0.0 && floor <= 1.0)
+            {
+                bail!("{name} must be in (0, 1], got {floor}");
+            }
         }
         if !(args.td3_trust_region.is_finite() && args.td3_trust_region >= 0.0) {
             bail!(

@@ -7,16 +7,16 @@
 //! same transitions on any number of threads.
 
 use super::{Refinement, agent_index, local_reward};
+use crate::geometry::Move;
 use crate::learning::dataset::StepLabels;
 use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
 use crate::policy::eval::episode_seed;
-use crate::policy::hierarchical::{HierarchicalPolicy, limit_position_move};
+use crate::policy::hierarchical::{HierarchicalPolicy, limit_move};
 use crate::policy::record::demonstrator_seed;
 use crate::sim::randomise::cell_for;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
-use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -192,18 +192,19 @@ impl Refinement {
                             let noise: f64 = noise.sample(StandardNormal);
                             (clean + sigma * noise).clamp(-1.0, 1.0) as f32
                         });
-                        // As the policy acts as a controller: not past the goal, no deeper
-                        // after a refusal for contact, not past the axis.
-                        if actor == Actor::Position && span > 0.0 {
-                            let asked = Vector3::from(a).map(|v| f64::from(v) * span);
-                            let limited = limit_position_move(&observation, asked);
-                            a = std::array::from_fn(|i| (limited[i] / span) as f32);
-                        }
+                        // As the policy acts as a controller (`limit_move`, on the move in
+                        // mm and degrees): the actor's output is what the limited move asks.
                         action = [0.0; 6];
                         for i in 0..3 {
                             action[offset + i] = f64::from(a[i]) * span;
                         }
-                        action = inputs.move_from_units(&read, action);
+                        let asked = Move::from_array(inputs.move_from_units(&read, action));
+                        let limited = limit_move(&observation, actor, asked).to_array();
+                        if span > 0.0 {
+                            let in_units = inputs.move_in_units(&read, limited);
+                            a = std::array::from_fn(|i| (in_units[offset + i] / span) as f32);
+                        }
+                        action = limited;
                         Some((actor, a))
                     }
                     // The demonstrator's move as behaviour cloning labels it: the direction
@@ -224,7 +225,7 @@ impl Refinement {
                 }
             }
             let result = env
-                .step(&crate::geometry::Move::from_array(action))
+                .step(&Move::from_array(action))
                 .map_err(|e| candle_core::Error::Msg(format!("twin step failed: {e}")))?;
             gathered.return_ += result.reward.total;
             if let Some((actor, t)) = pending.as_mut() {
