@@ -680,7 +680,7 @@ fn tiny_policy() -> Vec<&'static str> {
 }
 
 #[test]
-fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
+fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_polish() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("policy");
     let mut args = vec![
@@ -698,7 +698,7 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
     let run = celld(&args);
     assert!(run.status.success(), "{}", stderr(&run));
 
-    // The same two runs by hand, with the recipe docs/learning.md states.
+    // The same three runs by hand, with the recipe docs/learning.md states.
     let recipe = [
         "--seed",
         "7",
@@ -715,16 +715,26 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
         "1",
         // The recipe's `--demos 1600 --bc-epochs 100` are tiny's here.
     ];
-    let (first, second) = (dir.path().join("first"), dir.path().join("second"));
-    let by_hand = |to: &Path, dagger: &[&str]| {
+    let (first, second, third) = (
+        dir.path().join("first"),
+        dir.path().join("second"),
+        dir.path().join("third"),
+    );
+    let by_hand = |to: &Path, dagger: &[&str], polish: &[&str]| {
         let mut args = vec!["train", "all", "--out", to.to_str().unwrap()];
         args.extend_from_slice(&recipe);
         args.extend_from_slice(dagger);
-        args.extend(tiny_policy());
+        // tiny's flags, but those the polish sets itself.
+        for pair in tiny_policy().chunks(2) {
+            if !polish.contains(&pair[0]) {
+                args.extend_from_slice(pair);
+            }
+        }
+        args.extend_from_slice(polish);
         let output = celld(&args);
         assert!(output.status.success(), "{}", stderr(&output));
     };
-    by_hand(&first, &[]);
+    by_hand(&first, &[], &[]);
     let driver = first.join("policy.safetensors");
     by_hand(
         &second,
@@ -732,6 +742,33 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
             "--dagger-actors-only",
             "--dagger-policy",
             driver.to_str().unwrap(),
+        ],
+        &[],
+    );
+    // The polish starts from the last round's policy, on its own schedule.
+    let polished_from = second.join("policy.safetensors");
+    by_hand(
+        &third,
+        &[],
+        &[
+            "--bc-position-label-floor",
+            "0.3",
+            "--bc-lr",
+            "0.002",
+            "--bc-anneal-fraction",
+            "0.5",
+            "--bc-epochs",
+            "6",
+            "--bc-anneal-factor",
+            "0.25",
+            "--bc-orientation-epochs",
+            "100",
+            "--lstm-lr",
+            "5e-4",
+            "--lstm-epochs",
+            "1",
+            "--init-policy",
+            polished_from.to_str().unwrap(),
         ],
     );
     let read = |path: PathBuf| std::fs::read(&path).unwrap_or_else(|e| panic!("{path:?}: {e}"));
@@ -744,8 +781,21 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors() {
         read(second.join("demos.jsonl"))
     );
     assert_eq!(
-        read(out.join("policy.safetensors")),
+        read(out.join("round-1/policy.safetensors")),
         read(second.join("policy.safetensors"))
+    );
+    assert_eq!(
+        read(out.join("polish/policy.safetensors")),
+        read(third.join("policy.safetensors"))
+    );
+    assert_eq!(
+        read(out.join("policy.safetensors")),
+        read(third.join("policy.safetensors"))
+    );
+    assert_ne!(
+        read(third.join("policy.safetensors")),
+        read(second.join("policy.safetensors")),
+        "the polish changed the policy"
     );
     let episodes = |run: &Path| {
         let numbers: std::collections::BTreeSet<u64> = demo_lines(run)

@@ -212,7 +212,7 @@ fn tensors(bytes: &[u8]) -> Vec<(String, Vec<f32>)> {
 }
 
 #[test]
-fn a_run_with_a_dagger_round_learns_what_celld_train_policy_learns() {
+fn a_run_with_a_dagger_round_and_the_polish_learns_what_celld_train_policy_learns() {
     let dir = tempfile::tempdir().unwrap();
     let server = Server::start(dir.path(), &[("CELLD_STEP_PERIOD_MS", "5")]);
     let admin = server.admin.clone();
@@ -239,7 +239,12 @@ fn a_run_with_a_dagger_round_learns_what_celld_train_policy_learns() {
         .filter(|p| p["stage"] == "lstm")
         .map(|p| p["x"].as_i64().unwrap())
         .collect();
-    assert_eq!(lstm.len(), 6, "both passes' selector epochs: {lstm:?}");
+    assert_eq!(done["figures"]["polished"], true, "{done}");
+    assert_eq!(
+        lstm.len(),
+        7,
+        "both passes' selector epochs and the polish's: {lstm:?}"
+    );
     assert!(lstm.windows(2).all(|w| w[0] < w[1]), "{lstm:?}");
     let policy_id = done["policy_id"].as_i64().unwrap();
     let served = server.get_bytes(&format!("/api/policies/{policy_id}/file"), &admin);

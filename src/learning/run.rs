@@ -2,7 +2,7 @@
 //! cancellation: what `POST /api/training` runs in the background. The stages are those of
 //! `celld train all` (behaviour cloning of both actors, the LSTM selector, then TD3 in the
 //! hierarchy), with the same defaults, and any DAgger rounds after them as `celld train policy`
-//! runs them.
+//! runs them; a run for any cell ends with `celld train policy`'s polishing pass ([`POLISH`]).
 
 use super::bc::{ACROSS_CELLS_ORIENTATION_LABEL_FLOOR, BcConfig};
 use super::dagger;
@@ -50,6 +50,37 @@ pub const LSTM_BATCH_SIZE: usize = 8;
 /// Learning rate (Adam) of the LSTM selector's training (not a setting of the HTTP API; `celld
 /// train --lstm-lr` defaults to it).
 pub const LSTM_LEARNING_RATE: f64 = 5e-3;
+
+/// The polishing pass that ends a policy for any cell (`celld train policy`'s last round, and a
+/// run `for_any_cell`): a few epochs from the last pass's policy at a low rate, with the
+/// position actor's errors counted relative to its labels as well as the orientation actor's.
+/// The first pass answers the last few hundredths of a millimetre to the seat with no move;
+/// the polish teaches it that move (docs/learning.md § Across cells).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Polish {
+    /// [`BcConfig::position_label_floor`].
+    pub position_label_floor: f64,
+    pub bc_learning_rate: f64,
+    /// Epochs of the position actor.
+    pub bc_epochs: usize,
+    pub bc_anneal_fraction: f64,
+    pub bc_anneal_factor: f64,
+    pub bc_orientation_epochs: usize,
+    pub lstm_learning_rate: f64,
+    pub lstm_epochs: usize,
+}
+
+/// The polishing pass of the bundled `hierarchical-cells`.
+pub const POLISH: Polish = Polish {
+    position_label_floor: 0.3,
+    bc_learning_rate: 0.002,
+    bc_epochs: 6,
+    bc_anneal_fraction: 0.5,
+    bc_anneal_factor: 0.25,
+    bc_orientation_epochs: 100,
+    lstm_learning_rate: 5e-4,
+    lstm_epochs: 1,
+};
 
 /// A run's settings (the defaults are `celld train all`'s, which takes them from here).
 ///
@@ -211,7 +242,12 @@ impl TrainingSettings {
             0
         };
         let pass = self.bc_orientation_epochs + self.lstm_epochs + td3;
-        self.bc_epochs + pass + self.dagger_rounds * (self.dagger_bc_epochs + pass)
+        let polish = if self.for_any_cell {
+            POLISH.bc_epochs + POLISH.bc_orientation_epochs + POLISH.lstm_epochs + td3
+        } else {
+            0
+        };
+        self.bc_epochs + pass + self.dagger_rounds * (self.dagger_bc_epochs + pass) + polish
     }
 }
 
@@ -246,7 +282,8 @@ pub fn check_demonstrations(demos: &[DemoEpisode]) -> Result<(), RunError> {
     Ok(())
 }
 
-/// Runs the pipeline on `demos` (a tenth held out for the selector), then its DAgger rounds.
+/// Runs the pipeline on `demos` (a tenth held out for the selector), then its DAgger rounds,
+/// then, for any cell, the polishing pass on `demos`.
 /// `report` gets each curve point and the fraction done; `cancelled` is asked between epochs'
 /// reports, TD3 episodes and rounds. Returns the policy file and the run's figures.
 pub fn run(
@@ -270,7 +307,7 @@ pub fn run(
         cell,
         dagger::split(demos.clone(), 0, false),
         settings,
-        settings.bc_epochs,
+        Pass::First,
         &mut progress,
     )?;
     let mut rounds = Vec::new();
@@ -300,9 +337,22 @@ pub fn run(
             cell,
             dagger::split(episodes, count, true),
             settings,
-            settings.dagger_bc_epochs,
+            Pass::Dagger,
             &mut progress,
         )?;
+    }
+    if settings.for_any_cell {
+        progress.check()?;
+        progress.next_round();
+        let last = file;
+        (file, figures) = pass(
+            cell,
+            dagger::split(demos, 0, false),
+            settings,
+            Pass::Polish(&last),
+            &mut progress,
+        )?;
+        figures["polished"] = json!(true);
     }
     if !rounds.is_empty() {
         figures["dagger"] = Value::Array(rounds);
@@ -351,20 +401,28 @@ impl Progress<'_> {
     }
 }
 
-/// One pass of the pipeline: both actors (the position actor for `bc_epochs`), the selector,
-/// and TD3 when the run's part has it.
+/// Which pass of a run: they differ in the position actor's epochs, and the polish in where
+/// it starts and how it learns ([`POLISH`]).
+#[derive(Clone, Copy)]
+enum Pass<'a> {
+    First,
+    Dagger,
+    Polish(&'a PolicyFile),
+}
+
+/// One pass of the pipeline: both actors, the selector, and TD3 when the run's part has it.
 fn pass(
     cell: &CellConfig,
     split: dagger::Split,
     settings: &TrainingSettings,
-    bc_epochs: usize,
+    which: Pass,
     progress: &mut Progress,
 ) -> Result<(PolicyFile, Value), RunError> {
     let recording = settings.recording();
     let inputs = recording.inputs;
     let limits = step_limits(cell, inputs);
-    let bc = BcConfig {
-        epochs: bc_epochs,
+    let mut bc = BcConfig {
+        epochs: settings.bc_epochs,
         orientation_epochs: settings.bc_orientation_epochs,
         learning_rate: settings.bc_learning_rate,
         bore_lateral_weight: settings.bc_bore_lateral_weight,
@@ -377,12 +435,40 @@ fn pass(
             .then_some(ACROSS_CELLS_ORIENTATION_LABEL_FLOOR),
         ..BcConfig::default()
     };
+    let mut selector = SelectorConfig {
+        hidden_size: settings.lstm_hidden,
+        epochs: settings.lstm_epochs,
+        batch_size: LSTM_BATCH_SIZE,
+        learning_rate: LSTM_LEARNING_RATE,
+        seed: settings.seed,
+    };
+    let start = match which {
+        Pass::First => None,
+        Pass::Dagger => {
+            bc.epochs = settings.dagger_bc_epochs;
+            None
+        }
+        Pass::Polish(start) => {
+            bc = BcConfig {
+                epochs: POLISH.bc_epochs,
+                orientation_epochs: POLISH.bc_orientation_epochs,
+                learning_rate: POLISH.bc_learning_rate,
+                anneal_fraction: POLISH.bc_anneal_fraction,
+                anneal_factor: POLISH.bc_anneal_factor,
+                position_label_floor: Some(POLISH.position_label_floor),
+                ..bc
+            };
+            selector.epochs = POLISH.lstm_epochs;
+            selector.learning_rate = POLISH.lstm_learning_rate;
+            Some(start)
+        }
+    };
     let varmap = pipeline::behaviour_clone(
         &split.train,
         &limits,
         settings.actor_width,
         &bc,
-        None,
+        start,
         &mut |actor, epoch, loss| {
             let stage = match actor {
                 Actor::Position => "bc_position",
@@ -394,20 +480,13 @@ fn pass(
     .map_err(failed)?;
     progress.check()?;
 
-    let selector = SelectorConfig {
-        hidden_size: settings.lstm_hidden,
-        epochs: settings.lstm_epochs,
-        batch_size: LSTM_BATCH_SIZE,
-        learning_rate: LSTM_LEARNING_RATE,
-        seed: settings.seed,
-    };
     let agreement = pipeline::train_lstm(
         &varmap,
         &split.selector,
         &split.held_out,
         &limits,
         &selector,
-        None,
+        start,
         &mut |epoch, loss| progress.point("lstm", epoch, loss),
     )
     .map_err(failed)?

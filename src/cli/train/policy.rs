@@ -1,7 +1,9 @@
 //! `celld train policy`: the recommended policy in one command. It runs `train all` once on the
 //! demonstrator's episodes, then `--dagger-rounds` (default none) more times, each with the last
-//! round's policy driving DAgger episodes that teach the actors only. With the defaults it makes
-//! `policies/across-cells.safetensors` (controller `hierarchical-cells`) byte for byte.
+//! round's policy driving DAgger episodes that teach the actors only, then a polishing round
+//! that fine-tunes the last policy with small moves weighed as closely as large ones. With the
+//! defaults it makes `policies/across-cells.safetensors` (controller `hierarchical-cells`) byte
+//! for byte.
 //!
 //! The recipe is written as `train all` flags ([`RECIPE`], [`DAGGER_ROUND`]) and parsed into the
 //! same settings, so each round is exactly the `train all` command that `run.json` and the docs
@@ -10,6 +12,7 @@
 use super::{POLICY, Run, Stage, TrainArgs};
 use anyhow::{Context, Result, bail};
 use assembly_cell::files::write_atomically;
+use assembly_cell::learning::run::POLISH;
 use clap::{Args, Parser};
 use std::path::{Path, PathBuf};
 
@@ -41,6 +44,38 @@ const RECIPE: &[&str] = &[
 /// The further flag of a DAgger round (before `--dagger-policy`): its episodes teach the actors
 /// only.
 const DAGGER_ROUND: &[&str] = &["--dagger-actors-only"];
+
+/// The further flags of the polishing round (before `--init-policy`), from [`POLISH`]: 6
+/// epochs from the last round's policy at a tenth of the first pass's rate, the position
+/// actor's errors relative to its labels down to 0.3 as well as the orientation actor's, and
+/// one epoch of the selector at a tenth of its rate. The first pass answers the last few
+/// hundredths of a millimetre to the seat with no move; the polish teaches it that move. From
+/// scratch, the same weighting left a shallow Φ250 cell at 0.45 (docs/learning.md § Across
+/// cells).
+fn polish_flags() -> Vec<String> {
+    [
+        (
+            "--bc-position-label-floor",
+            POLISH.position_label_floor.to_string(),
+        ),
+        ("--bc-lr", POLISH.bc_learning_rate.to_string()),
+        ("--bc-epochs", POLISH.bc_epochs.to_string()),
+        (
+            "--bc-anneal-fraction",
+            POLISH.bc_anneal_fraction.to_string(),
+        ),
+        ("--bc-anneal-factor", POLISH.bc_anneal_factor.to_string()),
+        (
+            "--bc-orientation-epochs",
+            POLISH.bc_orientation_epochs.to_string(),
+        ),
+        ("--lstm-lr", POLISH.lstm_learning_rate.to_string()),
+        ("--lstm-epochs", POLISH.lstm_epochs.to_string()),
+    ]
+    .into_iter()
+    .flat_map(|(flag, value)| [flag.to_string(), value])
+    .collect()
+}
 
 /// DAgger rounds after the first pass by default: none. Since the demonstrator corrects the
 /// tilt to what each cell takes, one round has raised the deep, tight cells and lowered others,
@@ -75,8 +110,13 @@ pub struct PolicyArgs {
     /// DAgger rounds after the first pass, each driven by the previous round's policy.
     #[arg(long, default_value_t = DEFAULT_DAGGER_ROUNDS)]
     dagger_rounds: usize,
+    /// Skip the polishing round: the last DAgger round's (or the first pass's) policy is the
+    /// run's.
+    #[arg(long)]
+    no_polish: bool,
     /// More `celld train all` flags for every round, after `--` (they override the recipe's,
-    /// e.g. `-- --demos 400 --dagger-episodes 400`).
+    /// e.g. `-- --demos 400 --dagger-episodes 400`, but not the polishing round's own epochs,
+    /// rates and position floor).
     #[arg(last = true)]
     train_flags: Vec<String>,
 }
@@ -91,8 +131,22 @@ struct AllFlags {
 }
 
 impl PolicyArgs {
+    /// The rounds of the run: the first pass, the DAgger rounds and the polishing round.
+    fn rounds(&self) -> usize {
+        self.dagger_rounds + 1 + usize::from(!self.no_polish)
+    }
+
+    fn is_polish(&self, round: usize) -> bool {
+        !self.no_polish && round == self.dagger_rounds + 1
+    }
+
+    /// Round k's directory: DIR/round-k, the polishing round's DIR/polish.
     fn round_dir(&self, round: usize) -> PathBuf {
-        self.out.join(format!("round-{round}"))
+        if self.is_polish(round) {
+            self.out.join("polish")
+        } else {
+            self.out.join(format!("round-{round}"))
+        }
     }
 
     /// Round `round`'s `train all` command line (without the program name).
@@ -106,12 +160,17 @@ impl PolicyArgs {
             flags.push("--resume".into());
         }
         flags.extend(RECIPE.iter().map(|flag| flag.to_string()));
-        if round > 0 {
+        let last = self.round_dir(round.saturating_sub(1)).join(POLICY);
+        if round > 0 && !self.is_polish(round) {
             flags.extend(DAGGER_ROUND.iter().map(|flag| flag.to_string()));
-            let driver = self.round_dir(round - 1).join(POLICY);
-            flags.extend(["--dagger-policy".into(), path(&driver)]);
+            flags.extend(["--dagger-policy".into(), path(&last)]);
         }
         flags.extend(self.train_flags.iter().cloned());
+        // The polish's schedule is its own: it comes after the caller's flags.
+        if self.is_polish(round) {
+            flags.extend(polish_flags());
+            flags.extend(["--init-policy".into(), path(&last)]);
+        }
         flags
     }
 
@@ -137,7 +196,7 @@ pub fn run(args: PolicyArgs) -> Result<()> {
         }
     }
     // Every round's settings are parsed before the first one starts.
-    let settings = (0..=args.dagger_rounds)
+    let settings = (0..args.rounds())
         .map(|round| args.round_args(round))
         .collect::<Result<Vec<_>>>()?;
     let rounds = settings.len();
