@@ -43,7 +43,9 @@ cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 # on 1600 demonstrations of expert-careful, each on a cell of its own drawn over the ranges the
 # product is specified for, the policy reading cell-scaled inputs (a version 2 file), the
 # sideways errors in the bore weighted 30, the orientation errors counted relative to their
-# labels down to 0.2, the TD3 stage one episode (round-0, and no DAgger round by default)
+# labels down to 0.2, the TD3 stage one episode (round-0, and no DAgger round by default);
+# then the polishing round from it, the position actor's errors relative to their labels down
+# to 0.3, 6 epochs at 0.002 (polish)
 step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026
 cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 

@@ -772,26 +772,24 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_
         ],
     );
     let read = |path: PathBuf| std::fs::read(&path).unwrap_or_else(|e| panic!("{path:?}: {e}"));
-    assert_eq!(
-        read(out.join("round-0/policy.safetensors")),
-        read(first.join("policy.safetensors"))
-    );
-    assert_eq!(
-        read(out.join("round-1/demos.jsonl")),
-        read(second.join("demos.jsonl"))
-    );
-    assert_eq!(
-        read(out.join("round-1/policy.safetensors")),
-        read(second.join("policy.safetensors"))
-    );
-    assert_eq!(
-        read(out.join("polish/policy.safetensors")),
-        read(third.join("policy.safetensors"))
-    );
-    assert_eq!(
-        read(out.join("policy.safetensors")),
-        read(third.join("policy.safetensors"))
-    );
+    for (ours, by_hand) in [
+        (
+            "round-0/policy.safetensors",
+            first.join("policy.safetensors"),
+        ),
+        ("round-1/demos.jsonl", second.join("demos.jsonl")),
+        (
+            "round-1/policy.safetensors",
+            second.join("policy.safetensors"),
+        ),
+        (
+            "polish/policy.safetensors",
+            third.join("policy.safetensors"),
+        ),
+        ("policy.safetensors", third.join("policy.safetensors")),
+    ] {
+        assert!(read(out.join(ours)) == read(by_hand), "{ours} differs");
+    }
     assert_ne!(
         read(third.join("policy.safetensors")),
         read(second.join("policy.safetensors")),
