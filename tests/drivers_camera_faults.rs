@@ -50,11 +50,7 @@ fn job_with(fault: u8) -> (JobEnd, Vec<Option<String>>) {
     };
     let limits = SafetyLimits {
         deadline_s: 10.0,
-        // A repeated frame is named frozen on its second coming; until then its steps are
-        // stale. On a loaded machine a capture can also fail on the way (and the next repeat
-        // then counts afresh), so the repeated camera gets more stale steps than the default
-        // before the job would end as stale instead.
-        max_stale_steps: if fault == REPEAT { 10 } else { 4 },
+        max_stale_steps: 4,
     };
     let mut run = JobRun::start(&spec, &cell, &mut backend, limits, 0.0).unwrap();
     let mut detected = Vec::new();

@@ -122,17 +122,21 @@ pub fn camera_relay(upstream: SocketAddr, mode: Arc<AtomicU8>) -> SocketAddr {
                         return;
                     }
                     message.extend_from_slice(&body);
+                    // One reading of the mode per message: a message passed on is always the
+                    // one a later repeat sends, even when the mode changes while it is written
+                    // (read twice, a repeat could send the message before it, out of order).
                     let sent = match mode.load(Ordering::SeqCst) {
-                        PASS => client.write_all(&message),
+                        PASS => {
+                            let sent = client.write_all(&message);
+                            last = Some(message);
+                            sent
+                        }
                         SILENT => Ok(()),
-                        REPEAT => client.write_all(last.get_or_insert(message.clone())),
+                        REPEAT => client.write_all(last.get_or_insert(message)),
                         _ => client.write_all(&[0xEE; 80]),
                     };
                     if sent.is_err() {
                         return;
-                    }
-                    if mode.load(Ordering::SeqCst) == PASS {
-                        last = Some(message);
                     }
                 }
             });
