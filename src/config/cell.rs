@@ -63,11 +63,17 @@ pub struct CellShape {
 }
 
 impl CellShape {
+    /// The radial room (mm) a centred shaft has before the supervisor's wall margin: 0.03 mm
+    /// on the reference cell, 0.01 mm on a Φ100 bore with 0.03 mm clearance.
+    pub fn clearance_beside_margin_mm(&self) -> f64 {
+        self.radial_clearance_mm - self.wall_margin_mm
+    }
+
     /// The tilt (deg) at which a shaft seated in the bore would touch the supervisor's wall
     /// margin: the radial clearance beside the margin over the bore's depth. 0.029° on the
     /// reference cell, 0.0057° on a Φ100 bore 100 mm deep with 0.03 mm clearance.
     pub fn clearance_tilt_deg(&self) -> f64 {
-        ((self.radial_clearance_mm - self.wall_margin_mm) / self.bore_depth_mm)
+        (self.clearance_beside_margin_mm() / self.bore_depth_mm)
             .atan()
             .to_degrees()
     }

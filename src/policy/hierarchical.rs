@@ -102,7 +102,7 @@ pub fn deepest_move_mm(observation: &Observation) -> f64 {
 /// with a 0.017 mm move into the wall margin, refused until 20 refusals ended the episode
 /// (docs/learning.md).
 pub fn past_the_axis_mm(cell: &CellShape) -> f64 {
-    ((cell.radial_clearance_mm - cell.wall_margin_mm) / 2.0).max(0.0)
+    (cell.clearance_beside_margin_mm() / 2.0).max(0.0)
 }
 
 /// `translation_mm` with each sideways component (x, y in {M}) that moves the shoulder towards
@@ -114,11 +114,12 @@ pub fn past_the_axis_mm(cell: &CellShape) -> f64 {
 /// swung there until the step limit (docs/learning.md).
 pub fn not_past_the_axis(observation: &Observation, translation_mm: Vector3<f64>) -> Vector3<f64> {
     let mut cut = translation_mm;
+    let past_mm = past_the_axis_mm(&observation.cell);
     for axis in 0..2 {
         // A move of +P_x carries the shoulder onto the axis (P is {F}'s origin in {M}).
         let offset_mm = observation.state[6 + axis];
         let towards = cut[axis] * offset_mm > 0.0;
-        let widest_mm = offset_mm.abs() + past_the_axis_mm(&observation.cell);
+        let widest_mm = offset_mm.abs() + past_mm;
         if towards && cut[axis].abs() > widest_mm {
             cut[axis] = widest_mm.copysign(cut[axis]);
         }
