@@ -26,12 +26,14 @@
 //! independent numpy implementation (tests/fixtures, scripts/make_policy_fixture.py) to 1e-5.
 //! The normalisation runs in f64 (states hold values like 2000 mm), the network in f32.
 //!
-//! As a [`Controller`] the policy adds one rule to the forward pass, for the supervisor's sake:
-//! after a move refused for a predicted contact, the next move does not go deeper
-//! ([`holds_depth_after`]). `celld policy run` prints the forward pass alone.
+//! As a [`Controller`] the policy adds rules to the forward pass. The actor that acts is one
+//! the demonstrators would use in the state ([`actor_with_work`]), and its move is limited
+//! ([`limit_move`]): after a move refused for a predicted contact the next move does not go
+//! deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at level.
+//! `celld policy run` prints the forward pass alone.
 
 use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
-use super::inputs::PolicyInputs;
+use super::inputs::{PolicyInputs, REFERENCE_CLEARANCE_TILT_DEG};
 use super::mlp::{Mlp, MlpConfig};
 use super::{Actor, Controller, Decision};
 use crate::collision::supervisor::VetoReason;
@@ -168,6 +170,60 @@ pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
         },
     }
 }
+
+/// The least tilt any demonstrator corrects, in the tilt unit of the policy's inputs (deg, or
+/// the cell's unit for cell-scaled inputs): half the reference cell's clearance tilt. Below it,
+/// and below [`ROLL_TOLERANCE_DEG`], the orientation actor has nothing to do.
+const LEAST_CORRECTED_TILT: f64 = REFERENCE_CLEARANCE_TILT_DEG / 2.0;
+
+/// The demonstrators' roll tolerance (deg, `ExpertTuning::roll_tolerance_deg`).
+const ROLL_TOLERANCE_DEG: f64 = 0.025;
+
+/// The most tilt the position actor may act with, in the tilt unit of the inputs: twice the
+/// most any demonstrator moves with (0.05°, in the bore).
+const MOST_TILT_TO_MOVE_WITH: f64 = 0.1;
+
+/// A shaft this far off the axis sideways (mm) is above the bore, not in it: every cell's
+/// radial clearance is a tenth of a millimetre or less.
+const ABOVE_THE_BORE_OFF_AXIS_MM: f64 = 1.0;
+
+/// The actor that acts for the selector's choice `selected` on the network's `inputs`: the
+/// choice, but for two states where the demonstrators never use the chosen actor.
+///
+/// - The position actor, with a tilt of more than [`MOST_TILT_TO_MOVE_WITH`]: the orientation
+///   actor acts. On a deep, tight cell the initial 1° reads five times larger in the cell's
+///   unit than any training state, and a selector that handed it to the position actor after
+///   one turn left the shaft 17 mm off the axis until the step limit.
+/// - The orientation actor, with nothing to turn (tilt below [`LEAST_CORRECTED_TILT`], roll
+///   below [`ROLL_TOLERANCE_DEG`]) and the shaft more than [`ABOVE_THE_BORE_OFF_AXIS_MM`] off
+///   the axis: the position actor acts. A selector that kept choosing the orientation actor
+///   there, 11–15 mm off the axis above the bore, held until the step limit.
+///
+/// Slots 6, 7 (P_x, P_y, mm) and 9–11 (the tilt and roll) have these places in every kind of
+/// inputs ([`super::inputs`]). The controller and TD3's episodes both act through it
+/// ([`HierarchicalPolicy::step_to_act`]); the fixed forward pass does not.
+pub fn actor_with_work(selected: Actor, inputs: &[f64; 12]) -> Actor {
+    let tilt = inputs[9].hypot(inputs[10]);
+    match selected {
+        Actor::Position if tilt > MOST_TILT_TO_MOVE_WITH => Actor::Orientation,
+        Actor::Orientation
+            if tilt < LEAST_CORRECTED_TILT
+                && inputs[11].abs() < ROLL_TOLERANCE_DEG
+                && inputs[6].hypot(inputs[7]) > ABOVE_THE_BORE_OFF_AXIS_MM =>
+        {
+            Actor::Position
+        }
+        actor => actor,
+    }
+}
+
+/// The actor the fixed forward pass chose: [`HierarchicalPolicy::step`]'s rule.
+fn as_selected(selected: Actor, _inputs: &[f64; 12]) -> Actor {
+    selected
+}
+
+/// Which actor acts, from the selector's choice and the network's inputs.
+type ChooseActor = fn(Actor, &[f64; 12]) -> Actor;
 
 /// Sizes and step limits of a policy.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -472,11 +528,26 @@ impl HierarchicalPolicy {
     /// One step of the single episode. A non-finite state is refused and leaves the LSTM state
     /// as it was; so does a step whose LSTM state would not be finite.
     pub fn step(&mut self, state: &[f64; 12]) -> candle_core::Result<PolicyOutput> {
+        self.step_choosing(state, as_selected)
+    }
+
+    /// One step of the single episode as the policy acts: the forward pass, with the actor
+    /// that acts kept to one with work to do ([`actor_with_work`]).
+    pub fn step_to_act(&mut self, state: &[f64; 12]) -> candle_core::Result<PolicyOutput> {
+        self.step_choosing(state, actor_with_work)
+    }
+
+    fn step_choosing(
+        &mut self,
+        state: &[f64; 12],
+        choose: ChooseActor,
+    ) -> candle_core::Result<PolicyOutput> {
         let out = self.plain.step(
             state,
             (&self.h, &self.c),
             (&mut self.h_next, &mut self.c_next),
             &mut self.scratch,
+            choose,
         )?;
         std::mem::swap(&mut self.h, &mut self.h_next);
         std::mem::swap(&mut self.c, &mut self.c_next);
@@ -533,7 +604,8 @@ impl HierarchicalPolicy {
             })
             .collect();
         let run = |s: &mut Scratch, r: BatchRow<'_>| {
-            self.plain.step(r.x, (r.h, r.c), (r.h_out, r.c_out), s)
+            self.plain
+                .step(r.x, (r.h, r.c), (r.h_out, r.c_out), s, as_selected)
         };
         let out: candle_core::Result<Vec<PolicyOutput>> = if rows.len() >= PARALLEL_BATCH {
             rows.into_par_iter()
@@ -672,7 +744,7 @@ impl Controller for HierarchicalPolicy {
             return Decision::hold();
         }
         let inputs = self.config().inputs.of(observation);
-        match self.step(&inputs) {
+        match self.step_to_act(&inputs) {
             Ok(out) if out.is_finite() => Decision {
                 action: limit_move(observation, out.actor, out.to_move()),
                 actor: Some(out.actor),
@@ -765,6 +837,80 @@ mod tests {
             }
         }
         assert!(tilts > 0, "no orientation move among the states");
+    }
+
+    #[test]
+    fn an_actor_acts_only_where_a_demonstrator_would_use_it() {
+        let inputs = |p_mm: [f64; 2], o: [f64; 3]| {
+            let mut x = [0.0; 12];
+            x[6..8].copy_from_slice(&p_mm);
+            x[9..12].copy_from_slice(&o);
+            x
+        };
+        let (pos, ori) = (Actor::Position, Actor::Orientation);
+        // Tilted 0.2 (0.12, 0.16): never the position actor; tilted 0.05: as chosen.
+        assert_eq!(
+            actor_with_work(pos, &inputs([0.0; 2], [0.12, 0.16, 0.0])),
+            ori
+        );
+        assert_eq!(
+            actor_with_work(pos, &inputs([0.0; 2], [0.03, 0.04, 0.0])),
+            pos
+        );
+        // 3 mm off the axis with a 0.01 tilt and a 0.02° roll: nothing to turn.
+        assert_eq!(
+            actor_with_work(ori, &inputs([1.8, 2.4], [0.006, 0.008, 0.02])),
+            pos
+        );
+        // But a 0.03° roll, a 0.02 tilt, or a shaft 0.05 mm off (in the bore) keep the choice.
+        assert_eq!(
+            actor_with_work(ori, &inputs([1.8, 2.4], [0.006, 0.008, 0.03])),
+            ori
+        );
+        assert_eq!(
+            actor_with_work(ori, &inputs([1.8, 2.4], [0.012, 0.016, 0.0])),
+            ori
+        );
+        assert_eq!(actor_with_work(ori, &inputs([0.03, 0.04], [0.0; 3])), ori);
+        assert_eq!(actor_with_work(pos, &inputs([1.8, 2.4], [0.0; 3])), pos);
+    }
+
+    #[test]
+    fn acting_hands_the_step_to_the_actor_with_work_and_leaves_the_lstm_alone() {
+        init_cpu_threads();
+        let (mut acting, mut forward) = (tiny(), tiny());
+        let mut handed = [0; 2];
+        for t in 0..40 {
+            let mut state: [f64; 12] =
+                std::array::from_fn(|i| ((t * 7 + i * 3) % 11) as f64 * 0.3 - 1.5);
+            // Tilted 1 on even steps; level, 3 mm off the axis, on odd ones.
+            let expected = if t % 2 == 0 {
+                (state[9], state[10]) = (0.6, 0.8);
+                Actor::Orientation
+            } else {
+                state[6..12].copy_from_slice(&[1.8, 2.4, -5.0, 0.0, 0.0, 0.0]);
+                Actor::Position
+            };
+            let acted = acting.step_to_act(&state).unwrap();
+            let chosen = forward.step(&state).unwrap();
+            assert_eq!((acted.omega, acted.scale), (chosen.omega, chosen.scale));
+            assert_eq!(acted.actor, expected);
+            if chosen.actor == expected {
+                assert_eq!(acted, chosen);
+            } else {
+                handed[t % 2] += 1;
+                let (moved, still) = match expected {
+                    Actor::Orientation => (3..6, 0..3),
+                    Actor::Position => (0..3, 3..6),
+                };
+                assert!(acted.action[still].iter().all(|v| *v == 0.0));
+                assert!(acted.action[moved].iter().any(|v| *v != 0.0));
+            }
+        }
+        assert!(
+            handed.iter().sum::<i32>() > 0,
+            "the rule never changed the choice"
+        );
     }
 
     #[test]

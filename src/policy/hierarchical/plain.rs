@@ -3,7 +3,8 @@
 //! that acts (`cargo bench --bench policy`).
 
 use super::{
-    PolicyConfig, PolicyOutput, actor_config, compose, normalise, select, sigmoid, state_error,
+    ChooseActor, PolicyConfig, PolicyOutput, actor_config, compose, normalise, select, sigmoid,
+    state_error,
 };
 use crate::policy::Actor;
 use crate::policy::file::{ACTOR_DIM, HEAD_DIM, STATE_DIM};
@@ -78,14 +79,16 @@ impl PlainNet {
         }
     }
 
-    /// One step of one episode: reads h, c and writes the next ones into `h_out`, `c_out`. On an
-    /// error the caller keeps h, c (the outputs are then garbage).
+    /// One step of one episode: reads h, c and writes the next ones into `h_out`, `c_out`; the
+    /// actor `choose` names for the selector's choice acts. On an error the caller keeps h, c
+    /// (the outputs are then garbage).
     pub(super) fn step(
         &self,
         state: &[f64; 12],
         (h, c): (&[f32], &[f32]),
         (h_out, c_out): (&mut [f32], &mut [f32]),
         s: &mut Scratch,
+        choose: ChooseActor,
     ) -> candle_core::Result<PolicyOutput> {
         if let Some(e) = state_error(state) {
             return Err(e);
@@ -110,8 +113,9 @@ impl PlainNet {
         }
         let mut omega = [0f32; 3];
         self.head.forward(h_out, &mut omega);
-        let (actor, scale) = select(omega);
+        let (selected, scale) = select(omega);
         let x = &s.xh[..STATE_DIM];
+        let actor = choose(selected, state);
         let actor_net = match actor {
             Actor::Position => &self.pos,
             Actor::Orientation => &self.ori,
