@@ -96,6 +96,17 @@ impl Default for ExpertTuning {
 }
 
 impl ExpertTuning {
+    /// The tilt (deg) above which the expert turns before it moves, on a cell whose clearance
+    /// tilt is `clearance_tilt_deg`, with the tip in the bore (`inside`) or above it.
+    pub fn tilt_tolerance_deg_on(&self, clearance_tilt_deg: f64, inside: bool) -> f64 {
+        let fixed = if inside {
+            self.tilt_tolerance_inside_deg
+        } else {
+            self.tilt_tolerance_deg
+        };
+        fixed.min(self.tilt_clearance_share * clearance_tilt_deg)
+    }
+
     /// The demonstrator `celld train` records by default (`expert-state-only`): it decides
     /// on the 12-value state and a count of holds alone: 5 holds at the standoff, insertion
     /// steps of at most 3 mm, no drift compensation. On the Table 5 protocol it is as good as
@@ -148,6 +159,12 @@ impl ExpertTuning {
             ..ExpertTuning::state_only()
         }
     }
+}
+
+/// Whether the tip counts as in the bore, `insertion_mm` past the entrance (negative above
+/// it): from 0.2 mm above the entrance on, as the demonstrators decide.
+pub fn tip_in_bore(insertion_mm: f64) -> bool {
+    insertion_mm > -0.2
 }
 
 pub struct Expert {
@@ -222,14 +239,9 @@ impl Expert {
         let t = self.tuning;
         // P is {F}'s origin in {M}: the tip is in the bore once P_z > -L.
         let insertion_mm = p.z + self.shaft_length_mm;
-        let inside = insertion_mm > -0.2;
+        let inside = tip_in_bore(insertion_mm);
         let tilt = o.xy().norm();
-        let tilt_tolerance = if inside {
-            t.tilt_tolerance_inside_deg
-        } else {
-            t.tilt_tolerance_deg
-        }
-        .min(t.tilt_clearance_share * self.clearance_tilt_deg);
+        let tilt_tolerance = t.tilt_tolerance_deg_on(self.clearance_tilt_deg, inside);
         if tilt > tilt_tolerance || o.z.abs() > t.roll_tolerance_deg {
             let factor = if o.norm() > 0.2 {
                 self.human_factor()

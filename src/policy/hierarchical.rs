@@ -32,8 +32,9 @@
 //! deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at level.
 //! `celld policy run` prints the forward pass alone.
 
+use super::expert::{ExpertTuning, tip_in_bore};
 use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
-use super::inputs::{PolicyInputs, REFERENCE_CLEARANCE_TILT_DEG};
+use super::inputs::PolicyInputs;
 use super::mlp::{Mlp, MlpConfig};
 use super::{Actor, Controller, Decision};
 use crate::collision::supervisor::VetoReason;
@@ -171,59 +172,46 @@ pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
     }
 }
 
-/// The least tilt any demonstrator corrects, in the tilt unit of the policy's inputs (deg, or
-/// the cell's unit for cell-scaled inputs): half the reference cell's clearance tilt. Below it,
-/// and below [`ROLL_TOLERANCE_DEG`], the orientation actor has nothing to do.
-const LEAST_CORRECTED_TILT: f64 = REFERENCE_CLEARANCE_TILT_DEG / 2.0;
+/// How far past the demonstrators' tolerance (a factor on the tilt and on the roll) the
+/// position actor may still act.
+const TOLERANCE_FACTOR_TO_MOVE_WITH: f64 = 1.5;
 
-/// The demonstrators' roll tolerance (deg, `ExpertTuning::roll_tolerance_deg`).
-const ROLL_TOLERANCE_DEG: f64 = 0.025;
-
-/// The most tilt the position actor may act with, in the tilt unit of the inputs: twice the
-/// most any demonstrator moves with (0.05°, in the bore).
-const MOST_TILT_TO_MOVE_WITH: f64 = 0.1;
-
-/// A shaft this far off the axis sideways (mm) is above the bore, not in it: every cell's
-/// radial clearance is a tenth of a millimetre or less.
-const ABOVE_THE_BORE_OFF_AXIS_MM: f64 = 1.0;
-
-/// The actor that acts for the selector's choice `selected` on the network's `inputs`: the
-/// choice, but for two states where the demonstrators never use the chosen actor.
+/// The actor that acts for the selector's choice `selected` on `observation`: the choice,
+/// but for two states where the demonstrators never use the chosen actor.
 ///
-/// - The position actor, with a tilt of more than [`MOST_TILT_TO_MOVE_WITH`]: the orientation
-///   actor acts. On a deep, tight cell the initial 1° reads five times larger in the cell's
-///   unit than any training state, and a selector that handed it to the position actor after
-///   one turn left the shaft 17 mm off the axis until the step limit.
-/// - The orientation actor, with nothing to turn (tilt below [`LEAST_CORRECTED_TILT`], roll
-///   below [`ROLL_TOLERANCE_DEG`]) and the shaft more than [`ABOVE_THE_BORE_OFF_AXIS_MM`] off
-///   the axis: the position actor acts. A selector that kept choosing the orientation actor
-///   there, 11–15 mm off the axis above the bore, held until the step limit.
+/// - The position actor, with a tilt or a roll of more than 1.5 times the demonstrators'
+///   tolerance on this cell ([`ExpertTuning::tilt_tolerance_deg_on`], the roll tolerance):
+///   the orientation actor acts. A demonstrator turns first.
+/// - The orientation actor, with nothing to turn (tilt and roll within the tolerances) and
+///   the tip above the bore: the position actor acts. A demonstrator moves. In the bore a
+///   chosen turn with nothing to turn stands for a hold while the estimate settles, and is
+///   left alone.
 ///
-/// Slots 6, 7 (P_x, P_y, mm) and 9–11 (the tilt and roll) have these places in every kind of
-/// inputs ([`super::inputs`]). The controller and TD3's episodes both act through it
-/// ([`HierarchicalPolicy::step_to_act`]); the fixed forward pass does not.
-pub fn actor_with_work(selected: Actor, inputs: &[f64; 12]) -> Actor {
-    let tilt = inputs[9].hypot(inputs[10]);
+/// Without it, selectors kept choosing the position actor at the entrance with a 0.022–0.026°
+/// tilt or, seated, with the holes 0.05–0.12° off, and the orientation actor with nothing to
+/// turn 11–15 mm off the axis above the bore, each until the step limit (decision 0024).
+pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
+    let s = &observation.state;
+    let cell = &observation.cell;
+    let demonstrators = ExpertTuning::default();
+    let inside = tip_in_bore(s[8] + cell.bore_depth_mm);
+    let tilt_tolerance = demonstrators.tilt_tolerance_deg_on(cell.clearance_tilt_deg(), inside);
+    let roll_tolerance = demonstrators.roll_tolerance_deg;
+    let (tilt, roll) = (s[9].hypot(s[10]), s[11].abs());
+    let factor = TOLERANCE_FACTOR_TO_MOVE_WITH;
     match selected {
-        Actor::Position if tilt > MOST_TILT_TO_MOVE_WITH => Actor::Orientation,
-        Actor::Orientation
-            if tilt < LEAST_CORRECTED_TILT
-                && inputs[11].abs() < ROLL_TOLERANCE_DEG
-                && inputs[6].hypot(inputs[7]) > ABOVE_THE_BORE_OFF_AXIS_MM =>
-        {
+        Actor::Position if tilt > factor * tilt_tolerance || roll > factor * roll_tolerance => {
+            Actor::Orientation
+        }
+        Actor::Orientation if tilt <= tilt_tolerance && roll <= roll_tolerance && !inside => {
             Actor::Position
         }
         actor => actor,
     }
 }
 
-/// The actor the fixed forward pass chose: [`HierarchicalPolicy::step`]'s rule.
-fn as_selected(selected: Actor, _inputs: &[f64; 12]) -> Actor {
-    selected
-}
-
-/// Which actor acts, from the selector's choice and the network's inputs.
-type ChooseActor = fn(Actor, &[f64; 12]) -> Actor;
+/// Which actor acts, from the selector's choice.
+type ChooseActor<'a> = &'a dyn Fn(Actor) -> Actor;
 
 /// Sizes and step limits of a policy.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -528,19 +516,23 @@ impl HierarchicalPolicy {
     /// One step of the single episode. A non-finite state is refused and leaves the LSTM state
     /// as it was; so does a step whose LSTM state would not be finite.
     pub fn step(&mut self, state: &[f64; 12]) -> candle_core::Result<PolicyOutput> {
-        self.step_choosing(state, as_selected)
+        self.step_choosing(state, &|actor| actor)
     }
 
     /// One step of the single episode as the policy acts: the forward pass, with the actor
     /// that acts kept to one with work to do ([`actor_with_work`]).
-    pub fn step_to_act(&mut self, state: &[f64; 12]) -> candle_core::Result<PolicyOutput> {
-        self.step_choosing(state, actor_with_work)
+    pub fn step_to_act(
+        &mut self,
+        state: &[f64; 12],
+        observation: &Observation,
+    ) -> candle_core::Result<PolicyOutput> {
+        self.step_choosing(state, &|actor| actor_with_work(actor, observation))
     }
 
     fn step_choosing(
         &mut self,
         state: &[f64; 12],
-        choose: ChooseActor,
+        choose: ChooseActor<'_>,
     ) -> candle_core::Result<PolicyOutput> {
         let out = self.plain.step(
             state,
@@ -605,7 +597,7 @@ impl HierarchicalPolicy {
             .collect();
         let run = |s: &mut Scratch, r: BatchRow<'_>| {
             self.plain
-                .step(r.x, (r.h, r.c), (r.h_out, r.c_out), s, as_selected)
+                .step(r.x, (r.h, r.c), (r.h_out, r.c_out), s, &|actor| actor)
         };
         let out: candle_core::Result<Vec<PolicyOutput>> = if rows.len() >= PARALLEL_BATCH {
             rows.into_par_iter()
@@ -744,7 +736,7 @@ impl Controller for HierarchicalPolicy {
             return Decision::hold();
         }
         let inputs = self.config().inputs.of(observation);
-        match self.step_to_act(&inputs) {
+        match self.step_to_act(&inputs, observation) {
             Ok(out) if out.is_finite() => Decision {
                 action: limit_move(observation, out.actor, out.to_move()),
                 actor: Some(out.actor),
@@ -839,66 +831,76 @@ mod tests {
         assert!(tilts > 0, "no orientation move among the states");
     }
 
+    /// An observation on the reference cell, the tip `above_mm` above the entrance (negative
+    /// in the bore), level and on the axis.
+    fn observation_above(above_mm: f64) -> Observation {
+        use crate::config::cell::CellConfig;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        let cell = CellConfig::reference();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut observation = env.reset(4).unwrap();
+        assert_eq!(observation.cell.bore_depth_mm, 60.0);
+        observation.state[6..12].copy_from_slice(&[0.0, 0.0, -60.0 - above_mm, 0.0, 0.0, 0.0]);
+        observation
+    }
+
     #[test]
     fn an_actor_acts_only_where_a_demonstrator_would_use_it() {
-        let inputs = |p_mm: [f64; 2], o: [f64; 3]| {
-            let mut x = [0.0; 12];
-            x[6..8].copy_from_slice(&p_mm);
-            x[9..12].copy_from_slice(&o);
-            x
-        };
         let (pos, ori) = (Actor::Position, Actor::Orientation);
-        // Tilted 0.2 (0.12, 0.16): never the position actor; tilted 0.05: as chosen.
-        assert_eq!(
-            actor_with_work(pos, &inputs([0.0; 2], [0.12, 0.16, 0.0])),
-            ori
-        );
-        assert_eq!(
-            actor_with_work(pos, &inputs([0.0; 2], [0.03, 0.04, 0.0])),
-            pos
-        );
-        // 3 mm off the axis with a 0.01 tilt and a 0.02° roll: nothing to turn.
-        assert_eq!(
-            actor_with_work(ori, &inputs([1.8, 2.4], [0.006, 0.008, 0.02])),
-            pos
-        );
-        // But a 0.03° roll, a 0.02 tilt, or a shaft 0.05 mm off (in the bore) keep the choice.
-        assert_eq!(
-            actor_with_work(ori, &inputs([1.8, 2.4], [0.006, 0.008, 0.03])),
-            ori
-        );
-        assert_eq!(
-            actor_with_work(ori, &inputs([1.8, 2.4], [0.012, 0.016, 0.0])),
-            ori
-        );
-        assert_eq!(actor_with_work(ori, &inputs([0.03, 0.04], [0.0; 3])), ori);
-        assert_eq!(actor_with_work(pos, &inputs([1.8, 2.4], [0.0; 3])), pos);
+        let at = |above_mm: f64, o: [f64; 3]| {
+            let mut observation = observation_above(above_mm);
+            observation.state[9..12].copy_from_slice(&o);
+            observation
+        };
+        // The reference cell's tolerances: tilt min(0.02°, 0.029°/2) = 0.0143°, roll 0.025°.
+        // The position actor acts up to 1.5 times them: 0.0215° and 0.0375°.
+        assert_eq!(actor_with_work(pos, &at(10.0, [0.012, 0.016, 0.0])), pos);
+        assert_eq!(actor_with_work(pos, &at(10.0, [0.018, 0.024, 0.0])), ori);
+        assert_eq!(actor_with_work(pos, &at(-30.0, [0.018, 0.024, 0.0])), ori);
+        assert_eq!(actor_with_work(pos, &at(-59.9, [0.0, 0.0, 0.035])), pos);
+        assert_eq!(actor_with_work(pos, &at(-59.9, [0.0, 0.0, -0.04])), ori);
+        // Nothing to turn above the bore: the position actor.
+        assert_eq!(actor_with_work(ori, &at(10.0, [0.006, 0.008, 0.02])), pos);
+        // A roll or a tilt to turn, or the tip in the bore (0.1 mm above the entrance counts
+        // as in it): the choice stands.
+        assert_eq!(actor_with_work(ori, &at(10.0, [0.006, 0.008, 0.03])), ori);
+        assert_eq!(actor_with_work(ori, &at(10.0, [0.012, 0.012, 0.0])), ori);
+        assert_eq!(actor_with_work(ori, &at(0.1, [0.0; 3])), ori);
+        assert_eq!(actor_with_work(ori, &at(-30.0, [0.0; 3])), ori);
+        // On a Φ100 bore 100 mm deep with 0.03 mm of clearance the tilt tolerance is
+        // atan(0.01 / 100) / 2 = 0.00286°: a 0.005° tilt is past 1.5 times it.
+        let mut tight = at(10.0, [0.003, 0.004, 0.0]);
+        assert_eq!(actor_with_work(pos, &tight), pos);
+        tight.cell.radial_clearance_mm = 0.03;
+        tight.cell.bore_depth_mm = 100.0;
+        tight.state[8] = -110.0;
+        assert_eq!(actor_with_work(pos, &tight), ori);
     }
 
     #[test]
     fn acting_hands_the_step_to_the_actor_with_work_and_leaves_the_lstm_alone() {
         init_cpu_threads();
         let (mut acting, mut forward) = (tiny(), tiny());
-        let mut handed = [0; 2];
+        let mut handed = 0;
         for t in 0..40 {
-            let mut state: [f64; 12] =
+            let state: [f64; 12] =
                 std::array::from_fn(|i| ((t * 7 + i * 3) % 11) as f64 * 0.3 - 1.5);
-            // Tilted 1 on even steps; level, 3 mm off the axis, on odd ones.
+            // Tilted 1° on even steps; level on odd ones; 10 mm above the bore.
+            let mut observation = observation_above(10.0);
             let expected = if t % 2 == 0 {
-                (state[9], state[10]) = (0.6, 0.8);
+                (observation.state[9], observation.state[10]) = (0.6, 0.8);
                 Actor::Orientation
             } else {
-                state[6..12].copy_from_slice(&[1.8, 2.4, -5.0, 0.0, 0.0, 0.0]);
                 Actor::Position
             };
-            let acted = acting.step_to_act(&state).unwrap();
+            let acted = acting.step_to_act(&state, &observation).unwrap();
             let chosen = forward.step(&state).unwrap();
             assert_eq!((acted.omega, acted.scale), (chosen.omega, chosen.scale));
             assert_eq!(acted.actor, expected);
             if chosen.actor == expected {
                 assert_eq!(acted, chosen);
             } else {
-                handed[t % 2] += 1;
+                handed += 1;
                 let (moved, still) = match expected {
                     Actor::Orientation => (3..6, 0..3),
                     Actor::Position => (0..3, 3..6),
@@ -907,10 +909,7 @@ mod tests {
                 assert!(acted.action[moved].iter().any(|v| *v != 0.0));
             }
         }
-        assert!(
-            handed.iter().sum::<i32>() > 0,
-            "the rule never changed the choice"
-        );
+        assert!(handed > 0, "the rule never changed the choice");
     }
 
     #[test]

@@ -54,7 +54,7 @@ use std::collections::BTreeMap;
 
 /// The reference cell's clearance tilt (deg): (0.05 − 0.02) mm over 60 mm. A cell-scaled
 /// policy measures a tighter cell's tilt in units of its clearance tilt over this one.
-pub(crate) const REFERENCE_CLEARANCE_TILT_DEG: f64 = 0.028_647_887_369_217_37;
+const REFERENCE_CLEARANCE_TILT_DEG: f64 = 0.028_647_887_369_217_37;
 
 /// The slot of cell-scaled inputs that holds the tilt unit.
 const TILT_UNIT_SLOT: usize = 3;

@@ -169,7 +169,7 @@ impl Refinement {
                 }
                 let chosen = match &mut explorer {
                     Some((policy, noise)) => {
-                        let out = policy.step_to_act(&read)?;
+                        let out = policy.step_to_act(&read, &observation)?;
                         if !out.is_finite() {
                             candle_core::bail!(
                                 "the policy's output is not finite at episode {index}"

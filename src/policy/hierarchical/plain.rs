@@ -88,7 +88,7 @@ impl PlainNet {
         (h, c): (&[f32], &[f32]),
         (h_out, c_out): (&mut [f32], &mut [f32]),
         s: &mut Scratch,
-        choose: ChooseActor,
+        choose: ChooseActor<'_>,
     ) -> candle_core::Result<PolicyOutput> {
         if let Some(e) = state_error(state) {
             return Err(e);
@@ -115,7 +115,7 @@ impl PlainNet {
         self.head.forward(h_out, &mut omega);
         let (selected, scale) = select(omega);
         let x = &s.xh[..STATE_DIM];
-        let actor = choose(selected, state);
+        let actor = choose(selected);
         let actor_net = match actor {
             Actor::Position => &self.pos,
             Actor::Orientation => &self.ori,
