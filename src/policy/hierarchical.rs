@@ -187,7 +187,7 @@ const TOLERANCE_FACTOR_TO_MOVE_WITH: f64 = 1.5;
 ///   chosen turn with nothing to turn stands for a hold while the estimate settles, and is
 ///   left alone.
 ///
-/// Without it, selectors kept choosing the position actor at the entrance with a 0.022–0.026°
+/// Without it, selectors kept choosing the position actor at the entrance with a 0.022–0.031°
 /// tilt or, seated, with the holes 0.05–0.12° off, and the orientation actor with nothing to
 /// turn 11–15 mm off the axis above the bore, each until the step limit (decision 0024).
 pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
