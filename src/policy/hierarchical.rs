@@ -177,10 +177,16 @@ pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
     }
 }
 
+/// How far the tip is past the bore's entrance by the estimate (mm; negative above it): P_z
+/// counts towards the seat, and the tip is the bore's depth below {M}'s origin at the
+/// shoulder.
+fn insertion_mm(observation: &Observation) -> f64 {
+    observation.state[8] + observation.cell.bore_depth_mm
+}
+
 /// `step` with the translation that keeps the middle of the shaft's engaged length in place
 /// once the tip is in the bore, so that a turn pivots there rather than about {M}'s origin at
-/// the shoulder. The shaft's tip is the bore's depth below that origin (as in
-/// [`actor_with_work`]).
+/// the shoulder.
 ///
 /// The demonstrators level the shaft above the bore and turn about the shoulder; a policy that
 /// enters with a little tilt left and levels it 1 mm in swings its tip sideways by the depth
@@ -188,19 +194,14 @@ pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
 /// turn for the wall margin 20 times in a row, ending the episode, and on a Φ100 bore 100 mm
 /// deep such turns ended 13 of 4000 episodes (decision 0025).
 pub fn pivot_in_bore(observation: &Observation, step: Move) -> Move {
-    let length_mm = observation.cell.bore_depth_mm;
-    let insertion_mm = observation.state[8] + length_mm;
+    let insertion_mm = insertion_mm(observation);
     if !tip_in_bore(insertion_mm) {
         return step;
     }
+    let length_mm = observation.cell.bore_depth_mm;
     let engaged_mm = insertion_mm.clamp(0.0, length_mm);
     let engaged_middle = Point3::new(0.0, 0.0, -length_mm + engaged_mm / 2.0);
-    let turn = Move {
-        translation_mm: Vector3::zeros(),
-        ..step
-    }
-    .as_pose();
-    let keep = engaged_middle - turn * engaged_middle;
+    let keep = engaged_middle - step.as_pose().rotation * engaged_middle;
     Move {
         translation_mm: step.translation_mm + keep,
         ..step
@@ -229,7 +230,7 @@ pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
     let s = &observation.state;
     let cell = &observation.cell;
     let demonstrators = ExpertTuning::default();
-    let inside = tip_in_bore(s[8] + cell.bore_depth_mm);
+    let inside = tip_in_bore(insertion_mm(observation));
     let tilt_tolerance = demonstrators.tilt_tolerance_deg_on(cell.clearance_tilt_deg(), inside);
     let roll_tolerance = demonstrators.roll_tolerance_deg;
     let (tilt, roll) = (s[9].hypot(s[10]), s[11].abs());
