@@ -5,7 +5,7 @@
 //! It stands in for the recorded human demonstrations in the twin. Each decision says which actor
 //! (position or orientation) it used and its step scale, the labels the LSTM selector learns.
 
-use super::{Actor, Controller, Decision, clamp_components};
+use super::{Actor, Controller, Decision, clamp_components, steered_against_drift};
 use crate::config::cell::CellConfig;
 use crate::geometry::Move;
 use crate::geometry::pose::pose_from_mm_deg;
@@ -332,20 +332,13 @@ impl Expert {
                 }
             }
         }
-        // Steer against the sideways drift the cell's state filter has learned: command c such that
-        // c + drift · (c, dz) ≈ the wanted lateral move (first order).
-        let drift = if t.compensate_drift {
-            estimate.drift()
-        } else {
-            nalgebra::Matrix2x3::zeros()
-        };
+        // Steer against the sideways drift the cell's state filter has learned.
         let wanted = Vector3::new(lateral_move.x, lateral_move.y, dz);
-        let correction = drift * wanted;
-        let delta = Vector3::new(
-            lateral_move.x - correction.x,
-            lateral_move.y - correction.y,
-            dz,
-        );
+        let delta = if t.compensate_drift {
+            steered_against_drift(&estimate.drift(), wanted)
+        } else {
+            wanted
+        };
         let delta = clamp_components(delta, self.limit_mm);
         Decision {
             action: Move {

@@ -220,6 +220,11 @@ pub struct FlatPolicy {
 }
 
 impl FlatPolicy {
+    /// The longest move along any axis of {M} (mm).
+    pub fn step_limit_mm(&self) -> f64 {
+        self.step_limit_mm
+    }
+
     /// The policy of a checked flat policy file (named "td3").
     pub fn from_file(file: &FlatPolicyFile) -> Self {
         let d = file.width();

@@ -3,11 +3,18 @@
 //! given by path (`celld eval --controller FILE`, `celld report --policy`), an uploaded policy
 //! and a bundled policy load as. A file whose format is not the flat one is checked as a
 //! hierarchical policy file, with that loader's messages.
+//!
+//! As it runs, a learned policy's translation is steered against the sideways drift the cell's
+//! state filter has learned of its robot ([`super::steered_against_drift`]), as `expert` steers
+//! its own: the network says where {M} should go, the cell makes the robot go there. The
+//! demonstrators the policies learn from decide on the state alone and do not steer, so
+//! training (behaviour cloning, DAgger's episodes, TD3) runs the bare policy and the steering
+//! is added here, where a policy is run (decision 0026).
 
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
 use super::hierarchical::HierarchicalPolicy;
-use super::{Controller, Decision};
+use super::{Controller, Decision, clamp_components, steered_against_drift};
 use crate::sim::Observation;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -131,10 +138,16 @@ impl Controller for LearnedPolicy {
     }
 
     fn act(&mut self, observation: &Observation) -> Decision {
-        match self {
-            Self::Hierarchical(p) => p.act(observation),
-            Self::Flat(p) => p.act(observation),
-        }
+        let (mut decision, step_limit_mm) = match self {
+            Self::Hierarchical(p) => (p.act(observation), p.config().step_limit_mm),
+            Self::Flat(p) => (p.act(observation), p.step_limit_mm()),
+        };
+        let wanted_mm = decision.action.translation_mm;
+        decision.action.translation_mm = clamp_components(
+            steered_against_drift(&observation.estimate.drift(), wanted_mm),
+            step_limit_mm,
+        );
+        decision
     }
 }
 
@@ -203,5 +216,43 @@ mod tests {
         );
         assert!(summary.successes >= 15, "{summary:?}");
         assert_eq!(summary.failures.get("contact"), None);
+    }
+    /// On a robot whose drift the cell has learned, the command a learned policy gives, moved
+    /// as that robot moves it (c + drift · c sideways), lands where the bare network asked, to
+    /// second order in the drift; the bare network's own command would land drift · w off.
+    #[test]
+    fn a_learned_policy_steers_its_moves_against_the_drift_the_cell_has_learned() {
+        use crate::camera::drift::DriftKnowledge;
+        use crate::config::cell::CellConfig;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        use nalgebra::{Matrix6, Vector2, Vector6};
+        let cell = CellConfig::reference();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut observation = env.reset(4).unwrap();
+        // 3 mm and 2 mm off the axis, 20 mm above the entrance, level.
+        observation.state[6..12].copy_from_slice(&[3.0, -2.0, -80.0, 0.0, 0.0, 0.0]);
+        let per_mm = Vector6::new(0.02, -0.01, 0.004, 0.015, 0.01, -0.003);
+        let known = DriftKnowledge::new(&per_mm, &(Matrix6::identity() * 1e-6), 5);
+        observation.estimate.reset_from(&known);
+        let drift = observation.estimate.drift();
+        let LearnedPolicy::Hierarchical(bare) =
+            LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical").unwrap())
+                .unwrap()
+        else {
+            panic!("the bundled policy is hierarchical");
+        };
+        let wanted = bare.clone().act(&observation).action.translation_mm;
+        let mut steered = LearnedPolicy::Hierarchical(bare);
+        let command = steered.act(&observation).action.translation_mm;
+        assert!(wanted.norm() > 1.0, "{wanted}");
+        let lands = |c: nalgebra::Vector3<f64>| Vector2::new(c.x, c.y) + drift * c;
+        let off = |c| (lands(c) - Vector2::new(wanted.x, wanted.y)).norm();
+        assert!(off(command) < 0.005, "{command} lands {} off", off(command));
+        assert!(
+            off(wanted) > 0.05,
+            "unsteered, {wanted} lands {} off",
+            off(wanted)
+        );
+        assert_eq!(command.z, wanted.z);
     }
 }

@@ -176,6 +176,22 @@ pub fn builtin_factory(
     }))
 }
 
+/// The command that takes {M} by `wanted_mm` on a robot whose sideways drift the cell's state
+/// filter has learned as `drift` (sideways mm per mm commanded, `CameraFusion::drift`): c such
+/// that c + drift · c ≈ `wanted_mm`, to first order, c = wanted − drift · wanted sideways. Along
+/// the axis the command is the wanted move.
+pub fn steered_against_drift(
+    drift: &nalgebra::Matrix2x3<f64>,
+    wanted_mm: nalgebra::Vector3<f64>,
+) -> nalgebra::Vector3<f64> {
+    let correction = drift * wanted_mm;
+    nalgebra::Vector3::new(
+        wanted_mm.x - correction.x,
+        wanted_mm.y - correction.y,
+        wanted_mm.z,
+    )
+}
+
 /// Clamps every component to ±`limit`.
 pub(crate) fn clamp_components(v: nalgebra::Vector3<f64>, limit: f64) -> nalgebra::Vector3<f64> {
     v.map(|x| x.clamp(-limit, limit))
