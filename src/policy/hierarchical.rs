@@ -160,7 +160,8 @@ pub fn not_past_level(observation: &Observation, rotation_deg: Vector3<f64>) -> 
 /// A move of `actor` as the policy may make it: a position move by [`limit_position_move`], an
 /// orientation move by [`not_past_level`] and [`pivot_in_bore`]. The controller and TD3's
 /// episodes both limit the actor's move here, so TD3 learns from the moves the deployed policy
-/// makes.
+/// makes, but for the steering against the learned drift that a policy gets where it runs
+/// (`super::learned`).
 pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
     match actor {
         Actor::Position => Move {

@@ -217,6 +217,7 @@ mod tests {
         assert!(summary.successes >= 15, "{summary:?}");
         assert_eq!(summary.failures.get("contact"), None);
     }
+
     /// On a robot whose drift the cell has learned, the command a learned policy gives, moved
     /// as that robot moves it (c + drift · c sideways), lands where the bare network asked, to
     /// second order in the drift; the bare network's own command would land drift · w off.
