@@ -177,7 +177,7 @@ pub fn builtin_factory(
 }
 
 /// The command that takes {M} by `wanted_mm` on a robot whose sideways drift the cell's state
-/// filter has learned as `drift` (sideways mm per mm commanded, `CameraFusion::drift`): c such
+/// filter has learned as `drift` (sideways mm per mm commanded, `StateFilter::drift`): c such
 /// that c + drift · c ≈ `wanted_mm`, to first order, c = wanted − drift · wanted sideways. Along
 /// the axis the command is the wanted move.
 pub fn steered_against_drift(
