@@ -12,6 +12,7 @@
 //! the report's) and the best one is kept.
 
 mod episode;
+pub mod step_size;
 
 use super::bc::init_actor;
 use super::pipeline::actor_prefix;
@@ -32,6 +33,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::collections::VecDeque;
+use step_size::StepSizeConfig;
 
 /// The default trust region around the BC actors (tanh units, 6 µm of a full 3 mm step). Plain
 /// TD3 wrecks the BC policy within 20 episodes; regions of 0.001 to 0.01 keep it over 500
@@ -72,6 +74,9 @@ pub struct RefineConfig {
     /// the first of them; the agents then learn from them one by one, as from episodes run in
     /// turn. 1: every episode with the policy updated after the one before.
     pub parallel_episodes: usize,
+    /// A third agent refines the selector's step size ([`step_size`]); `None`: the paper's
+    /// refinement of the two actors only.
+    pub step_size: Option<StepSizeConfig>,
 }
 
 impl Default for RefineConfig {
@@ -95,6 +100,7 @@ impl Default for RefineConfig {
             demonstrator: DEFAULT_DEMONSTRATOR,
             critic_pretraining_updates: 0,
             parallel_episodes: PARALLEL_EPISODES,
+            step_size: None,
         }
     }
 }
@@ -172,6 +178,9 @@ pub struct Refinement {
     policy_config: PolicyConfig,
     agents: [Td3; 2],
     buffers: [ReplayBuffer; 2],
+    /// The step-size agent ([`RefineConfig::step_size`]) and its replay.
+    step_agent: Option<Td3>,
+    step_buffer: ReplayBuffer,
     /// The demonstrator's transitions, per agent ([`RefineConfig::demonstrations`]).
     demo_buffers: [ReplayBuffer; 2],
     /// Episodes run at once and not yet learnt from, in order.
@@ -266,6 +275,19 @@ impl Refinement {
             agents.push(agent);
         }
         let agents: [Td3; 2] = agents.try_into().map_err(|_| unreachable_agents())?;
+        let step_agent = match config.step_size {
+            Some(step) => {
+                let td3 = Td3Config {
+                    seed: seed.wrapping_add(3),
+                    ..config.td3
+                };
+                let privileged = if config.asymmetric { 24 } else { 12 };
+                let mut agent = step_size::agent(&policy_vars, td3, step, privileged)?;
+                agent.freeze_actor(config.critic_warmup_episodes > 0);
+                Some(agent)
+            }
+            None => None,
+        };
         let mut refinement = Refinement {
             cell: cell.clone(),
             options,
@@ -279,6 +301,8 @@ impl Refinement {
                 ReplayBuffer::new(config.td3.replay_capacity),
                 ReplayBuffer::new(config.td3.replay_capacity),
             ],
+            step_agent,
+            step_buffer: ReplayBuffer::new(config.td3.replay_capacity),
             ahead: VecDeque::new(),
             robots: kept_robots(cell, options, config.randomise.as_ref(), seed),
             episode: 0,
@@ -321,16 +345,21 @@ impl Refinement {
 
     /// Copies each agent's actor into the policy's weights.
     fn sync_actors(&self) -> candle_core::Result<()> {
-        let policy = self.policy_vars.data().lock().expect("var map lock");
-        for actor in ACTORS {
-            let agent = self.agents[agent_index(actor)].actor_vars();
-            let data = agent.data().lock().expect("var map lock");
-            for (name, var) in data.iter() {
-                let target = name.replacen("actor", actor_prefix(actor), 1);
-                policy[&target].set(var.as_tensor())?;
+        {
+            let policy = self.policy_vars.data().lock().expect("var map lock");
+            for actor in ACTORS {
+                let agent = self.agents[agent_index(actor)].actor_vars();
+                let data = agent.data().lock().expect("var map lock");
+                for (name, var) in data.iter() {
+                    let target = name.replacen("actor", actor_prefix(actor), 1);
+                    policy[&target].set(var.as_tensor())?;
+                }
             }
         }
-        Ok(())
+        match &self.step_agent {
+            Some(agent) => step_size::sync(agent, &self.policy_vars),
+            None => Ok(()),
+        }
     }
 
     fn policy(&self) -> candle_core::Result<HierarchicalPolicy> {
@@ -376,7 +405,7 @@ impl Refinement {
     /// Runs one training episode with exploration, then the agents' updates.
     pub fn train_episode(&mut self) -> candle_core::Result<EpisodeRecord> {
         let warm = self.episode >= self.config.critic_warmup_episodes;
-        for agent in &mut self.agents {
+        for agent in self.agents.iter_mut().chain(self.step_agent.as_mut()) {
             agent.freeze_actor(!warm);
         }
         if self.ahead.is_empty() {
@@ -400,6 +429,16 @@ impl Refinement {
                 .for_each(|t| self.buffers[k].push(t));
             for _ in 0..taken {
                 self.agents[k].update_with(&self.buffers[k], &self.demo_buffers[k])?;
+            }
+        }
+        if let Some(agent) = self.step_agent.as_mut() {
+            let taken = gathered.step_transitions.len();
+            gathered
+                .step_transitions
+                .into_iter()
+                .for_each(|t| self.step_buffer.push(t));
+            for _ in 0..taken {
+                agent.update(&self.step_buffer)?;
             }
         }
         self.sync_actors()?;
@@ -449,7 +488,7 @@ impl Refinement {
                 tensors.insert(format!("{prefix}{name}"), var.as_tensor().clone());
             }
         }
-        for (k, agent) in self.agents.iter().enumerate() {
+        for (k, agent) in self.agents.iter().chain(&self.step_agent).enumerate() {
             for (name, tensor) in agent.checkpoint() {
                 tensors.insert(format!("agent{k}.{name}"), tensor);
             }
@@ -478,7 +517,12 @@ impl Refinement {
                 .collect()
         };
         set_vars(&self.policy_vars, &take("policy."))?;
-        for (k, agent) in self.agents.iter_mut().enumerate() {
+        for (k, agent) in self
+            .agents
+            .iter_mut()
+            .chain(self.step_agent.as_mut())
+            .enumerate()
+        {
             agent.restore(&take(&format!("agent{k}.")))?;
         }
         self.best = match progress.best {
@@ -810,6 +854,43 @@ mod tests {
             run.demo_buffers[0].len() + run.demo_buffers[1].len(),
             fresh.demo_buffers[0].len() + fresh.demo_buffers[1].len()
         );
+    }
+
+    /// With the step-size agent: a transition of it for every decision of the policy, the
+    /// first ones (50 mm above the seat) coarse; only ω3's row of the head moves; its
+    /// networks go into the checkpoint and come back from it.
+    #[test]
+    fn the_step_size_agent_learns_the_heads_scale_row_and_is_checkpointed() {
+        let with_step = |config: RefineConfig| RefineConfig {
+            step_size: Some(StepSizeConfig::default()),
+            ..config
+        };
+        let mut run = tiny_refinement_with(true, with_step);
+        let head = |r: &Refinement| {
+            let data = r.policy_vars.data().lock().unwrap();
+            let w = data["high.head.weight"]
+                .as_tensor()
+                .to_vec2::<f32>()
+                .unwrap();
+            let b = data["high.head.bias"].as_tensor().to_vec1::<f32>().unwrap();
+            (w, b)
+        };
+        let before = head(&run);
+        run.train_episode().unwrap();
+        run.train_episode().unwrap();
+        let decisions = run.buffers[0].len() + run.buffers[1].len();
+        assert_eq!(run.step_buffer.len(), decisions);
+        assert!(run.step_buffer.items()[0].coarse);
+        let after = head(&run);
+        assert_eq!(after.0[..2], before.0[..2]);
+        assert_eq!(after.1[..2], before.1[..2]);
+        assert_ne!((&after.0[2], after.1[2]), (&before.0[2], before.1[2]));
+        let (tensors, progress) = run.checkpoint().unwrap();
+        assert!(tensors.keys().any(|k| k.starts_with("agent2.")));
+        let mut resumed = tiny_refinement_with(true, with_step);
+        resumed.restore(&tensors, progress).unwrap();
+        assert_eq!(snapshot(&resumed.policy_vars), snapshot(&run.policy_vars));
+        assert_eq!(head(&resumed), after);
     }
 
     #[test]

@@ -56,6 +56,12 @@ pub struct Td3Config {
     /// actor's; if one is, the weights are pulled back along the line to the starting weights
     /// until none is. `None`: plain TD3.
     pub trust_region: Option<f64>,
+    /// A wider trust region on coarse states ([`Transition::coarse`]: where moves are
+    /// millimetres, not micrometres). With it the actor's loss is −Q on the coarse rows of a
+    /// minibatch only, plus the squared distance (in units of the trust region) to the
+    /// starting actor's output on the others, so that it learns where it may move and holds
+    /// where it may not. `None`: every state has `trust_region`.
+    pub coarse_trust_region: Option<f64>,
     /// Numbers the critics read beside the actor's state ([`Transition::privileged`]); 0: the
     /// critics read what the actor reads (symmetric TD3).
     pub privileged_dim: usize,
@@ -104,6 +110,7 @@ impl Default for Td3Config {
             hidden: 256,
             seed: 0,
             trust_region: None,
+            coarse_trust_region: None,
             privileged_dim: 0,
             demo_fraction: 0.25,
             demo_regularisation: None,
@@ -160,6 +167,8 @@ pub struct Transition {
     pub privileged: Vec<f32>,
     /// The same at s'.
     pub next_privileged: Vec<f32>,
+    /// s is a coarse state ([`Td3Config::coarse_trust_region`]).
+    pub coarse: bool,
 }
 
 /// Replay memory: a ring of the latest `capacity` transitions.
@@ -202,6 +211,33 @@ impl ReplayBuffer {
     }
 }
 
+/// An actor network: the MLP of every actor, or one linear layer with a tanh (a selector's
+/// step-size output, `actor.weight` [outputs, inputs] and `actor.bias`).
+#[derive(Debug, Clone)]
+enum ActorNet {
+    Mlp(Mlp),
+    Linear(candle_nn::Linear),
+}
+
+impl ActorNet {
+    /// Loads the actor under `vb`: one linear layer when `vb` holds `weight`, else the MLP of
+    /// `config`.
+    fn load(vb: VarBuilder, config: &MlpConfig, linear: bool) -> candle_core::Result<Self> {
+        Ok(if linear {
+            ActorNet::Linear(candle_nn::linear(config.inputs, config.outputs, vb)?)
+        } else {
+            ActorNet::Mlp(Mlp::load(vb, config)?)
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            ActorNet::Mlp(mlp) => mlp.forward(x),
+            ActorNet::Linear(linear) => linear.forward(x)?.tanh(),
+        }
+    }
+}
+
 /// The TD3 learner: an actor and two critics, each with a target copy.
 pub struct Td3 {
     config: Td3Config,
@@ -209,9 +245,9 @@ pub struct Td3 {
     action_dim: usize,
     actor_vars: VarMap,
     critic_vars: VarMap,
-    actor: Mlp,
+    actor: ActorNet,
     critics: [Mlp; 2],
-    actor_target: Mlp,
+    actor_target: ActorNet,
     critic_targets: [Mlp; 2],
     actor_target_vars: VarMap,
     critic_target_vars: VarMap,
@@ -226,8 +262,9 @@ pub struct Td3 {
 
 impl Td3 {
     /// A learner with freshly initialised networks. `actor_init`, if given, holds the actor's
-    /// starting weights under `actor.0/2/4` (e.g. from behaviour cloning); its width is read from
-    /// `actor.0.weight`, and `config.hidden` sizes the critics.
+    /// starting weights under `actor.0/2/4` (e.g. from behaviour cloning; its width is read
+    /// from `actor.0.weight`) or, for a one-layer actor, `actor.weight` and `actor.bias`;
+    /// `config.hidden` sizes the critics.
     pub fn new(
         state_dim: usize,
         action_dim: usize,
@@ -236,14 +273,19 @@ impl Td3 {
     ) -> candle_core::Result<Self> {
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
         let h = config.hidden;
+        let mut linear = false;
         let (actor_vars, actor_width) = match actor_init {
             Some(vars) => {
                 let width = {
                     let data = vars.data().lock().expect("var map lock");
-                    let Some(first) = data.get("actor.0.weight") else {
-                        candle_core::bail!("TD3 actor weights have no `actor.0.weight`");
-                    };
-                    first.as_tensor().dim(0)?
+                    linear = data.contains_key("actor.weight");
+                    match data.get("actor.0.weight") {
+                        Some(first) => first.as_tensor().dim(0)?,
+                        None if linear => 0,
+                        None => candle_core::bail!(
+                            "TD3 actor weights have neither `actor.0.weight` nor `actor.weight`"
+                        ),
+                    }
                 };
                 (vars, width)
             }
@@ -266,13 +308,18 @@ impl Td3 {
         let vb = |vars: &VarMap| VarBuilder::from_varmap(vars, DType::F32, &device);
         let anchor = match config.trust_region {
             Some(_) => Some(Anchor {
-                actor: Mlp::load(vb(&clone_varmap(&actor_vars)?).pp("actor"), &actor_config)?,
+                actor: ActorNet::load(
+                    vb(&clone_varmap(&actor_vars)?).pp("actor"),
+                    &actor_config,
+                    linear,
+                )?,
                 weights: actor_weights(&actor_vars)?,
             }),
             None => None,
         };
-        let actor = Mlp::load(vb(&actor_vars).pp("actor"), &actor_config)?;
-        let actor_target = Mlp::load(vb(&actor_target_vars).pp("actor"), &actor_config)?;
+        let actor = ActorNet::load(vb(&actor_vars).pp("actor"), &actor_config, linear)?;
+        let actor_target =
+            ActorNet::load(vb(&actor_target_vars).pp("actor"), &actor_config, linear)?;
         let critic = |vars: &VarMap, prefix: &str| Mlp::load(vb(vars).pp(prefix), &critic_config);
         let critics = [
             critic(&critic_vars, "critic1")?,
@@ -417,6 +464,7 @@ impl Td3 {
             next_state: s2,
             reward: r,
             not_done,
+            coarse,
         } = self.sample(online, demos, n, from_demos).tensors(self)?;
         // Target: y = r + γ (1 − done) min_k Q'_k(s', clip(μ'(s') + clip(ε, −c, c), −1, 1)).
         let (ad, device) = (self.action_dim, &Device::Cpu);
@@ -449,7 +497,7 @@ impl Td3 {
         let mut actor_loss = None;
         if self.updates.is_multiple_of(self.config.policy_delay.max(1)) {
             if !self.actor_frozen {
-                let loss = self.actor_loss(&s, &critic_s, &a, from_demos)?;
+                let loss = self.actor_loss(&s, &critic_s, &a, &coarse, from_demos)?;
                 // Only the actor's variables are in this optimizer: the critic stays as it is.
                 self.actor_optimizer.backward_step(&loss)?;
                 self.keep_within_trust_region(online)?;
@@ -463,20 +511,40 @@ impl Td3 {
 
     /// The actor's loss on a minibatch whose first `demo_rows` rows are demonstrations: −Q, or
     /// with [`Td3Config::demo_regularisation`] α, −α·Q/mean|Q| + the Q-filtered squared
-    /// distance to the demonstrated actions.
+    /// distance to the demonstrated actions, or with [`Td3Config::coarse_trust_region`] the
+    /// zoned loss described there (`coarse`: [n, 1], 1 on coarse rows).
     fn actor_loss(
         &self,
         s: &Tensor,
         critic_s: &Tensor,
         a: &Tensor,
+        coarse: &Tensor,
         demo_rows: usize,
     ) -> candle_core::Result<Tensor> {
         let pi = self.actor.forward(s)?;
         let q = self.critics[0].forward(&Tensor::cat(&[critic_s, &pi], 1)?)?;
-        let Some(alpha) = self.config.demo_regularisation else {
-            return q.mean_all()?.neg();
-        };
         let scale = f64::from(q.abs()?.mean_all()?.to_scalar::<f32>()?).max(1e-6);
+        let Some(alpha) = self.config.demo_regularisation else {
+            return match (
+                &self.anchor,
+                self.config.trust_region,
+                self.config.coarse_trust_region,
+            ) {
+                (Some(anchor), Some(radius), Some(_)) => {
+                    let coarse_rows = f64::from(coarse.sum_all()?.to_scalar::<f32>()?);
+                    let fine = coarse.affine(-1.0, 1.0)?;
+                    let fine_rows = f64::from(fine.sum_all()?.to_scalar::<f32>()?);
+                    let q_term = (q * coarse)?.sum_all()? * (-1.0 / (scale * coarse_rows.max(1.0)));
+                    let held = (pi - anchor.actor.forward(s)?.detach())?
+                        .sqr()?
+                        .sum_keepdim(1)?;
+                    let hold = (held * fine)?.sum_all()?
+                        / (fine_rows.max(1.0) * self.action_dim as f64 * radius * radius);
+                    q_term? + hold?
+                }
+                _ => q.mean_all()?.neg(),
+            };
+        };
         let q_term = (q.mean_all()? * (-alpha / scale))?;
         if demo_rows == 0 {
             return Ok(q_term);
@@ -540,7 +608,8 @@ impl Td3 {
     }
 
     /// With a trust region: if the actor is now too far from the anchor on probe states drawn
-    /// from the buffer, sets its weights to anchor + β·(weights − anchor) with the largest β
+    /// from the buffer (each with its own region: [`Td3Config::coarse_trust_region`] on coarse
+    /// states), sets its weights to anchor + β·(weights − anchor) with the largest β
     /// (bisection, 8 halvings) that is within the region.
     fn keep_within_trust_region(&mut self, buffer: &ReplayBuffer) -> candle_core::Result<()> {
         let (Some(anchor), Some(radius)) = (&self.anchor, self.config.trust_region) else {
@@ -550,18 +619,25 @@ impl Td3 {
         if n == 0 {
             return Ok(());
         }
+        let coarse_radius = self.config.coarse_trust_region.unwrap_or(radius);
         let mut states = Vec::with_capacity(n * self.state_dim);
+        let mut inverse_radii = Vec::with_capacity(n);
         for _ in 0..n {
             let t = &buffer.items[self.rng.random_range(0..buffer.len())];
             states.extend_from_slice(&t.state);
+            let r = if t.coarse { coarse_radius } else { radius };
+            inverse_radii.push((1.0 / r) as f32);
         }
         let probes = Tensor::from_vec(states, (n, self.state_dim), &Device::Cpu)?;
+        let inverse_radii = Tensor::from_vec(inverse_radii, (n, 1), &Device::Cpu)?;
         let reference = anchor.actor.forward(&probes)?;
+        // The largest gap as a share of its probe's region: within the region at most 1.
         let distance = || -> candle_core::Result<f64> {
             let gap = (self.actor.forward(&probes)? - &reference)?;
-            Ok(f64::from(gap.abs()?.max_all()?.to_scalar::<f32>()?))
+            let share = gap.abs()?.broadcast_mul(&inverse_radii)?;
+            Ok(f64::from(share.max_all()?.to_scalar::<f32>()?))
         };
-        if distance()? <= radius {
+        if distance()? <= 1.0 {
             return Ok(());
         }
         let stepped = actor_weights(&self.actor_vars)?;
@@ -576,7 +652,7 @@ impl Td3 {
         for _ in 0..8 {
             let beta = 0.5 * (inside + outside);
             set(beta)?;
-            if distance()? <= radius {
+            if distance()? <= 1.0 {
                 inside = beta;
             } else {
                 outside = beta;
@@ -622,6 +698,7 @@ impl Batch<'_> {
             next_state: column(&|t| t.next_state.clone(), sd)?,
             reward: column(&|t| vec![t.reward], 1)?,
             not_done: column(&|t| vec![if t.done { 0.0 } else { 1.0 }], 1)?,
+            coarse: column(&|t| vec![if t.coarse { 1.0 } else { 0.0 }], 1)?,
         })
     }
 }
@@ -636,11 +713,12 @@ struct BatchTensors {
     next_state: Tensor,
     reward: Tensor,
     not_done: Tensor,
+    coarse: Tensor,
 }
 
 /// The starting actor and its weights (names in [`actor_weights`]'s order).
 struct Anchor {
-    actor: Mlp,
+    actor: ActorNet,
     weights: Vec<(String, Tensor)>,
 }
 
@@ -663,6 +741,15 @@ mod tests {
     /// The best action is a* = s/2. Returns the learner after 3000 steps, and its actions on
     /// `grid` before them.
     fn train_on_the_known_optimum_task(trust_region: Option<f64>, grid: &[f32]) -> (Td3, Vec<f32>) {
+        train_on_the_known_optimum_task_zoned(trust_region, None, grid)
+    }
+
+    /// The same, with the states s > 0 coarse ([`Td3Config::coarse_trust_region`]).
+    fn train_on_the_known_optimum_task_zoned(
+        trust_region: Option<f64>,
+        coarse_trust_region: Option<f64>,
+        grid: &[f32],
+    ) -> (Td3, Vec<f32>) {
         let config = Td3Config {
             hidden: 32,
             actor_learning_rate: 1e-3,
@@ -670,6 +757,7 @@ mod tests {
             tau: 0.02,
             seed: 5,
             trust_region,
+            coarse_trust_region,
             ..Td3Config::default()
         };
         let mut td3 = Td3::new(1, 1, config, None).unwrap();
@@ -685,6 +773,7 @@ mod tests {
                 reward: -(a - s / 2.0).powi(2),
                 next_state: vec![s],
                 done: true,
+                coarse: s > 0.0,
                 ..Transition::default()
             });
             td3.update(&buffer).unwrap();
@@ -745,6 +834,46 @@ mod tests {
         );
         let (free, _, _) = train(None);
         assert!(free > 2.0 * radius as f32, "plain TD3 moved only {free}");
+    }
+
+    /// A trust region of 0.02 with 0.3 on the coarse states (s > 0): there the actor moves
+    /// well past 0.02 towards a* = s/2; on the others it stays within 0.02 of its start.
+    #[test]
+    fn a_zoned_trust_region_lets_the_actor_move_further_on_coarse_states_only() {
+        let (radius, coarse) = (0.02, 0.3);
+        let grid = grid();
+        let (td3, start) = train_on_the_known_optimum_task_zoned(Some(radius), Some(coarse), &grid);
+        let (mut fine_moved, mut coarse_moved) = (0.0f32, 0.0f32);
+        let (mut coarse_before, mut coarse_after) = (0.0f32, 0.0f32);
+        for (&s, &a0) in grid.iter().zip(&start) {
+            let a = td3.act(&[s]).unwrap()[0];
+            if s <= -0.2 {
+                fine_moved = fine_moved.max((a - a0).abs());
+            } else if s >= 0.2 {
+                coarse_moved = coarse_moved.max((a - a0).abs());
+                coarse_before += (a0 - s / 2.0).abs();
+                coarse_after += (a - s / 2.0).abs();
+            }
+        }
+        eprintln!(
+            "fine states moved {fine_moved:.4}, coarse {coarse_moved:.4}; coarse error \
+             {coarse_before:.3} -> {coarse_after:.3}"
+        );
+        // The probes are replayed states; between them the actor may stray a little further.
+        assert!(
+            fine_moved <= 1.2 * radius as f32,
+            "fine states moved {fine_moved}"
+        );
+        assert!(
+            coarse_moved > 3.0 * radius as f32,
+            "coarse states moved {coarse_moved}"
+        );
+        // Further towards the optimum than the fine region alone would let it come.
+        let coarse_points = grid.iter().filter(|&&s| s >= 0.2).count() as f32;
+        assert!(
+            coarse_before - coarse_after > coarse_points * 1.2 * radius as f32,
+            "coarse error {coarse_before} -> {coarse_after}"
+        );
     }
 
     #[test]

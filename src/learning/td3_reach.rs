@@ -64,6 +64,7 @@ fn run(driver: &mut Driver, seed: u64) -> Episode {
             done,
             privileged: vec![before.1],
             next_privileged: vec![x],
+            coarse: false,
         });
         if done {
             return Episode {

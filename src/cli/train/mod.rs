@@ -27,6 +27,7 @@ use assembly_cell::files::write_atomically;
 use assembly_cell::learning::bc::BcConfig;
 use assembly_cell::learning::dataset::GoalScales;
 use assembly_cell::learning::demos::{self, Recording};
+use assembly_cell::learning::refine::step_size::StepSizeConfig;
 use assembly_cell::learning::refine::{DEMO_REGULARISATION, RefineConfig};
 use assembly_cell::learning::run::{self, TrainingSettings};
 use assembly_cell::learning::td3::Td3Config;
@@ -222,6 +223,27 @@ pub struct TrainArgs {
     /// value against imitating the demonstrator (smaller imitates more).
     #[arg(long, default_value_t = DEMO_REGULARISATION)]
     td3_demo_alpha: f64,
+    /// TD3 also refines the selector's step size: a third agent moves the head's ω3 row,
+    /// exploring and moving it further on the approach above the bore (the tip more than 5 mm
+    /// above the entrance) than in the bore.
+    #[arg(long)]
+    td3_step_size: bool,
+    /// With --td3-step-size: σ of the step-size agent's exploration on the approach (u = 2·s − 1).
+    #[arg(long, default_value_t = StepSizeConfig::default().coarse_noise)]
+    td3_step_noise: f64,
+    /// With --td3-step-size: its trust region on the approach (u = 2·s − 1).
+    #[arg(long, default_value_t = StepSizeConfig::default().coarse_trust_region)]
+    td3_step_trust_region: f64,
+    /// With --td3-step-size: its trust region elsewhere (u = 2·s − 1).
+    #[arg(long, default_value_t = StepSizeConfig::default().fine_trust_region)]
+    td3_step_fine_trust_region: f64,
+    /// With --td3-step-size: Adam's rate for the selector's step-size row.
+    #[arg(long, default_value_t = StepSizeConfig::default().learning_rate)]
+    td3_step_lr: f64,
+    /// With --td3-step-size: reward shaping of the step-size agent, per mm the estimated
+    /// distance to the goal shrinks over a step (0: the paper's reward alone).
+    #[arg(long, default_value_t = StepSizeConfig::default().progress_reward_per_mm)]
+    td3_step_progress_reward: f64,
     /// Start TD3 from freshly initialised actors instead of the BC actors.
     #[arg(long)]
     no_bc_init: bool,
@@ -390,6 +412,13 @@ impl Run {
             ("--norm-lateral-std-mm", args.norm_lateral_std_mm),
             ("--norm-depth-std-mm", args.norm_depth_std_mm),
             ("--norm-tilt-std-deg", args.norm_tilt_std_deg),
+            ("--td3-step-noise", args.td3_step_noise),
+            ("--td3-step-trust-region", args.td3_step_trust_region),
+            (
+                "--td3-step-fine-trust-region",
+                args.td3_step_fine_trust_region,
+            ),
+            ("--td3-step-lr", args.td3_step_lr),
         ]
         .into_iter()
         .chain(args.td3_noise.map(|noise| ("--td3-noise", noise)))
@@ -413,6 +442,12 @@ impl Run {
             {
                 bail!("{name} must be in (0, 1], got {floor}");
             }
+        }
+        if !(args.td3_step_progress_reward.is_finite() && args.td3_step_progress_reward >= 0.0) {
+            bail!(
+                "--td3-step-progress-reward must be a finite number >= 0, got {}",
+                args.td3_step_progress_reward
+            );
         }
         if !(args.td3_trust_region.is_finite() && args.td3_trust_region >= 0.0) {
             bail!(

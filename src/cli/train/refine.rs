@@ -10,6 +10,7 @@ use assembly_cell::files::write_atomically;
 use assembly_cell::learning::dataset::Normaliser;
 use assembly_cell::learning::flat::{FlatConfig, FlatProgress, FlatTraining};
 use assembly_cell::learning::pipeline::{self, step_limits};
+use assembly_cell::learning::refine::step_size::StepSizeConfig;
 use assembly_cell::learning::refine::{EpisodeRecord, RefineConfig, RefineProgress, Refinement};
 use assembly_cell::learning::td3::Td3Config;
 use assembly_cell::policy::record::DEMONSTRATORS;
@@ -63,6 +64,13 @@ impl Run {
             },
             critic_warmup_episodes: self.args.td3_critic_warmup,
             parallel_episodes: self.args.td3_parallel_episodes,
+            step_size: self.args.td3_step_size.then_some(StepSizeConfig {
+                coarse_noise: self.args.td3_step_noise,
+                coarse_trust_region: self.args.td3_step_trust_region,
+                fine_trust_region: self.args.td3_step_fine_trust_region,
+                learning_rate: self.args.td3_step_lr,
+                progress_reward_per_mm: self.args.td3_step_progress_reward,
+            }),
             inputs: self.inputs,
             randomise: self.recording().randomise,
             ..defaults

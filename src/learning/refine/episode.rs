@@ -6,6 +6,7 @@
 //! so that [`super::RefineConfig::parallel_episodes`] episodes can run at once and give the
 //! same transitions on any number of threads.
 
+use super::step_size::{distance_to_goal_mm, is_coarse, scale_of_u, u_of_scale};
 use super::{Refinement, agent_index, local_reward};
 use crate::geometry::Move;
 use crate::learning::dataset::StepLabels;
@@ -38,6 +39,9 @@ pub(super) struct Gathered {
     pub return_: f64,
     /// Per agent ([`agent_index`]).
     pub transitions: [Vec<Transition>; 2],
+    /// The step-size agent's (empty without one): one per decision of the policy, from the
+    /// LSTM's hidden state, with the episode's whole reward.
+    pub step_transitions: Vec<Transition>,
 }
 
 impl Refinement {
@@ -146,8 +150,11 @@ impl Refinement {
             steps: 0,
             return_: 0.0,
             transitions: [Vec::new(), Vec::new()],
+            step_transitions: Vec::new(),
         };
         let mut pending: Option<(Actor, Transition)> = None;
+        let step_size = self.config.step_size;
+        let mut pending_step: Option<(Transition, f64)> = None;
         loop {
             let mut action = [0.0f64; 6];
             let decision = match &mut demonstrator {
@@ -167,6 +174,7 @@ impl Refinement {
                     t.next_privileged = critic_x.clone();
                     gathered.transitions[agent_index(actor)].push(t);
                 }
+                let coarse = is_coarse(&observation);
                 let chosen = match &mut explorer {
                     Some((policy, noise)) => {
                         let out = policy.step_to_act(&read, &observation)?;
@@ -182,7 +190,36 @@ impl Refinement {
                             Actor::Position => (0, limits.position_mm),
                             Actor::Orientation => (3, limits.orientation_deg),
                         };
-                        let span = f64::from(out.scale) * limit;
+                        let mut scale = out.scale;
+                        if let Some(step) = step_size {
+                            // The step-size agent explores the scale, and the move follows.
+                            let sigma = if coarse { step.coarse_noise } else { sigma };
+                            let e: f64 = noise.sample(StandardNormal);
+                            let u = (f64::from(u_of_scale(scale)) + sigma * e).clamp(-1.0, 1.0);
+                            let explored = scale_of_u(u as f32);
+                            if scale > 0.0 {
+                                let stretch = f64::from(explored / scale);
+                                action.iter_mut().for_each(|v| *v *= stretch);
+                            }
+                            scale = explored;
+                            let (h, _) = policy.lstm_state();
+                            let mut state_size = Transition {
+                                state: h.to_vec(),
+                                action: vec![u as f32],
+                                privileged: [x.to_vec(), critic_x.clone()].concat(),
+                                coarse,
+                                ..Transition::default()
+                            };
+                            if let Some((mut t, from_mm)) = pending_step.take() {
+                                t.next_state = state_size.state.clone();
+                                t.next_privileged = state_size.privileged.clone();
+                                t.reward += step.progress_reward(from_mm, &observation);
+                                gathered.step_transitions.push(t);
+                            }
+                            state_size.reward = 0.0;
+                            pending_step = Some((state_size, distance_to_goal_mm(&observation)));
+                        }
+                        let span = f64::from(scale) * limit;
                         let mut a: [f32; 3] = std::array::from_fn(|i| {
                             let clean = if span > 0.0 {
                                 action[offset + i] / span
@@ -219,6 +256,7 @@ impl Refinement {
                         state: x.to_vec(),
                         action: a.to_vec(),
                         privileged: critic_x,
+                        coarse,
                         ..Transition::default()
                     };
                     pending = Some((actor, state));
@@ -231,12 +269,23 @@ impl Refinement {
             if let Some((actor, t)) = pending.as_mut() {
                 t.reward += local_reward(*actor, &result.reward) as f32;
             }
+            if let Some((t, _)) = pending_step.as_mut() {
+                t.reward += result.reward.total as f32;
+            }
             if let Some(outcome) = result.outcome {
                 if let Some((actor, mut t)) = pending.take() {
                     t.next_state = normaliser.apply(&inputs.of(&result.observation)).to_vec();
                     t.next_privileged = privileged(env, &result.observation);
                     t.done = true;
                     gathered.transitions[agent_index(actor)].push(t);
+                }
+                if let (Some((mut t, from_mm)), Some(step)) = (pending_step.take(), step_size) {
+                    t.reward += step.progress_reward(from_mm, &result.observation);
+                    // Done: the next state is never read.
+                    t.next_state = vec![0.0; t.state.len()];
+                    t.next_privileged = vec![0.0; t.privileged.len()];
+                    t.done = true;
+                    gathered.step_transitions.push(t);
                 }
                 gathered.success = outcome == Outcome::Success;
                 gathered.steps = env.steps();
