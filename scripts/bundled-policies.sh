@@ -5,8 +5,9 @@
 #   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
 #   policies/across-cells.safetensors  the policy trained across randomised cells
 #                                 (controller `hierarchical-cells`)
-#   policies/swift.safetensors    the fast hierarchical policy, learnt from expert-swift
-#                                 (controller `hierarchical-swift`)
+#   policies/swift.safetensors    the fast hierarchical policy, learnt from expert-swift and
+#                                 refined by TD3 (controller `hierarchical-swift`)
+#   policies/swift-bc.safetensors its policy before TD3 (the start of the TD3 run)
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. hierarchical, bc and td3 were made under an earlier
@@ -61,7 +62,16 @@ step hierarchical-swift-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --dem
 step hierarchical-swift-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --demonstrator expert-swift \
     --bc-bore-lateral-weight 30 --dagger-policy "$RUNS/S30/policy.safetensors" \
     --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
-cp "$RUNS/S30r1/policy.safetensors" policies/swift.safetensors
+cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
+
+# hierarchical-swift 3: TD3 with the step-size agent from that policy (policies/swift-bc is the
+# file the two runs above made on their day): the selector's step size on the approach learns
+# from the twin; the best of the validations every 50 episodes is kept
+mkdir -p "$RUNS/S30r1-td3"
+cp policies/swift-bc.safetensors "$RUNS/S30r1-td3/lstm.safetensors"
+step hierarchical-swift-3 env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/S30r1-td3" \
+    --seed 2027 --robots 10 --td3-step-size
+cp "$RUNS/S30r1-td3/policy.safetensors" policies/swift.safetensors
 
 # bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default
 # demonstrator), BC at a constant rate; its BC policy is the `bc` baseline
@@ -74,4 +84,4 @@ cp "$RUNS/flat/td3-flat-policy.safetensors" policies/td3.safetensors
 
 echo "== all done in $((SECONDS - total)) s; git status policies/ shows whether any file changed"
 sha256sum policies/default.safetensors policies/bc.safetensors policies/td3.safetensors \
-    policies/across-cells.safetensors policies/swift.safetensors
+    policies/across-cells.safetensors policies/swift-bc.safetensors policies/swift.safetensors

@@ -83,8 +83,9 @@ pub const BUILTIN_CONTROLLERS: [&str; 7] = [
 /// demonstrations alone, no DAgger, no TD3), both made by `celld train all`, and `td3`
 /// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
 /// flat`), and `hierarchical-cells` (BC + LSTM on cell-scaled inputs, every demonstration
-/// on a randomised cell: the policy for cells none was trained on), and `hierarchical-swift` (BC + LSTM on `expert-swift`, then a DAgger round:
-/// the fast policy, a quarter fewer steps than `hierarchical`). See the README.
+/// on a randomised cell: the policy for cells none was trained on), and `hierarchical-swift`
+/// (BC + LSTM on `expert-swift`, a DAgger round, then TD3 on the selector's step size: the
+/// fast policy, a third fewer steps than `hierarchical`). See the README.
 pub const LEARNED_CONTROLLERS: [&str; 5] = [
     "hierarchical",
     "bc",
