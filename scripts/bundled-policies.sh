@@ -46,7 +46,8 @@ cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 # sideways errors in the bore weighted 30, the orientation errors counted relative to their
 # labels down to 0.2, the TD3 stage one episode (round-0, and no DAgger round by default);
 # then the polishing round from it, the position actor's errors relative to their labels down
-# to 0.3, 6 epochs at 0.002 (polish)
+# to 0.3, 6 epochs at 0.002, then 500 TD3 episodes that also refine the selector's step size on
+# 10 kept robots (polish)
 step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026
 cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 

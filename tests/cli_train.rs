@@ -4,6 +4,7 @@
 mod common;
 
 use common::celld;
+use serde_json::json;
 use std::path::{Path, PathBuf};
 
 const TINY: [&str; 18] = [
@@ -675,7 +676,8 @@ fn tiny_policy() -> Vec<&'static str> {
     let (flags, seed) = TINY.split_at(TINY.len() - 2);
     assert_eq!(seed[0], "--seed");
     let mut flags = flags.to_vec();
-    flags.extend(["--dagger-episodes", "12"]);
+    // Two TD3 episodes a round: the polish's own 500 give way to the caller's.
+    flags.extend(["--dagger-episodes", "12", "--td3-episodes", "2"]);
     flags
 }
 
@@ -711,9 +713,7 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_
         "--randomise-cells",
         "--bc-orientation-label-floor",
         "0.2",
-        "--td3-episodes",
-        "1",
-        // The recipe's `--demos 1600 --bc-epochs 100` are tiny's here.
+        // The recipe's `--demos 1600 --bc-epochs 100 --td3-episodes 1` are tiny's here.
     ];
     let (first, second, third) = (
         dir.path().join("first"),
@@ -745,12 +745,16 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_
         ],
         &[],
     );
-    // The polish starts from the last round's policy, on its own schedule.
+    // The polish starts from the last round's policy, on its own schedule, and its TD3 also
+    // refines the step size on 10 kept robots.
     let polished_from = second.join("policy.safetensors");
     by_hand(
         &third,
         &[],
         &[
+            "--td3-step-size",
+            "--robots",
+            "10",
             "--bc-position-label-floor",
             "0.3",
             "--bc-lr",
@@ -795,6 +799,15 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_
         read(second.join("policy.safetensors")),
         "the polish changed the policy"
     );
+    // Only the polish's TD3 refined the step size, on kept robots.
+    let td3_run = |round: &str| {
+        let text = std::fs::read_to_string(out.join(round).join("run.json")).unwrap();
+        let run: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let figures = &run["td3"]["figures"];
+        (figures["step_size"].clone(), figures["kept_robots"].clone())
+    };
+    assert_eq!(td3_run("round-0"), (json!(false), json!(0)));
+    assert_eq!(td3_run("polish"), (json!(true), json!(10)));
     let episodes = |run: &Path| {
         let numbers: std::collections::BTreeSet<u64> = demo_lines(run)
             .iter()

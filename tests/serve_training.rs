@@ -14,7 +14,8 @@ fn tiny(td3_episodes: usize) -> Value {
         "episodes": td3_episodes,
         "record": 12,
         "settings": {"actor_width": 16, "bc_epochs": 3, "bc_orientation_epochs": 3,
-                     "lstm_hidden": 8, "lstm_epochs": 3, "eval_every": 0, "eval_episodes": 2}
+                     "lstm_hidden": 8, "lstm_epochs": 3, "eval_every": 0, "eval_episodes": 2,
+                     "polish_td3_episodes": td3_episodes}
     })
 }
 
@@ -286,6 +287,9 @@ fn a_run_with_a_dagger_round_and_the_polish_learns_what_celld_train_policy_learn
             "2",
             "--bc-epochs",
             "3",
+            // The run's `episodes`: the polish's own 500 give way to it.
+            "--td3-episodes",
+            "1",
         ])
         .output()
         .unwrap();

@@ -8,6 +8,7 @@ use super::bc::{ACROSS_CELLS_ORIENTATION_LABEL_FLOOR, BcConfig};
 use super::dagger;
 use super::demos::{DEFAULT_DEMONSTRATOR, DemoEpisode, Recording, check_demonstrator};
 use super::pipeline::{self, step_limits};
+use super::refine::step_size::StepSizeConfig;
 use super::refine::{RefineConfig, Refinement};
 use super::selector::SelectorConfig;
 use crate::config::cell::CellConfig;
@@ -68,6 +69,12 @@ pub struct Polish {
     pub bc_orientation_epochs: usize,
     pub lstm_learning_rate: f64,
     pub lstm_epochs: usize,
+    /// TD3 episodes after the polish (`celld train policy`, and the service's default
+    /// `polish_td3_episodes`), with the step-size agent (`learning::refine::step_size`) beside the
+    /// actors' agents, on this many kept robots: on the approach the first pass's selector
+    /// steps short of the demonstrator's full steps, and TD3 lengthens them (decision 0027).
+    pub td3_episodes: usize,
+    pub td3_robots: u32,
 }
 
 /// The polishing pass of the bundled `hierarchical-cells`.
@@ -80,6 +87,8 @@ pub const POLISH: Polish = Polish {
     bc_orientation_epochs: 100,
     lstm_learning_rate: 5e-4,
     lstm_epochs: 1,
+    td3_episodes: 500,
+    td3_robots: 10,
 };
 
 /// A run's settings (the defaults are `celld train all`'s, which takes them from here).
@@ -127,6 +136,11 @@ pub struct TrainingSettings {
     #[schema(minimum = 1, maximum = 1_000_000)]
     #[serde(deserialize_with = "crate::integer::integer")]
     pub td3_episodes: usize,
+    /// TD3 episodes of the polishing pass of a run `for_any_cell`, with the step-size agent on
+    /// 10 kept robots (decision 0027); `celld train policy`'s polishing round runs as many.
+    #[schema(minimum = 1, maximum = 1_000_000)]
+    #[serde(deserialize_with = "crate::integer::integer")]
+    pub polish_td3_episodes: usize,
     /// DAgger rounds after the first pass: the last policy drives as many episodes as the run
     /// has demonstrations, `demonstrator` labels them, and they teach the actors (the selector
     /// keeps learning from the demonstrations); then the stages run again. The recommended
@@ -162,6 +176,7 @@ impl Default for TrainingSettings {
             lstm_hidden: 64,
             lstm_epochs: 60,
             td3_episodes: 500,
+            polish_td3_episodes: POLISH.td3_episodes,
             dagger_rounds: 0,
             dagger_bc_epochs: DAGGER_BC_EPOCHS,
             eval_every: 50,
@@ -199,11 +214,15 @@ impl TrainingSettings {
                 self.dagger_rounds
             ));
         }
-        if !(1..=MAX_TD3_EPISODES).contains(&self.td3_episodes) {
-            return Err(format!(
-                "td3_episodes = {} is outside 1..={MAX_TD3_EPISODES}",
-                self.td3_episodes
-            ));
+        for (field, value) in [
+            ("td3_episodes", self.td3_episodes),
+            ("polish_td3_episodes", self.polish_td3_episodes),
+        ] {
+            if !(1..=MAX_TD3_EPISODES).contains(&value) {
+                return Err(format!(
+                    "{field} = {value} is outside 1..={MAX_TD3_EPISODES}"
+                ));
+            }
         }
         for (field, value) in [
             ("bc_learning_rate", self.bc_learning_rate),
@@ -236,14 +255,14 @@ impl TrainingSettings {
 
     /// The progress units (epochs and TD3 episodes) of the whole run.
     fn units(&self) -> usize {
-        let td3 = if self.part == TrainingPart::All {
-            self.td3_episodes
+        let (td3, polish_td3) = if self.part == TrainingPart::All {
+            (self.td3_episodes, self.polish_td3_episodes)
         } else {
-            0
+            (0, 0)
         };
         let pass = self.bc_orientation_epochs + self.lstm_epochs + td3;
         let polish = if self.for_any_cell {
-            POLISH.bc_epochs + POLISH.bc_orientation_epochs + POLISH.lstm_epochs + td3
+            POLISH.bc_epochs + POLISH.bc_orientation_epochs + POLISH.lstm_epochs + polish_td3
         } else {
             0
         };
@@ -511,23 +530,26 @@ fn pass(
         return Ok((file, figures));
     }
 
+    let polish = matches!(which, Pass::Polish(_));
     let config = RefineConfig {
-        episodes: settings.td3_episodes,
+        episodes: if polish {
+            settings.polish_td3_episodes
+        } else {
+            settings.td3_episodes
+        },
         eval_every: settings.eval_every,
         eval_episodes: settings.eval_episodes,
         inputs,
         randomise: recording.randomise,
+        step_size: polish.then(StepSizeConfig::default),
         ..RefineConfig::default()
     };
-    let mut refinement = Refinement::new(
-        cell,
-        EnvOptions::from_cell(cell),
-        varmap,
-        config,
-        true,
-        settings.seed,
-    )
-    .map_err(failed)?;
+    let options = EnvOptions {
+        kept_robots: if polish { POLISH.td3_robots } else { 0 },
+        ..EnvOptions::from_cell(cell)
+    };
+    let mut refinement =
+        Refinement::new(cell, options, varmap, config, true, settings.seed).map_err(failed)?;
     refinement.validate().map_err(failed)?;
     while refinement.episode() < config.episodes {
         progress.check()?;

@@ -19,8 +19,8 @@ use std::path::{Path, PathBuf};
 /// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
 /// weighted 30 in the BC loss, cell-scaled inputs (the tilt in each cell's own unit), a cell of
 /// its own for every episode, the
-/// orientation actor's errors relative to its labels down to 0.2, one TD3 episode (TD3 does
-/// not improve on BC yet; docs/learning.md § Where the policies stand), and 1600
+/// orientation actor's errors relative to its labels down to 0.2, one TD3 episode (TD3 on the
+/// actors does not improve on BC; the polishing round runs TD3 on the step size), and 1600
 /// demonstrations with the position actor's epochs halved (as many updates, on twice the
 /// states).
 const RECIPE: &[&str] = &[
@@ -75,6 +75,19 @@ fn polish_flags() -> Vec<String> {
     .into_iter()
     .flat_map(|(flag, value)| [flag.to_string(), value])
     .collect()
+}
+
+/// The polishing round's TD3 (before the caller's flags, which may change it): 500 episodes
+/// with the step-size agent on 10 kept robots. On the approach the first pass's selector steps
+/// short of the demonstrator's full steps, and TD3 lengthens them (decision 0027).
+fn polish_td3_flags() -> Vec<String> {
+    vec![
+        "--td3-episodes".into(),
+        POLISH.td3_episodes.to_string(),
+        "--robots".into(),
+        POLISH.td3_robots.to_string(),
+        "--td3-step-size".into(),
+    ]
 }
 
 /// DAgger rounds after the first pass by default: none. Since the demonstrator corrects the
@@ -164,6 +177,9 @@ impl PolicyArgs {
         if round > 0 && !self.is_polish(round) {
             flags.extend(DAGGER_ROUND.iter().map(|flag| flag.to_string()));
             flags.extend(["--dagger-policy".into(), path(&last)]);
+        }
+        if self.is_polish(round) {
+            flags.extend(polish_td3_flags());
         }
         flags.extend(self.train_flags.iter().cloned());
         // The polish's schedule is its own: it comes after the caller's flags.

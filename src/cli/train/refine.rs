@@ -152,7 +152,12 @@ impl Run {
         self.note(
             "td3",
             started.elapsed().as_secs_f64(),
-            json!({"best": best, "validations": refinement.validations()}),
+            json!({
+                "best": best,
+                "validations": refinement.validations(),
+                "step_size": config.step_size.is_some(),
+                "kept_robots": self.options.kept_robots,
+            }),
         )
     }
 
