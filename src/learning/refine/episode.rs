@@ -40,7 +40,7 @@ pub(super) struct Gathered {
     /// Per agent ([`agent_index`]).
     pub transitions: [Vec<Transition>; 2],
     /// The step-size agent's (empty without one): one per decision of the policy, from the
-    /// LSTM's hidden state, with the episode's whole reward.
+    /// LSTM's hidden state, with the twin's whole reward and the progress shaping.
     pub step_transitions: Vec<Transition>,
 }
 
@@ -203,7 +203,7 @@ impl Refinement {
                             }
                             scale = explored;
                             let (h, _) = policy.lstm_state();
-                            let mut state_size = Transition {
+                            let opened = Transition {
                                 state: h.to_vec(),
                                 action: vec![u as f32],
                                 privileged: [x.to_vec(), critic_x.clone()].concat(),
@@ -211,13 +211,12 @@ impl Refinement {
                                 ..Transition::default()
                             };
                             if let Some((mut t, from_mm)) = pending_step.take() {
-                                t.next_state = state_size.state.clone();
-                                t.next_privileged = state_size.privileged.clone();
+                                t.next_state = opened.state.clone();
+                                t.next_privileged = opened.privileged.clone();
                                 t.reward += step.progress_reward(from_mm, &observation);
                                 gathered.step_transitions.push(t);
                             }
-                            state_size.reward = 0.0;
-                            pending_step = Some((state_size, distance_to_goal_mm(&observation)));
+                            pending_step = Some((opened, distance_to_goal_mm(&observation)));
                         }
                         let span = f64::from(scale) * limit;
                         let mut a: [f32; 3] = std::array::from_fn(|i| {

@@ -120,6 +120,8 @@ pub fn agent(
         coarse_trust_region: Some(step.coarse_trust_region),
         actor_learning_rate: step.learning_rate,
         exploration_noise: step.coarse_noise,
+        // Its loss is the zoned one; the demonstrations teach the actors, not the step size.
+        demo_regularisation: None,
         privileged_dim,
         ..td3
     };
