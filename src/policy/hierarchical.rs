@@ -181,7 +181,7 @@ pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
 /// How far the tip is past the bore's entrance by the estimate (mm; negative above it): P_z
 /// counts towards the seat, and the tip is the bore's depth below {M}'s origin at the
 /// shoulder.
-fn insertion_mm(observation: &Observation) -> f64 {
+pub(crate) fn insertion_mm(observation: &Observation) -> f64 {
     observation.state[8] + observation.cell.bore_depth_mm
 }
 

@@ -20,6 +20,7 @@
 //! they were (docs/learning.md).
 
 use crate::learning::td3::{Td3, Td3Config};
+use crate::policy::hierarchical::insertion_mm;
 use crate::sim::Observation;
 use candle_core::{Tensor, Var};
 use candle_nn::VarMap;
@@ -83,8 +84,7 @@ pub const COARSE_ABOVE_ENTRANCE_MM: f64 = 5.0;
 /// Whether the state is coarse: the tip more than [`COARSE_ABOVE_ENTRANCE_MM`] above the
 /// entrance, as the estimate sees it.
 pub fn is_coarse(observation: &Observation) -> bool {
-    let height_mm = -(observation.state[8] + observation.cell.bore_depth_mm);
-    height_mm > COARSE_ABOVE_ENTRANCE_MM
+    -insertion_mm(observation) > COARSE_ABOVE_ENTRANCE_MM
 }
 
 /// u for a step scale s: 2·s − 1.
@@ -131,16 +131,9 @@ pub fn agent(
 /// Writes the agent's actor back into the policy's head as its ω3 row (2·w, 2·b).
 pub fn sync(agent: &Td3, policy_vars: &VarMap) -> candle_core::Result<()> {
     let (weight, bias) = head(policy_vars)?;
-    let (w, b) = {
-        let data = agent.actor_vars().data().lock().expect("var map lock");
-        let get = |name: &str| -> candle_core::Result<Tensor> {
-            data.get(name)
-                .ok_or_else(|| candle_core::Error::Msg(format!("step agent has no `{name}`")))?
-                .as_tensor()
-                * 2.0
-        };
-        (get("actor.weight")?, get("actor.bias")?)
-    };
+    let actor = agent.actor_vars();
+    let w = (tensor(actor, "actor.weight", "step agent")? * 2.0)?;
+    let b = (tensor(actor, "actor.bias", "step agent")? * 2.0)?;
     let with_row = |t: &Tensor, row: &Tensor, axis: usize| -> candle_core::Result<Tensor> {
         Tensor::cat(&[&t.narrow(axis, 0, SCALE_ROW)?, row], axis)
     };
@@ -152,18 +145,20 @@ pub fn sync(agent: &Td3, policy_vars: &VarMap) -> candle_core::Result<()> {
 
 /// The head's weight [3, H] and bias [3].
 fn head(policy_vars: &VarMap) -> candle_core::Result<(Tensor, Tensor)> {
-    let data = policy_vars.data().lock().expect("var map lock");
-    let get = |name: &str| -> candle_core::Result<Tensor> {
-        data.get(name)
-            .ok_or_else(|| candle_core::Error::Msg(format!("policy has no `{name}`")))?
-            .as_tensor()
-            .copy()
-    };
-    let weight = get(HEAD_WEIGHT)?;
+    let weight = tensor(policy_vars, HEAD_WEIGHT, "policy")?;
     if weight.dims().len() != 2 || weight.dim(0)? != SCALE_ROW + 1 {
         candle_core::bail!("`{HEAD_WEIGHT}` is {:?}, not [3, H]", weight.dims());
     }
-    Ok((weight, get(HEAD_BIAS)?))
+    Ok((weight, tensor(policy_vars, HEAD_BIAS, "policy")?))
+}
+
+/// A copy of the tensor `name` of `vars` (`whose` names them in the error).
+fn tensor(vars: &VarMap, name: &str, whose: &str) -> candle_core::Result<Tensor> {
+    let data = vars.data().lock().expect("var map lock");
+    data.get(name)
+        .ok_or_else(|| candle_core::Error::Msg(format!("{whose} has no `{name}`")))?
+        .as_tensor()
+        .copy()
 }
 
 #[cfg(test)]
