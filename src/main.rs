@@ -5,6 +5,7 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
 use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, eval};
+use assembly_cell::sim::randomise::CellRanges;
 use assembly_cell::sim::{EnvOptions, Fault, InitialConditions};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -106,6 +107,12 @@ struct EvalArgs {
     /// Imperfections of the twin to switch off (comma-separated).
     #[arg(long, value_enum, value_delimiter = ',')]
     without: Vec<Imperfection>,
+    /// Run on cells drawn around --cell over the ranges the product is specified for, as
+    /// `celld train all --randomise-cells` draws them (docs/learning.md): each kept robot on a
+    /// cell of its own (with --robots 0, each episode), its camera noise and calibration error
+    /// drawn too. The draws come from --seed, so they are not the cells a training run saw.
+    #[arg(long, conflicts_with_all = ["noise_scale", "calibration_scale"])]
+    randomise_cells: bool,
     /// Print the summary as one JSON object on the last line.
     #[arg(long)]
     json: bool,
@@ -236,6 +243,14 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         }
         None => policy::builtin_factory(&args.controller, &cell).context("--controller")?,
     };
+    // On a drawn cell a built-in controller is made for that cell (the experts read its
+    // geometry); a policy file reads the cell from its observations.
+    let controller_for = |drawn: &CellConfig| -> Box<dyn policy::Controller> {
+        match &policy_file {
+            Some(_) => factory(),
+            None => policy::builtin(&args.controller, drawn).expect("checked above"),
+        }
+    };
     let options = EnvOptions {
         noise_scale: args.noise_scale,
         calibration_scale: args.calibration_scale,
@@ -249,20 +264,48 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         ProgressStyle::with_template("{bar:40} {pos}/{len} episodes  {elapsed} (eta {eta})")
             .expect("valid template"),
     );
-    let (summary, _) = eval::evaluate(&cell, options, args.episodes, args.seed, &factory, &|_| {
-        progress.inc(1)
-    });
+    let on_episode = |_: &eval::EpisodeReport| progress.inc(1);
+    let (summary, _) = if args.randomise_cells {
+        let ranges = CellRanges::default();
+        eval::evaluate_on_drawn_cells(
+            &cell,
+            &ranges,
+            options,
+            args.episodes,
+            args.seed,
+            &controller_for,
+            &on_episode,
+        )
+    } else {
+        eval::evaluate(
+            &cell,
+            options,
+            args.episodes,
+            args.seed,
+            &factory,
+            &on_episode,
+        )
+    };
     progress.finish_and_clear();
+    let (cells, noise, calibration) = match summary.drawn_cells {
+        Some(drawn) => (
+            format!("{drawn} cells drawn around {}", summary.cell),
+            "drawn".to_string(),
+            "drawn".to_string(),
+        ),
+        None => (
+            summary.cell.clone(),
+            summary.noise_scale.to_string(),
+            summary.calibration_scale.to_string(),
+        ),
+    };
     println!(
-        "{} on {}: {} episodes, seed {}, initial {} mm / {} deg, noise ×{}, calibration ×{}, fault {}, {}",
+        "{} on {cells}: {} episodes, seed {}, initial {} mm / {} deg, noise ×{noise}, calibration ×{calibration}, fault {}, {}",
         summary.controller,
-        summary.cell,
         summary.episodes,
         summary.seed,
         summary.init_pos_mm,
         summary.init_ori_deg,
-        summary.noise_scale,
-        summary.calibration_scale,
         summary.fault.as_deref().unwrap_or("none"),
         match summary.kept_robots {
             0 => "a new robot each episode".to_string(),

@@ -87,6 +87,45 @@ fn initial_conditions_and_switches_are_applied() {
     assert_eq!(summary["cell"], "phi200");
 }
 
+#[test]
+fn drawn_cells_are_named_and_repeat_under_a_seed() {
+    let args = [
+        "eval",
+        "--controller",
+        "expert",
+        "--randomise-cells",
+        "--robots",
+        "3",
+        "--episodes",
+        "6",
+        "--seed",
+        "4",
+        "--json",
+    ];
+    let output = celld(&args);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let mut summary = last_json(&output);
+    assert_eq!(summary["drawn_cells"], 3);
+    assert_eq!(summary["episodes"], 6);
+    let first = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        first.contains("on 3 cells drawn around phi170: 6 episodes")
+            && first.contains("noise ×drawn, calibration ×drawn"),
+        "{first}"
+    );
+    let mut again = last_json(&celld(&args));
+    summary["wall_s"] = 0.into();
+    again["wall_s"] = 0.into();
+    assert_eq!(summary, again, "same seed, same cells and episodes");
+    // One cell's summary says nothing of drawn cells.
+    let one = last_json(&celld(&["eval", "--episodes", "1", "--json"]));
+    assert!(one.get("drawn_cells").is_none(), "{one}");
+}
+
 fn refused(args: &[&str], needle: &str) {
     let output = celld(args);
     assert!(!output.status.success(), "{args:?} should fail");
@@ -112,6 +151,10 @@ fn bad_input_is_refused_with_a_message() {
     refused(
         &["eval", "--calibration-scale", "inf"],
         "--calibration-scale",
+    );
+    refused(
+        &["eval", "--randomise-cells", "--noise-scale", "2"],
+        "cannot be used with '--noise-scale",
     );
     refused(
         &["eval", "--fault", "gravity"],

@@ -2,6 +2,7 @@
 
 use super::Controller;
 use crate::config::cell::CellConfig;
+use crate::sim::randomise::{CellRanges, cell_for};
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome, PoseErrors};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -53,6 +54,11 @@ pub struct EvalSummary {
     pub avg_vetoes: f64,
     /// Failures counted by reason.
     pub failures: BTreeMap<String, usize>,
+    /// Cells drawn around `cell` when the episodes ran on drawn cells
+    /// ([`evaluate_on_drawn_cells`]); each cell's noise and calibration scales were drawn
+    /// with it, and `noise_scale` and `calibration_scale` above were not used.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drawn_cells: Option<usize>,
     pub wall_s: f64,
 }
 
@@ -161,35 +167,63 @@ pub fn evaluate(
     make_controller: &(dyn Fn() -> Box<dyn Controller> + Sync),
     on_episode: &(dyn Fn(&EpisodeReport) + Sync),
 ) -> (EvalSummary, Vec<EpisodeReport>) {
+    evaluate_on(
+        cell,
+        None,
+        options,
+        episodes,
+        seed,
+        &|_| make_controller(),
+        on_episode,
+    )
+}
+
+/// [`evaluate`] on cells drawn over `ranges` around `base`, as training with randomised cells
+/// draws them (`sim::randomise`): each kept robot on a cell of its own, or with
+/// `options.kept_robots` = 0 each episode. The camera noise and calibration error of each
+/// draw replace `options`'. `make_controller` builds a controller for a drawn cell. The seeds
+/// are an evaluation's, so the cells are not the ones a training run drew.
+pub fn evaluate_on_drawn_cells(
+    base: &CellConfig,
+    ranges: &CellRanges,
+    options: EnvOptions,
+    episodes: usize,
+    seed: u64,
+    make_controller: &(dyn Fn(&CellConfig) -> Box<dyn Controller> + Sync),
+    on_episode: &(dyn Fn(&EpisodeReport) + Sync),
+) -> (EvalSummary, Vec<EpisodeReport>) {
+    evaluate_on(
+        base,
+        Some(ranges),
+        options,
+        episodes,
+        seed,
+        make_controller,
+        on_episode,
+    )
+}
+
+fn evaluate_on(
+    cell: &CellConfig,
+    ranges: Option<&CellRanges>,
+    options: EnvOptions,
+    episodes: usize,
+    seed: u64,
+    make_controller: &(dyn Fn(&CellConfig) -> Box<dyn Controller> + Sync),
+    on_episode: &(dyn Fn(&EpisodeReport) + Sync),
+) -> (EvalSummary, Vec<EpisodeReport>) {
     let started = Instant::now();
-    let name = make_controller().name().to_string();
-    let run = |env: &mut AssemblyEnv, controller: &mut Box<dyn Controller>, index: usize| {
-        let report = run_episode(env, controller.as_mut(), index, episode_seed(seed, index));
-        on_episode(&report);
-        report
-    };
-    let reports: Vec<EpisodeReport> = if options.kept_robots == 0 {
-        (0..episodes)
-            .into_par_iter()
-            .map_init(
-                || (AssemblyEnv::new(cell, options), make_controller()),
-                |(env, controller), index| run(env, controller, index),
-            )
-            .collect()
-    } else {
-        let blocks: Vec<Vec<EpisodeReport>> = robot_blocks(options, episodes, seed)
-            .into_par_iter()
-            .map(|(kept, block)| {
-                let mut env = AssemblyEnv::new(cell, kept);
-                let mut controller = make_controller();
-                block
-                    .map(|index| run(&mut env, &mut controller, index))
-                    .collect()
-            })
-            .collect();
-        blocks.into_iter().flatten().collect()
-    };
-    let summary = summarise(
+    let name = make_controller(cell).name().to_string();
+    let reports = run_all(
+        cell,
+        options,
+        ranges,
+        episodes,
+        seed,
+        make_controller,
+        on_episode,
+    );
+    let mut summary = summarise(
         cell,
         options,
         seed,
@@ -197,7 +231,64 @@ pub fn evaluate(
         &reports,
         started.elapsed().as_secs_f64(),
     );
+    summary.drawn_cells = ranges.map(|_| match options.kept_robots {
+        0 => episodes,
+        robots => (robots as usize).clamp(1, episodes.max(1)),
+    });
     (summary, reports)
+}
+
+/// The episodes of an evaluation, on `cell` or on cells drawn over `ranges` around it.
+fn run_all(
+    cell: &CellConfig,
+    options: EnvOptions,
+    ranges: Option<&CellRanges>,
+    episodes: usize,
+    seed: u64,
+    make_controller: &(dyn Fn(&CellConfig) -> Box<dyn Controller> + Sync),
+    on_episode: &(dyn Fn(&EpisodeReport) + Sync),
+) -> Vec<EpisodeReport> {
+    let run = |env: &mut AssemblyEnv, controller: &mut Box<dyn Controller>, index: usize| {
+        let report = run_episode(env, controller.as_mut(), index, episode_seed(seed, index));
+        on_episode(&report);
+        report
+    };
+    if options.kept_robots == 0 {
+        return match ranges {
+            None => (0..episodes)
+                .into_par_iter()
+                .map_init(
+                    || (AssemblyEnv::new(cell, options), make_controller(cell)),
+                    |(env, controller), index| run(env, controller, index),
+                )
+                .collect(),
+            // A cell of its own for every episode, drawn from the episode's seed.
+            Some(_) => (0..episodes)
+                .into_par_iter()
+                .map(|index| {
+                    let (drawn, options) =
+                        cell_for(cell, &options, ranges, episode_seed(seed, index));
+                    run(
+                        &mut AssemblyEnv::new(&drawn, options),
+                        &mut make_controller(&drawn),
+                        index,
+                    )
+                })
+                .collect(),
+        };
+    }
+    let blocks: Vec<Vec<EpisodeReport>> = robot_blocks(options, episodes, seed)
+        .into_par_iter()
+        .map(|(kept, block)| {
+            let (cell, kept) = cell_for(cell, &kept, ranges, kept.robot_seed);
+            let mut env = AssemblyEnv::new(&cell, kept);
+            let mut controller = make_controller(&cell);
+            block
+                .map(|index| run(&mut env, &mut controller, index))
+                .collect()
+        })
+        .collect();
+    blocks.into_iter().flatten().collect()
 }
 
 fn summarise(
@@ -234,6 +325,7 @@ fn summarise(
         avg_reward: reports.iter().map(|r| r.reward).sum::<f64>() / n,
         avg_vetoes: reports.iter().map(|r| f64::from(r.vetoes)).sum::<f64>() / n,
         failures,
+        drawn_cells: None,
         wall_s,
     }
 }
@@ -247,5 +339,75 @@ mod tests {
         assert_eq!(episode_seed(7, 3), episode_seed(7, 3));
         assert_ne!(episode_seed(7, 3), episode_seed(7, 4));
         assert_ne!(episode_seed(7, 3), episode_seed(8, 3));
+    }
+
+    /// Runs `episodes` episodes of `expert` on drawn cells; returns the summary and the bore
+    /// diameter (mm) of every cell a controller was made for.
+    fn on_drawn_cells(kept_robots: u32, episodes: usize) -> (EvalSummary, Vec<f64>) {
+        let base = CellConfig::reference();
+        let options = EnvOptions {
+            kept_robots,
+            ..EnvOptions::from_cell(&base)
+        };
+        let made_for = std::sync::Mutex::new(Vec::new());
+        let make = |cell: &CellConfig| -> Box<dyn Controller> {
+            made_for.lock().unwrap().push(cell.bore.diameter_mm);
+            Box::new(crate::policy::expert::Expert::new(cell))
+        };
+        let (summary, reports) = evaluate_on_drawn_cells(
+            &base,
+            &CellRanges::default(),
+            options,
+            episodes,
+            5,
+            &make,
+            &|_| {},
+        );
+        assert_eq!(reports.len(), episodes);
+        let mut diameters = made_for.into_inner().unwrap();
+        // The first controller is made on the base cell, for its name.
+        assert_eq!(diameters.remove(0), base.bore.diameter_mm);
+        diameters.sort_by(f64::total_cmp);
+        (summary, diameters)
+    }
+
+    /// The draws `sim::randomise` makes from `seeds`, as sorted bore diameters (mm).
+    fn drawn_diameters(seeds: impl Iterator<Item = u64>) -> Vec<f64> {
+        let base = CellConfig::reference();
+        let options = EnvOptions::from_cell(&base);
+        let mut diameters: Vec<f64> = seeds
+            .map(|seed| {
+                let (cell, _) = cell_for(&base, &options, Some(&CellRanges::default()), seed);
+                cell.bore.diameter_mm
+            })
+            .collect();
+        diameters.sort_by(f64::total_cmp);
+        diameters
+    }
+
+    #[test]
+    fn each_kept_robot_runs_on_the_cell_its_seed_draws() {
+        let (summary, diameters) = on_drawn_cells(3, 6);
+        assert_eq!(summary.drawn_cells, Some(3));
+        assert_eq!(diameters, drawn_diameters((0..3).map(|r| robot_seed(5, r))));
+        assert!(diameters.iter().all(|d| (100.0..=250.0).contains(d)));
+        assert!(diameters.windows(2).all(|pair| pair[0] != pair[1]));
+        assert!(summary.successes >= 5, "expert on drawn cells: {summary:?}");
+    }
+
+    #[test]
+    fn without_kept_robots_every_episode_runs_on_a_cell_of_its_own() {
+        let (summary, diameters) = on_drawn_cells(0, 4);
+        assert_eq!(summary.drawn_cells, Some(4));
+        assert_eq!(
+            diameters,
+            drawn_diameters((0..4).map(|i| episode_seed(5, i)))
+        );
+        let (again, _) = on_drawn_cells(0, 4);
+        assert_eq!(
+            (again.successes, again.avg_steps_all, again.avg_reward),
+            (summary.successes, summary.avg_steps_all, summary.avg_reward),
+            "the same seed runs the same episodes"
+        );
     }
 }
