@@ -8,7 +8,8 @@
 //! - Table 5: avg steps, avg reward and success of every controller on the reference cell.
 //! - Table 6: the same on phi200, without retraining.
 //! - Generalisation: success and avg steps of every controller on phi170, phi200 and the
-//!   [`GENERALISATION_CELLS`], none of them used in training.
+//!   [`GENERALISATION_CELLS`], none of them used in training, and on cells drawn over the
+//!   specified ranges (one for every ten episodes).
 //! - Mismatch: success, avg steps and contacts of every Table 5 controller when the twin departs
 //!   from the cell file: camera noise ×0.5 to ×4, calibration error ×1 to ×3, and each injected
 //!   fault (`sim::fault`).
