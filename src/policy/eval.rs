@@ -130,6 +130,12 @@ pub fn robot_seed(seed: u64, index: usize) -> u64 {
     episode_seed(seed ^ 0x0B07_C0DE_5EED_0001, index)
 }
 
+/// How many of `kept_robots` (≥ 1) share `episodes` episodes: at least one, and no more than
+/// there are episodes.
+fn robots_of(kept_robots: u32, episodes: usize) -> usize {
+    (kept_robots as usize).clamp(1, episodes.max(1))
+}
+
 /// The kept robots of `episodes` episodes seeded with `seed` (`options.kept_robots` ≥ 1): each
 /// robot's options and the consecutive block of episode indices it runs in order.
 pub fn robot_blocks(
@@ -137,7 +143,7 @@ pub fn robot_blocks(
     episodes: usize,
     seed: u64,
 ) -> Vec<(EnvOptions, std::ops::Range<usize>)> {
-    let robots = (options.kept_robots as usize).clamp(1, episodes.max(1));
+    let robots = robots_of(options.kept_robots, episodes);
     (0..robots)
         .map(|robot| {
             let kept = EnvOptions {
@@ -233,7 +239,7 @@ fn evaluate_on(
     );
     summary.drawn_cells = ranges.map(|_| match options.kept_robots {
         0 => episodes,
-        robots => (robots as usize).clamp(1, episodes.max(1)),
+        kept => robots_of(kept, episodes),
     });
     (summary, reports)
 }
