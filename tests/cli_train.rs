@@ -195,6 +195,35 @@ fn a_run_across_randomised_cells_is_deterministic_and_writes_a_cell_relative_pol
         "{}",
         stderr(&absolute)
     );
+    // The noise of drawn cells may be widened, within reason, and only for drawn cells.
+    let alone = train(
+        "all",
+        &dir.path().join("c"),
+        &["--randomise-noise-up-to", "4"],
+    );
+    assert!(!alone.status.success());
+    assert!(
+        stderr(&alone).contains("--randomise-noise-up-to draws the camera noise of drawn cells"),
+        "{}",
+        stderr(&alone)
+    );
+    let beyond = train(
+        "all",
+        &dir.path().join("c"),
+        &[
+            "--inputs",
+            "cell-scaled",
+            "--randomise-cells",
+            "--randomise-noise-up-to",
+            "40",
+        ],
+    );
+    assert!(!beyond.status.success());
+    assert!(
+        stderr(&beyond).contains("--randomise-noise-up-to 40 is outside 0.5..=16"),
+        "{}",
+        stderr(&beyond)
+    );
     let unknown = train("all", &dir.path().join("c"), &["--inputs", "pixels"]);
     assert!(!unknown.status.success());
     assert!(

@@ -103,9 +103,14 @@ pub struct TrainArgs {
     /// Run every demonstration, DAgger and TD3 episode on a cell of its own, drawn around --cell
     /// over the ranges the product is specified for (diameter 100-250 mm, clearance 0.03-0.1
     /// mm, depth 40-100 mm, 4-16 holes, robot size, camera placement and latency, camera noise
-    /// 0.5-2x, calibration error 0-3x). Needs --inputs cell-relative or cell-scaled.
+    /// 0.5-2x unless --randomise-noise-up-to, calibration error 0-3x). Needs --inputs
+    /// cell-relative or cell-scaled.
     #[arg(long)]
     randomise_cells: bool,
+    /// With --randomise-cells: the camera noise is drawn from 0.5 times the data sheet's up to
+    /// this multiple (default 2; at most 16).
+    #[arg(long, value_name = "SCALE")]
+    randomise_noise_up_to: Option<f64>,
     /// Robots the DAgger and TD3 episodes (and TD3's validations) are shared among, each in
     /// its own cell that remembers its drift from one episode to the next, as a cell keeps its
     /// robot (`celld eval --robots`); 0: every episode on a robot new to the cell. The
@@ -259,6 +264,16 @@ pub struct TrainArgs {
     /// Hidden width of the flat baseline's actor and critics (`train flat`).
     #[arg(long, default_value_t = Td3Config::default().hidden)]
     flat_hidden: usize,
+}
+
+impl TrainArgs {
+    /// The ranges drawn cells come from: the product's, with the camera noise up to
+    /// `--randomise-noise-up-to` when it is given.
+    fn ranges(&self) -> CellRanges {
+        let ranges = CellRanges::default();
+        self.randomise_noise_up_to
+            .map_or(ranges, |up_to| ranges.with_noise_up_to(up_to))
+    }
 }
 
 /// Expert episodes `celld train` records (and each DAgger round drives) by default. The HTTP
@@ -482,6 +497,17 @@ impl Run {
                  reads the absolute pose cannot tell the drawn cells apart"
             );
         }
+        if let Some(up_to) = args.randomise_noise_up_to {
+            if !args.randomise_cells {
+                bail!(
+                    "--randomise-noise-up-to draws the camera noise of drawn cells: it needs --randomise-cells"
+                );
+            }
+            let low = CellRanges::default().noise_scale.0;
+            if !(up_to.is_finite() && (low..=16.0).contains(&up_to)) {
+                bail!("--randomise-noise-up-to {up_to} is outside {low}..=16");
+            }
+        }
         if let Some(path) = &args.demos_file
             && !path.is_file()
         {
@@ -587,7 +613,7 @@ impl Run {
                 lateral_mm: self.args.demo_lateral_noise_mm,
             },
             inputs: self.inputs,
-            randomise: self.args.randomise_cells.then(CellRanges::default),
+            randomise: self.args.randomise_cells.then(|| self.args.ranges()),
         }
     }
 
