@@ -117,5 +117,14 @@ function evaluationText(evaluation) {
     return `${evaluation.status}${evaluation.error ? `: ${evaluation.error}` : ''} (${evaluation.episodes} episodes)`;
   }
   const failures = Object.entries(evaluation.failures || {}).map(([why, n]) => `${why} ${n}`).join(', ');
-  return `success ${percent(evaluation.success_rate)}, ${fmt(evaluation.avg_steps, 1)} steps on average, ${evaluation.episodes} episodes (seed ${evaluation.seed}, cell ${evaluation.cell_hash})${failures ? `; failures: ${failures}` : ''}`;
+  return `success ${percent(evaluation.success_rate)}, ${fmt(evaluation.avg_steps, 1)} steps on average, ${evaluation.episodes} episodes (seed ${evaluation.seed}, ${conditions(evaluation)})${failures ? `; failures: ${failures}` : ''}`;
+}
+
+/** What an evaluation ran on: this cell (and any mismatch), or cells drawn around it. */
+function conditions(evaluation) {
+  const parts = [evaluation.randomise_cells ? `cells drawn around cell ${evaluation.cell_hash}` : `cell ${evaluation.cell_hash}`];
+  if (!evaluation.randomise_cells && evaluation.noise_scale !== 1) parts.push(`camera noise ×${evaluation.noise_scale}`);
+  if (!evaluation.randomise_cells && evaluation.calibration_scale !== 1) parts.push(`calibration error ×${evaluation.calibration_scale}`);
+  if (evaluation.fault) parts.push(`fault ${evaluation.fault}`);
+  return parts.join(', ');
 }

@@ -249,6 +249,8 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     browser.wait_until("policy 2 with its evaluation", WAIT, |b| {
         b.exists("tr[data-policy-id='2']")
     });
+    let row = text_of(&browser, "tr[data-policy-id='2']");
+    assert!(row.contains("200 episodes (seed 1, cell "), "{row}");
     js(&browser, "window.prompt = () => null;");
     browser
         .find("tr[data-policy-id='2'] button:last-child")

@@ -2,6 +2,7 @@
 
 mod serve_support;
 
+use assembly_cell::policy::eval;
 use serde_json::{Map, Value, json};
 use serve_support::Server;
 use std::time::Duration;
@@ -9,6 +10,7 @@ use std::time::Duration;
 const BUNDLED: &[u8] = include_bytes!("../policies/default.safetensors");
 const BC: &[u8] = include_bytes!("../policies/bc.safetensors");
 const TD3: &[u8] = include_bytes!("../policies/td3.safetensors");
+const ACROSS_CELLS: &[u8] = include_bytes!("../policies/across-cells.safetensors");
 
 fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value) {
     server.post_raw(
@@ -128,6 +130,40 @@ fn upload_evaluate_activate_and_roll_back() {
     assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
     assert_eq!(evaluated["evaluation"]["fault"], "occlusion");
 
+    // On drawn cells: the cells' noise and calibration are drawn, so neither may be given.
+    let (status, refused) = server.post(
+        &evaluate,
+        Some(&admin),
+        Some(json!({"randomise_cells": true, "noise_scale": 2})),
+    );
+    assert_eq!(status, 422, "{refused}");
+    let message = refused["error"]["message"].as_str().unwrap();
+    assert!(message.contains("leave out noise_scale"), "{message}");
+    let (status, across) = upload(&server, &admin, "across-cells", ACROSS_CELLS);
+    assert_eq!(status, 201, "{across}");
+    let across_id = across["id"].as_i64().unwrap();
+    let (status, evaluation) = server.post(
+        &format!("/api/policies/{across_id}/evaluate"),
+        Some(&admin),
+        Some(json!({"episodes": 4, "seed": 5, "randomise_cells": true})),
+    );
+    assert_eq!(status, 202, "{evaluation}");
+    assert_eq!(evaluation["randomise_cells"], true);
+    let evaluated = server.wait_evaluated(across_id, EVALUATION);
+    let result = &evaluated["evaluation"];
+    assert_eq!(result["status"], "done", "{evaluated}");
+    // The same as `celld eval --randomise-cells` runs on this cell, episode for episode.
+    let expected = drawn_cells_summary(ACROSS_CELLS, 4, 5);
+    assert_eq!(result["success_rate"], expected.success_rate, "{result}");
+    assert_eq!(result["avg_steps"], json!(expected.avg_steps), "{result}");
+    // The gate reads no evaluation on drawn cells.
+    let (status, refused) = server.post(
+        &format!("/api/policies/{across_id}/activate"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 409, "{refused}");
+
     // The gate reads the evaluation without a mismatch.
     let (status, activated) = server.post(
         &format!("/api/policies/{bc_id}/activate"),
@@ -164,6 +200,34 @@ fn upload_evaluate_activate_and_roll_back() {
     assert_eq!(back["retired"], bundled_id);
     let job = server.create_job(&admin, json!({"controller": "active"}));
     assert_eq!(job["policy_id"], bc_id);
+}
+
+/// `celld eval --controller FILE --randomise-cells --episodes N --seed S` on the reference cell,
+/// in process.
+fn drawn_cells_summary(bytes: &[u8], episodes: usize, seed: u64) -> eval::EvalSummary {
+    use assembly_cell::config::cell::CellConfig;
+    use assembly_cell::policy::learned::LearnedPolicy;
+    use assembly_cell::sim::EnvOptions;
+    use assembly_cell::sim::randomise::CellRanges;
+    let policy = LearnedPolicy::from_bytes(bytes).unwrap();
+    let cell = CellConfig::reference();
+    let options = EnvOptions {
+        kept_robots: eval::DEFAULT_KEPT_ROBOTS,
+        ..EnvOptions::from_cell(&cell)
+    };
+    let controller =
+        |_: &CellConfig| Box::new(policy.clone()) as Box<dyn assembly_cell::policy::Controller>;
+    let ranges = CellRanges::default();
+    eval::evaluate_on_drawn_cells(
+        &cell,
+        &ranges,
+        options,
+        episodes,
+        seed,
+        &controller,
+        &|_| {},
+    )
+    .0
 }
 
 #[test]

@@ -5,7 +5,7 @@ use super::Context;
 use super::auth::Auth;
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
 use crate::sim::{Fault, Mismatch, UnknownFault};
-use crate::storage::policies::{self, Evaluation, Policy};
+use crate::storage::policies::{self, EvaluatedOn, Evaluation, Policy};
 use crate::storage::tokens::Role;
 use crate::workflows;
 use axum::body::Bytes;
@@ -143,6 +143,11 @@ pub struct EvaluateBody {
     /// A fault injected in every episode from a step drawn in 5..=35 (default none).
     #[serde(default, deserialize_with = "optional_fault")]
     fault: Option<Fault>,
+    /// Run on cells drawn around this one over the ranges the product is specified for, as
+    /// `celld eval --randomise-cells`: each kept robot on a cell of its own, its camera noise and
+    /// calibration error drawn too, so `noise_scale` and `calibration_scale` must be left out
+    /// (default false).
+    randomise_cells: Option<bool>,
 }
 
 /// A fault by name; an unknown one is refused naming the field and the names there are.
@@ -159,8 +164,9 @@ fn optional_fault<'de, D: serde::Deserializer<'de>>(
 
 /// Evaluates the policy in the twin of this cell (admin), in the background at low priority;
 /// the answer is the evaluation as it starts. The body may be left out. An evaluation under a
-/// mismatch (`noise_scale` or `calibration_scale` other than 1, or a `fault`) is stored and
-/// shown like any other, but the activation gate reads only those without one.
+/// mismatch (`noise_scale` or `calibration_scale` other than 1, or a `fault`) or on drawn cells
+/// (`randomise_cells`) is stored and shown like any other, but the activation gate reads only
+/// those on this cell without a mismatch.
 #[utoipa::path(post, path = "/api/policies/{id}/evaluate", tag = "policies",
     params(("id" = i64, Path)), request_body(content = Option<EvaluateBody>),
     responses((status = 202, description = "Started", body = Evaluation)))]
@@ -172,20 +178,24 @@ async fn evaluate(
 ) -> ApiResult<(StatusCode, Json<Evaluation>)> {
     let caller = auth.require(Role::Admin)?;
     let body: EvaluateBody = optional_body(&body)?;
-    let mismatch = Mismatch {
-        noise_scale: body.noise_scale.unwrap_or(1.0),
-        calibration_scale: body.calibration_scale.unwrap_or(1.0),
-        fault: body.fault,
+    let on = if body.randomise_cells.unwrap_or(false) {
+        if body.noise_scale.is_some() || body.calibration_scale.is_some() {
+            return Err(ApiError::unprocessable(
+                "randomise_cells draws each cell's camera noise and calibration error: \
+                 leave out noise_scale and calibration_scale",
+            ));
+        }
+        EvaluatedOn::DrawnCells { fault: body.fault }
+    } else {
+        EvaluatedOn::Cell(Mismatch {
+            noise_scale: body.noise_scale.unwrap_or(1.0),
+            calibration_scale: body.calibration_scale.unwrap_or(1.0),
+            fault: body.fault,
+        })
     };
-    let evaluation = workflows::policies::evaluate(
-        &context,
-        id,
-        body.episodes,
-        body.seed,
-        mismatch,
-        &caller.name,
-    )
-    .await?;
+    let evaluation =
+        workflows::policies::evaluate(&context, id, body.episodes, body.seed, on, &caller.name)
+            .await?;
     Ok((StatusCode::ACCEPTED, Json(evaluation)))
 }
 

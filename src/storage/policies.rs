@@ -2,7 +2,7 @@
 //! `active` or `retired`; evaluations in the twin, which the activation gate reads.
 
 use super::{Db, DbError, NOW, json_column};
-use crate::sim::Mismatch;
+use crate::sim::{Fault, Mismatch};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -39,6 +39,9 @@ pub struct Evaluation {
     /// The fault injected in every episode, if any.
     #[schema(value_type = Option<crate::sim::Fault>)]
     pub fault: Option<String>,
+    /// Run on cells drawn around this cell (each kept robot on its own, its noise and
+    /// calibration drawn too) rather than on the cell itself.
+    pub randomise_cells: bool,
     pub success_rate: Option<f64>,
     pub avg_steps: Option<f64>,
     pub failures: Value,
@@ -46,6 +49,15 @@ pub struct Evaluation {
     pub requested_by: String,
     pub started_at: String,
     pub finished_at: Option<String>,
+}
+
+/// What an evaluation runs on: this cell's twin under a mismatch, or cells drawn around it over
+/// the ranges the product is specified for (their noise and calibration drawn too; a fault may
+/// still be injected).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum EvaluatedOn {
+    Cell(Mismatch),
+    DrawnCells { fault: Option<Fault> },
 }
 
 /// What an upload stores.
@@ -70,6 +82,7 @@ struct EvaluationRow {
     noise_scale: f64,
     calibration_scale: f64,
     fault: Option<String>,
+    randomise_cells: bool,
     success_rate: Option<f64>,
     avg_steps: Option<f64>,
     failures: Option<String>,
@@ -92,6 +105,7 @@ impl From<EvaluationRow> for Evaluation {
             noise_scale: row.noise_scale,
             calibration_scale: row.calibration_scale,
             fault: row.fault,
+            randomise_cells: row.randomise_cells,
             success_rate: row.success_rate,
             avg_steps: row.avg_steps,
             failures: json_column(row.failures),
@@ -246,13 +260,23 @@ pub async fn start_evaluation(
     episodes: i64,
     seed: u64,
     cell_hash: &str,
-    mismatch: &Mismatch,
+    on: &EvaluatedOn,
     requested_by: &str,
 ) -> Result<Evaluation, DbError> {
+    let (mismatch, randomise_cells) = match on {
+        EvaluatedOn::Cell(mismatch) => (*mismatch, false),
+        EvaluatedOn::DrawnCells { fault } => (
+            Mismatch {
+                fault: *fault,
+                ..Mismatch::NONE
+            },
+            true,
+        ),
+    };
     let row: EvaluationRow = sqlx::query_as(
         "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, noise_scale,
-                calibration_scale, fault, requested_by)
-         VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?) RETURNING *",
+                calibration_scale, fault, randomise_cells, requested_by)
+         VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
     )
     .bind(policy_id)
     .bind(episodes)
@@ -261,6 +285,7 @@ pub async fn start_evaluation(
     .bind(mismatch.noise_scale)
     .bind(mismatch.calibration_scale)
     .bind(mismatch.fault.map(|f| f.code()))
+    .bind(randomise_cells)
     .bind(requested_by)
     .fetch_one(&db.writer)
     .await?;
@@ -332,6 +357,7 @@ pub async fn latest_evaluation_on(
     let row: Option<EvaluationRow> = sqlx::query_as(
         "SELECT * FROM policy_evaluations WHERE policy_id = ? AND cell_hash = ? AND status = 'done'
                 AND noise_scale = 1 AND calibration_scale = 1 AND fault IS NULL
+                AND randomise_cells = 0
          ORDER BY id DESC LIMIT 1",
     )
     .bind(policy_id)
@@ -385,15 +411,24 @@ mod tests {
         assert_eq!(status(&empty, only).await, "active");
     }
 
-    /// The activation gate reads only evaluations under the twin as the cell file says.
+    /// The activation gate reads only evaluations on the cell's own twin as its file says: none
+    /// under a mismatch, none on drawn cells.
     #[tokio::test]
     async fn the_gate_reads_no_evaluation_under_a_mismatch() {
         let dir = tempfile::tempdir().unwrap();
         let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
         let id = store(&db, "policy").await;
-        let nominal = start_evaluation(&db, id, 10, 1, "cell", &Mismatch::NONE, "test")
-            .await
-            .unwrap();
+        let nominal = start_evaluation(
+            &db,
+            id,
+            10,
+            1,
+            "cell",
+            &EvaluatedOn::Cell(Mismatch::NONE),
+            "test",
+        )
+        .await
+        .unwrap();
         assert_eq!(nominal.noise_scale, 1.0);
         assert_eq!(nominal.fault, None);
         finish_evaluation(&db, nominal.id, Ok((0.99, Some(40.0), json!({}))))
@@ -404,9 +439,10 @@ mod tests {
             calibration_scale: 3.0,
             fault: Some(crate::sim::Fault::FrozenCamera),
         };
-        let mismatched = start_evaluation(&db, id, 10, 1, "cell", &faulty, "test")
-            .await
-            .unwrap();
+        let mismatched =
+            start_evaluation(&db, id, 10, 1, "cell", &EvaluatedOn::Cell(faulty), "test")
+                .await
+                .unwrap();
         finish_evaluation(&db, mismatched.id, Ok((0.5, None, json!({}))))
             .await
             .unwrap();
@@ -414,6 +450,17 @@ mod tests {
         assert_eq!(latest.id, mismatched.id);
         assert_eq!((latest.noise_scale, latest.calibration_scale), (2.0, 3.0));
         assert_eq!(latest.fault.as_deref(), Some("frozen_camera"));
+        assert!(!latest.randomise_cells);
+        let drawn = EvaluatedOn::DrawnCells { fault: None };
+        let across = start_evaluation(&db, id, 10, 1, "cell", &drawn, "test")
+            .await
+            .unwrap();
+        finish_evaluation(&db, across.id, Ok((1.0, Some(30.0), json!({}))))
+            .await
+            .unwrap();
+        let latest = latest_evaluation(&db, id).await.unwrap().unwrap();
+        assert_eq!(latest.id, across.id);
+        assert!(latest.randomise_cells);
         let gate = latest_evaluation_on(&db, id, "cell")
             .await
             .unwrap()

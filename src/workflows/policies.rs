@@ -5,8 +5,9 @@ use super::{Context, Error, Result, off_the_runtime};
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
 use crate::policy::{Controller, ControllerFactory};
+use crate::sim::randomise::CellRanges;
 use crate::sim::{EnvOptions, Mismatch};
-use crate::storage::policies::{self, Evaluation, NewPolicy, Policy};
+use crate::storage::policies::{self, EvaluatedOn, Evaluation, NewPolicy, Policy};
 use crate::storage::{Db, audit, tokens};
 use serde_json::{Value, json};
 use std::sync::Arc;
@@ -74,14 +75,14 @@ pub async fn upload(
 }
 
 /// An evaluation an admin asked for: `episodes` (default: `policies.evaluation_episodes`),
-/// `seed` (default 1) and the twin's `mismatch` (noise and calibration scales in
-/// 0..=[`MAX_MISMATCH_SCALE`]) checked, the evaluation started and audited.
+/// `seed` (default 1) and what it runs on (on this cell, the twin's mismatch: noise and
+/// calibration scales in 0..=[`MAX_MISMATCH_SCALE`]) checked, the evaluation started and audited.
 pub async fn evaluate(
     context: &Context,
     id: i64,
     episodes: Option<u32>,
     seed: Option<u64>,
-    mismatch: Mismatch,
+    on: EvaluatedOn,
     by: &str,
 ) -> Result<Evaluation> {
     find(context, id).await?;
@@ -91,6 +92,10 @@ pub async fn evaluate(
             "episodes = {episodes} is outside 1..={MAX_EVALUATION_EPISODES}"
         )));
     }
+    let mismatch = match on {
+        EvaluatedOn::Cell(mismatch) => mismatch,
+        EvaluatedOn::DrawnCells { .. } => Mismatch::NONE,
+    };
     for (field, value) in [
         ("noise_scale", mismatch.noise_scale),
         ("calibration_scale", mismatch.calibration_scale),
@@ -101,8 +106,7 @@ pub async fn evaluate(
             )));
         }
     }
-    let evaluation =
-        spawn_evaluation(context, id, episodes, seed.unwrap_or(1), mismatch, by).await?;
+    let evaluation = spawn_evaluation(context, id, episodes, seed.unwrap_or(1), on, by).await?;
     audit::record(
         &context.db,
         by,
@@ -112,21 +116,22 @@ pub async fn evaluate(
             "evaluation_id": evaluation.id,
             "episodes": episodes,
             "mismatch": mismatch,
+            "randomise_cells": matches!(on, EvaluatedOn::DrawnCells { .. }),
         }),
     )
     .await?;
     Ok(evaluation)
 }
 
-/// Starts an evaluation of policy `id` on the cell's twin, departing from the cell file by
-/// `mismatch`, in the background and returns its record. It runs on one low-priority thread of
-/// its own, so a running job keeps its timing.
+/// Starts an evaluation of policy `id` on the cell's twin, departing from the cell file by a
+/// mismatch, or on cells drawn around it, in the background and returns its record. It runs on
+/// one low-priority thread of its own, so a running job keeps its timing.
 pub async fn spawn_evaluation(
     context: &Context,
     id: i64,
     episodes: u32,
     seed: u64,
-    mismatch: Mismatch,
+    on: EvaluatedOn,
     requested_by: &str,
 ) -> Result<Evaluation> {
     let cell = context.cell_config.clone();
@@ -136,7 +141,7 @@ pub async fn spawn_evaluation(
         i64::from(episodes),
         seed,
         &cell.config_hash(),
-        &mismatch,
+        &on,
         requested_by,
     )
     .await?;
@@ -149,8 +154,6 @@ pub async fn spawn_evaluation(
         let work = tokio::task::spawn_blocking(move || -> std::result::Result<_, String> {
             let file = LearnedPolicyFile::from_bytes(&bytes).map_err(|e| e.to_string())?;
             let policy = LearnedPolicy::from_file(&file).map_err(|e| e.to_string())?;
-            let factory: ControllerFactory =
-                Box::new(move || Box::new(policy.clone()) as Box<dyn Controller>);
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(1)
                 .start_handler(|_| crate::cell::task::lower_priority())
@@ -162,14 +165,30 @@ pub async fn spawn_evaluation(
                     kept_robots: eval::DEFAULT_KEPT_ROBOTS,
                     ..EnvOptions::from_cell(&cell)
                 };
-                eval::evaluate(
-                    &cell,
-                    mismatch.apply(kept),
-                    episodes as usize,
-                    seed,
-                    &factory,
-                    &|_| {},
-                )
+                match on {
+                    EvaluatedOn::Cell(mismatch) => {
+                        let factory: ControllerFactory =
+                            Box::new(move || Box::new(policy.clone()) as Box<dyn Controller>);
+                        eval::evaluate(
+                            &cell,
+                            mismatch.apply(kept),
+                            episodes as usize,
+                            seed,
+                            &factory,
+                            &|_| {},
+                        )
+                    }
+                    // A learned policy reads each drawn cell from its observations.
+                    EvaluatedOn::DrawnCells { fault } => eval::evaluate_on_drawn_cells(
+                        &cell,
+                        &CellRanges::default(),
+                        EnvOptions { fault, ..kept },
+                        episodes as usize,
+                        seed,
+                        &|_| Box::new(policy.clone()) as Box<dyn Controller>,
+                        &|_| {},
+                    ),
+                }
             });
             Ok((
                 summary.success_rate,
@@ -283,8 +302,15 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
         return Ok(());
     }
     let episodes = context.settings.policies.evaluation_episodes;
-    let evaluation =
-        spawn_evaluation(context, policy.id, episodes, 1, Mismatch::NONE, "celld").await?;
+    let evaluation = spawn_evaluation(
+        context,
+        policy.id,
+        episodes,
+        1,
+        EvaluatedOn::Cell(Mismatch::NONE),
+        "celld",
+    )
+    .await?;
     let (context, threshold) = (
         context.clone(),
         context.settings.policies.activation_threshold,
