@@ -113,6 +113,10 @@ struct EvalArgs {
     /// drawn too. The draws come from --seed, so they are not the cells a training run saw.
     #[arg(long, conflicts_with_all = ["noise_scale", "calibration_scale"])]
     randomise_cells: bool,
+    /// With --randomise-cells: the camera noise is drawn from 0.5 times the data sheet's up to
+    /// this multiple (default 2, as training draws it; at most 16).
+    #[arg(long, value_name = "SCALE", requires = "randomise_cells")]
+    randomise_noise_up_to: Option<f64>,
     /// Print the summary as one JSON object on the last line.
     #[arg(long)]
     json: bool,
@@ -233,6 +237,8 @@ fn run_eval(args: EvalArgs) -> Result<()> {
             args.calibration_scale
         );
     }
+    let ranges = CellRanges::drawn(args.randomise_noise_up_to)
+        .map_err(|e| anyhow::anyhow!("--randomise-noise-up-to {e}"))?;
     // Fail on an unknown name or a bad policy file before any work starts.
     let policy_file = controller_file(&args.controller);
     let factory: policy::ControllerFactory = match &policy_file {
@@ -266,7 +272,6 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     );
     let on_episode = |_: &eval::EpisodeReport| progress.inc(1);
     let (summary, _) = if args.randomise_cells {
-        let ranges = CellRanges::default();
         eval::evaluate_on_drawn_cells(
             &cell,
             &ranges,
@@ -290,8 +295,11 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let (cells, noise, calibration) = match summary.drawn_cells {
         Some(drawn) => (
             format!("{drawn} cells drawn around {}", summary.cell),
-            "drawn".to_string(),
-            "drawn".to_string(),
+            format!("{}–{} drawn", ranges.noise_scale.0, ranges.noise_scale.1),
+            format!(
+                "{}–{} drawn",
+                ranges.calibration_scale.0, ranges.calibration_scale.1
+            ),
         ),
         None => (
             summary.cell.clone(),

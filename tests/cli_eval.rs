@@ -114,13 +114,20 @@ fn drawn_cells_are_named_and_repeat_under_a_seed() {
     let first = String::from_utf8_lossy(&output.stdout);
     assert!(
         first.contains("on 3 cells drawn around phi170: 6 episodes")
-            && first.contains("noise ×drawn, calibration ×drawn"),
+            && first.contains("noise ×0.5–2 drawn, calibration ×0–3 drawn"),
         "{first}"
     );
     let mut again = last_json(&celld(&args));
     summary["wall_s"] = 0.into();
     again["wall_s"] = 0.into();
     assert_eq!(summary, again, "same seed, same cells and episodes");
+    // The same cells with their camera noise drawn up to four times the data sheet's.
+    let wider_args = [&args[..], &["--randomise-noise-up-to", "4"]].concat();
+    let wider = celld(&wider_args);
+    assert!(String::from_utf8_lossy(&wider.stdout).contains("noise ×0.5–4 drawn"));
+    let wider = last_json(&wider);
+    assert_eq!(wider["drawn_cells"], 3);
+    assert_ne!(wider["avg_steps"], summary["avg_steps"], "{wider}");
     // One cell's summary says nothing of drawn cells.
     let one = last_json(&celld(&["eval", "--episodes", "1", "--json"]));
     assert!(one.get("drawn_cells").is_none(), "{one}");
@@ -155,6 +162,19 @@ fn bad_input_is_refused_with_a_message() {
     refused(
         &["eval", "--randomise-cells", "--noise-scale", "2"],
         "cannot be used with '--noise-scale",
+    );
+    refused(
+        &["eval", "--randomise-noise-up-to", "4"],
+        "--randomise-cells",
+    );
+    refused(
+        &[
+            "eval",
+            "--randomise-cells",
+            "--randomise-noise-up-to",
+            "0.2",
+        ],
+        "--randomise-noise-up-to 0.2 is outside 0.5..=16",
     );
     refused(
         &["eval", "--fault", "gravity"],

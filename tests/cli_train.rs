@@ -203,7 +203,7 @@ fn a_run_across_randomised_cells_is_deterministic_and_writes_a_cell_relative_pol
     );
     assert!(!alone.status.success());
     assert!(
-        stderr(&alone).contains("--randomise-noise-up-to draws the camera noise of drawn cells"),
+        stderr(&alone).contains("required arguments were not provided:\n  --randomise-cells"),
         "{}",
         stderr(&alone)
     );

@@ -65,13 +65,38 @@ impl Default for CellRanges {
     }
 }
 
+/// The most camera noise drawn cells may be given (× the data sheet's).
+pub const MAX_NOISE_UP_TO: f64 = 16.0;
+
+/// A top of the camera noise range below its bottom or above [`MAX_NOISE_UP_TO`].
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("{up_to} is outside {low}..={MAX_NOISE_UP_TO}")]
+pub struct NoiseOutOfRange {
+    pub up_to: f64,
+    pub low: f64,
+}
+
 impl CellRanges {
-    /// These ranges with the camera noise drawn up to `up_to` × the data sheet's instead.
-    pub fn with_noise_up_to(self, up_to: f64) -> Self {
-        CellRanges {
-            noise_scale: (self.noise_scale.0, up_to),
-            ..self
+    /// The product's ranges, with the camera noise drawn up to `noise_up_to` × the data
+    /// sheet's instead when it is given.
+    pub fn drawn(noise_up_to: Option<f64>) -> Result<Self, NoiseOutOfRange> {
+        let ranges = CellRanges::default();
+        match noise_up_to {
+            Some(up_to) => ranges.with_noise_up_to(up_to),
+            None => Ok(ranges),
         }
+    }
+
+    /// These ranges with the camera noise drawn up to `up_to` × the data sheet's instead.
+    pub fn with_noise_up_to(self, up_to: f64) -> Result<Self, NoiseOutOfRange> {
+        let low = self.noise_scale.0;
+        if !(up_to.is_finite() && (low..=MAX_NOISE_UP_TO).contains(&up_to)) {
+            return Err(NoiseOutOfRange { up_to, low });
+        }
+        Ok(CellRanges {
+            noise_scale: (low, up_to),
+            ..self
+        })
     }
 }
 
@@ -224,7 +249,15 @@ mod tests {
         let base = CellConfig::reference();
         let options = EnvOptions::from_cell(&base);
         let ranges = CellRanges::default();
-        let wider = ranges.with_noise_up_to(4.0);
+        let wider = ranges.with_noise_up_to(4.0).unwrap();
+        assert_eq!(
+            ranges.with_noise_up_to(0.4),
+            Err(NoiseOutOfRange {
+                up_to: 0.4,
+                low: 0.5
+            })
+        );
+        assert!(ranges.with_noise_up_to(f64::NAN).is_err());
         let mut noisiest = 0.0f64;
         for seed in 0..200 {
             let (cell, mismatch) = randomised(&base, &options, &ranges, seed);

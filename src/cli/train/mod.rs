@@ -109,7 +109,7 @@ pub struct TrainArgs {
     randomise_cells: bool,
     /// With --randomise-cells: the camera noise is drawn from 0.5 times the data sheet's up to
     /// this multiple (default 2; at most 16).
-    #[arg(long, value_name = "SCALE")]
+    #[arg(long, value_name = "SCALE", requires = "randomise_cells")]
     randomise_noise_up_to: Option<f64>,
     /// Robots the DAgger and TD3 episodes (and TD3's validations) are shared among, each in
     /// its own cell that remembers its drift from one episode to the next, as a cell keeps its
@@ -266,16 +266,6 @@ pub struct TrainArgs {
     flat_hidden: usize,
 }
 
-impl TrainArgs {
-    /// The ranges drawn cells come from: the product's, with the camera noise up to
-    /// `--randomise-noise-up-to` when it is given.
-    fn ranges(&self) -> CellRanges {
-        let ranges = CellRanges::default();
-        self.randomise_noise_up_to
-            .map_or(ranges, |up_to| ranges.with_noise_up_to(up_to))
-    }
-}
-
 /// Expert episodes `celld train` records (and each DAgger round drives) by default. The HTTP
 /// API records its own default number (see docs/learning.md).
 const DEMONSTRATIONS: usize = 800;
@@ -381,6 +371,8 @@ struct Run {
     options: EnvOptions,
     /// What the policy reads (--inputs).
     inputs: PolicyInputs,
+    /// The ranges drawn cells come from, with --randomise-cells.
+    ranges: CellRanges,
     /// The --dagger-policy files, loaded and checked, in order.
     dagger_drivers: Vec<HierarchicalPolicy>,
     /// The --init-policy file, checked.
@@ -497,17 +489,8 @@ impl Run {
                  reads the absolute pose cannot tell the drawn cells apart"
             );
         }
-        if let Some(up_to) = args.randomise_noise_up_to {
-            if !args.randomise_cells {
-                bail!(
-                    "--randomise-noise-up-to draws the camera noise of drawn cells: it needs --randomise-cells"
-                );
-            }
-            let low = CellRanges::default().noise_scale.0;
-            if !(up_to.is_finite() && (low..=16.0).contains(&up_to)) {
-                bail!("--randomise-noise-up-to {up_to} is outside {low}..=16");
-            }
-        }
+        let ranges = CellRanges::drawn(args.randomise_noise_up_to)
+            .map_err(|e| anyhow::anyhow!("--randomise-noise-up-to {e}"))?;
         if let Some(path) = &args.demos_file
             && !path.is_file()
         {
@@ -545,6 +528,7 @@ impl Run {
             cell,
             options,
             inputs,
+            ranges,
             dagger_drivers,
             init,
         })
@@ -613,7 +597,7 @@ impl Run {
                 lateral_mm: self.args.demo_lateral_noise_mm,
             },
             inputs: self.inputs,
-            randomise: self.args.randomise_cells.then(|| self.args.ranges()),
+            randomise: self.args.randomise_cells.then_some(self.ranges),
         }
     }
 
