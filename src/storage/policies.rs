@@ -60,6 +60,24 @@ pub enum EvaluatedOn {
     DrawnCells { fault: Option<Fault> },
 }
 
+impl EvaluatedOn {
+    /// The twin's departure from the cell file; on drawn cells only the fault, their camera
+    /// noise and calibration error being drawn.
+    pub fn mismatch(&self) -> Mismatch {
+        match *self {
+            EvaluatedOn::Cell(mismatch) => mismatch,
+            EvaluatedOn::DrawnCells { fault } => Mismatch {
+                fault,
+                ..Mismatch::NONE
+            },
+        }
+    }
+
+    pub fn is_drawn(&self) -> bool {
+        matches!(self, EvaluatedOn::DrawnCells { .. })
+    }
+}
+
 /// What an upload stores.
 pub struct NewPolicy<'a> {
     pub name: &'a str,
@@ -263,16 +281,7 @@ pub async fn start_evaluation(
     on: &EvaluatedOn,
     requested_by: &str,
 ) -> Result<Evaluation, DbError> {
-    let (mismatch, randomise_cells) = match on {
-        EvaluatedOn::Cell(mismatch) => (*mismatch, false),
-        EvaluatedOn::DrawnCells { fault } => (
-            Mismatch {
-                fault: *fault,
-                ..Mismatch::NONE
-            },
-            true,
-        ),
-    };
+    let mismatch = on.mismatch();
     let row: EvaluationRow = sqlx::query_as(
         "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, noise_scale,
                 calibration_scale, fault, randomise_cells, requested_by)
@@ -285,7 +294,7 @@ pub async fn start_evaluation(
     .bind(mismatch.noise_scale)
     .bind(mismatch.calibration_scale)
     .bind(mismatch.fault.map(|f| f.code()))
-    .bind(randomise_cells)
+    .bind(on.is_drawn())
     .bind(requested_by)
     .fetch_one(&db.writer)
     .await?;

@@ -92,10 +92,7 @@ pub async fn evaluate(
             "episodes = {episodes} is outside 1..={MAX_EVALUATION_EPISODES}"
         )));
     }
-    let mismatch = match on {
-        EvaluatedOn::Cell(mismatch) => mismatch,
-        EvaluatedOn::DrawnCells { .. } => Mismatch::NONE,
-    };
+    let mismatch = on.mismatch();
     for (field, value) in [
         ("noise_scale", mismatch.noise_scale),
         ("calibration_scale", mismatch.calibration_scale),
@@ -116,7 +113,7 @@ pub async fn evaluate(
             "evaluation_id": evaluation.id,
             "episodes": episodes,
             "mismatch": mismatch,
-            "randomise_cells": matches!(on, EvaluatedOn::DrawnCells { .. }),
+            "randomise_cells": on.is_drawn(),
         }),
     )
     .await?;
