@@ -1,6 +1,7 @@
 //! Where a controller's steps go on the reference cell: per zone (the tip more than 5 mm above
-//! the bore's entrance, within 5 mm of it, in the bore), the moves, turns and holds it asks for
-//! and the supervisor's refusals by reason, averaged over the episodes that succeed. With the
+//! the bore's entrance, within 5 mm of it, in the bore), the moves, turns and holds it asks for,
+//! how far down it asks to go, and the supervisor's refusals by reason, averaged over the
+//! episodes that succeed. With the
 //! camera's noise four times its data sheet's, it shows what the waits for certainty cost.
 //!
 //! `cargo run --release --example where_the_steps_go -- CONTROLLER [NOISE] [EPISODES] [SEED]
@@ -113,6 +114,11 @@ fn main() -> anyhow::Result<()> {
                         _ => "move",
                     };
                     *count.entry(format!("{zone} {kind}")).or_default() += 1.0;
+                    if action.translation_mm.z < 0.0 {
+                        *count
+                            .entry(format!("{zone} descent asked (mm)"))
+                            .or_default() -= action.translation_mm.z;
+                    }
                     if let Some(veto) = &result.veto {
                         *count
                             .entry(format!("{zone} refused: {}", veto.code()))
