@@ -125,6 +125,10 @@ impl std::str::FromStr for Fault {
     }
 }
 
+/// The largest camera noise or calibration scale the twin is run at (× the data sheet's, × the
+/// cell file's): an evaluation's mismatch, or the top of the noise range cells are drawn over.
+pub const MAX_MISMATCH_SCALE: f64 = 16.0;
+
 /// How an evaluation's twin departs from the cell file: the options of
 /// [`EnvOptions`](super::EnvOptions) besides the initial conditions.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

@@ -15,6 +15,6 @@ pub use env::{
     AssemblyEnv, EnvError, EnvOptions, FailureReason, InitialConditions, Observation, Outcome,
     PoseErrors, StepResult,
 };
-pub use fault::{Fault, Mismatch, UnknownFault};
+pub use fault::{Fault, MAX_MISMATCH_SCALE, Mismatch, UnknownFault};
 pub use reward::RewardTerms;
 pub use robot::CELL_ROBOT_SEED;

@@ -6,7 +6,7 @@
 //! ones the product is specified for); [`randomised`] draws one cell and its mismatch (camera
 //! noise and calibration scale) from a seed.
 
-use super::EnvOptions;
+use super::{EnvOptions, MAX_MISMATCH_SCALE};
 use crate::config::cell::CellConfig;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -65,12 +65,9 @@ impl Default for CellRanges {
     }
 }
 
-/// The most camera noise drawn cells may be given (× the data sheet's).
-pub const MAX_NOISE_UP_TO: f64 = 16.0;
-
-/// A top of the camera noise range below its bottom or above [`MAX_NOISE_UP_TO`].
+/// A top of the camera noise range below its bottom or above [`MAX_MISMATCH_SCALE`].
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
-#[error("{up_to} is outside {low}..={MAX_NOISE_UP_TO}")]
+#[error("{up_to} is outside {low}..={MAX_MISMATCH_SCALE}")]
 pub struct NoiseOutOfRange {
     pub up_to: f64,
     pub low: f64,
@@ -90,7 +87,7 @@ impl CellRanges {
     /// These ranges with the camera noise drawn up to `up_to` × the data sheet's instead.
     pub fn with_noise_up_to(self, up_to: f64) -> Result<Self, NoiseOutOfRange> {
         let low = self.noise_scale.0;
-        if !(up_to.is_finite() && (low..=MAX_NOISE_UP_TO).contains(&up_to)) {
+        if !(up_to.is_finite() && (low..=MAX_MISMATCH_SCALE).contains(&up_to)) {
             return Err(NoiseOutOfRange { up_to, low });
         }
         Ok(CellRanges {

@@ -6,7 +6,7 @@ use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
 use crate::policy::{Controller, ControllerFactory};
 use crate::sim::randomise::CellRanges;
-use crate::sim::{EnvOptions, Mismatch};
+use crate::sim::{EnvOptions, MAX_MISMATCH_SCALE, Mismatch};
 use crate::storage::policies::{self, EvaluatedOn, Evaluation, NewPolicy, Policy};
 use crate::storage::{Db, audit, tokens};
 use serde_json::{Value, json};
@@ -50,9 +50,6 @@ pub async fn register(db: &Db, name: &str, bytes: Vec<u8>, by: &str) -> Result<(
 
 /// Most episodes one evaluation may ask for.
 const MAX_EVALUATION_EPISODES: u32 = 100_000;
-
-/// The largest noise or calibration scale an evaluation may ask for.
-pub const MAX_MISMATCH_SCALE: f64 = 16.0;
 
 /// An upload: [`register`]ed, and audited when the bytes are new; says whether they were.
 pub async fn upload(
