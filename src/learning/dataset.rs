@@ -21,16 +21,16 @@
 //! it.
 //!
 //! The 0.9 keeps the labels off tanh's and the sigmoid's asymptotes, where a squared loss cannot
-//! get to them; a full 5 mm step comes back as 0.95 · 0.98 · 5 = 4.66 mm. With the direction's
-//! limit at 0.98 and the scale's at 0.995, the policy stalled on the approach and at the
-//! bottom (success 0.953 in 64 steps against 0.988 in 48.7; docs/learning.md).
+//! get to them; a full 5 mm step comes back as 0.95 · 0.98 · 5 = 4.66 mm, which the policy reads
+//! as the full step (`policy::hierarchical::full_step`). With the direction's limit at 0.98 and
+//! the scale's at 0.995, the policy stalled on the approach and at the bottom (success 0.953 in
+//! 64 steps against 0.988 in 48.7; docs/learning.md).
 
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
+use crate::policy::hierarchical::{MAX_DIRECTION_LABEL, MAX_SCALE_LABEL};
 use crate::policy::inputs::PolicyInputs;
 
-/// Largest scale label.
-const MAX_SCALE: f64 = 0.98;
 /// Smallest scale label of a position move: moves below 0.2 · 0.9 · limit are the actor's to
 /// size.
 const MIN_POSITION_SCALE: f64 = 0.2;
@@ -167,9 +167,10 @@ impl StepLabels {
                 direction: [0.0; 3],
             };
         }
-        let scale = (largest / (0.9 * limit)).clamp(floor, MAX_SCALE);
-        let direction =
-            std::array::from_fn(|i| (components[i] / (scale * limit)).clamp(-0.95, 0.95));
+        let scale = (largest / (0.9 * limit)).clamp(floor, MAX_SCALE_LABEL);
+        let direction = std::array::from_fn(|i| {
+            (components[i] / (scale * limit)).clamp(-MAX_DIRECTION_LABEL, MAX_DIRECTION_LABEL)
+        });
         StepLabels {
             actor,
             scale,
@@ -290,6 +291,24 @@ mod tests {
             StepLabels::of(&shift, &scaled),
             StepLabels::of(&shift, &LIMITS)
         );
+    }
+
+    /// A full step survives the round trip through its labels: labelled off the asymptotes,
+    /// the labels' move is read back as the full step.
+    #[test]
+    fn a_full_steps_labels_come_back_as_the_full_step() {
+        use crate::policy::hierarchical::full_step;
+        use nalgebra::Vector3;
+        for action in [
+            [0.0, 0.0, -5.0, 0.0, 0.0, 0.0],
+            [5.0, -5.0, 0.0, 0.0, 0.0, 0.0],
+        ] {
+            let labels = StepLabels::of(&step(Actor::Position, action), &LIMITS);
+            let back = labels.to_action(&[0.0; 12], &LIMITS);
+            assert!(back[0..3].iter().all(|v| v.abs() < 4.7), "{back:?}");
+            let read = full_step(Vector3::new(back[0], back[1], back[2]), 5.0);
+            assert!((read - Vector3::new(action[0], action[1], action[2])).norm() < 1e-9);
+        }
     }
 
     #[test]

@@ -14,7 +14,7 @@ use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
 use crate::policy::eval::episode_seed;
-use crate::policy::hierarchical::{HierarchicalPolicy, limit_move};
+use crate::policy::hierarchical::{HierarchicalPolicy, asked_move, limit_move};
 use crate::policy::record::demonstrator_seed;
 use crate::sim::randomise::cell_for;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
@@ -228,8 +228,9 @@ impl Refinement {
                             let noise: f64 = noise.sample(StandardNormal);
                             (clean + sigma * noise).clamp(-1.0, 1.0) as f32
                         });
-                        // As the policy acts as a controller (`limit_move`, on the move in
-                        // mm and degrees): the actor's output is what the limited move asks.
+                        // As the policy acts as a controller (`asked_move`, on the move in
+                        // mm and degrees): the actor's output is what the limited move asks,
+                        // and the move made is the one the deployed policy makes of it.
                         action = [0.0; 6];
                         for i in 0..3 {
                             action[offset + i] = f64::from(a[i]) * span;
@@ -240,7 +241,7 @@ impl Refinement {
                             let in_units = inputs.move_in_units(&read, limited);
                             a = std::array::from_fn(|i| (in_units[offset + i] / span) as f32);
                         }
-                        action = limited;
+                        action = asked_move(&observation, policy.config(), actor, asked).to_array();
                         Some((actor, a))
                     }
                     // The demonstrator's move as behaviour cloning labels it: the direction
