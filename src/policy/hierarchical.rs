@@ -27,8 +27,9 @@
 //! The normalisation runs in f64 (states hold values like 2000 mm), the network in f32.
 //!
 //! As a [`Controller`] the policy adds rules to the forward pass. The actor that acts is one
-//! the demonstrators would use in the state ([`actor_with_work`]), and its move is limited
-//! ([`limit_move`]): after a move refused for a predicted contact the next move does not go
+//! the demonstrators would use in the state ([`actor_with_work`]), a position move at the top
+//! of the actor's range is the full step its labels stand for ([`full_step`]), and the move is
+//! limited ([`limit_move`]): after a move refused for a predicted contact the next move does not go
 //! deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at level,
 //! and a turn in the bore pivots about the engaged shaft ([`pivot_in_bore`]).
 //! `celld policy run` prints the forward pass alone.
