@@ -29,9 +29,9 @@
 //! As a [`Controller`] the policy adds rules to the forward pass. The actor that acts is one
 //! the demonstrators would use in the state ([`actor_with_work`]), a position move at the top
 //! of the actor's range is the full step its labels stand for ([`full_step`]), and the move is
-//! limited ([`limit_move`]): after a move refused for a predicted contact the next move does not go
-//! deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at level,
-//! and a turn in the bore pivots about the engaged shaft ([`pivot_in_bore`]).
+//! limited ([`limit_move`]): after a move refused for a predicted contact the next move does
+//! not go deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at
+//! level, and a turn in the bore pivots about the engaged shaft ([`pivot_in_bore`]).
 //! `celld policy run` prints the forward pass alone.
 
 use super::expert::{ExpertTuning, tip_in_bore};
@@ -173,10 +173,10 @@ pub const FULL_STEP_FROM: f64 = 0.85;
 /// Behaviour cloning keeps its labels off tanh's and the sigmoid's asymptotes, so a move at
 /// the step limit is labelled as [`MAX_SCALE_LABEL`] × [`MAX_DIRECTION_LABEL`] = 0.931 of it
 /// (4.66 mm of 5), and a policy fitted to those labels gives 4.5–4.8 mm where its demonstrator
-/// took 5: on the reference cell it needed 1.2 steps more per episode than with this rule
-/// (docs/learning.md). Between `FULL_STEP_FROM` and 0.931 of the limit the largest
-/// component maps linearly onto the rest of the way to the limit, with the direction kept;
-/// shorter moves, which the labels carry exactly, are left as they are.
+/// took 5: on the reference cell `hierarchical-swift` took 1.1 steps more per episode than
+/// with this rule (docs/learning.md). Between `FULL_STEP_FROM` and 0.931 of the limit the
+/// largest component maps linearly onto the rest of the way to the limit, with the direction
+/// kept; shorter moves, which the labels carry exactly, are left as they are.
 pub fn full_step(translation_mm: Vector3<f64>, step_limit_mm: f64) -> Vector3<f64> {
     let largest_mm = translation_mm.amax();
     let from_mm = FULL_STEP_FROM * step_limit_mm;
@@ -190,9 +190,9 @@ pub fn full_step(translation_mm: Vector3<f64>, step_limit_mm: f64) -> Vector3<f6
     (translation_mm * (stretched_mm / largest_mm)).map(|v| v.clamp(-step_limit_mm, step_limit_mm))
 }
 
-/// The move the policy asks for from the forward pass's `out`: a position move read by
-/// [`full_step`], then limited by [`limit_move`]. The controller and TD3's episodes both make
-/// it here.
+/// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
+/// read by [`full_step`], then either limited by [`limit_move`]. The controller and TD3's
+/// episodes both make it here.
 pub fn asked_move(
     observation: &Observation,
     config: &PolicyConfig,
