@@ -191,8 +191,8 @@ pub fn full_step(translation_mm: Vector3<f64>, step_limit_mm: f64) -> Vector3<f6
 }
 
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
-/// read by [`full_step`], then either limited by [`limit_move`]. The controller and TD3's
-/// episodes both make it here.
+/// read by [`full_step`], then the move of either actor limited by [`limit_move`]. The
+/// controller and TD3's episodes both make it here.
 pub fn asked_move(
     observation: &Observation,
     config: &PolicyConfig,
@@ -817,9 +817,9 @@ impl Controller for HierarchicalPolicy {
 
     /// The policy's move; a step that fails or is not finite holds still (a zero move). Without
     /// a fresh frame the cell holds still and the LSTM does not advance (the expert's
-    /// demonstrations have no such steps). The move is limited by [`limit_move`]: a position
-    /// move not past the goal, not deeper after a refusal for contact, and not past the axis;
-    /// an orientation move not past level.
+    /// demonstrations have no such steps). The move is made by [`asked_move`]: a position
+    /// move at the top of the actor's range is a full step, not past the goal, not deeper after
+    /// a refusal for contact, and not past the axis; an orientation move not past level.
     fn act(&mut self, observation: &Observation) -> Decision {
         if !observation.measurement_fresh {
             return Decision::hold();
