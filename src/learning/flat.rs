@@ -31,6 +31,7 @@ use crate::policy::eval::{self, episode_seed};
 use crate::policy::file::{PolicyFileError, PolicyKind};
 use crate::policy::flat::{ACTION_DIM, FlatPolicy, FlatPolicyFile};
 use crate::policy::inputs::PolicyInputs;
+use crate::policy::learned::LearnedPolicy;
 use crate::policy::mlp::LAYER_NAMES;
 use crate::sim::{AssemblyEnv, EnvOptions, Outcome};
 use candle_core::{Device, Tensor};
@@ -334,7 +335,8 @@ impl FlatTraining {
     /// Evaluates the current policy on the validation episodes (all cores) and keeps it if it
     /// is the best so far.
     pub fn validate(&mut self) -> candle_core::Result<FlatValidation> {
-        let policy = self.policy()?;
+        // As the policy runs once deployed: steered against the learned drift.
+        let policy = LearnedPolicy::Flat(Box::new(self.policy()?));
         let factory: ControllerFactory = Box::new(move || Box::new(policy.clone()));
         let (summary, _) = eval::evaluate(
             &self.cell,

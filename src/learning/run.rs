@@ -180,7 +180,7 @@ impl Default for TrainingSettings {
             dagger_rounds: 0,
             dagger_bc_epochs: DAGGER_BC_EPOCHS,
             eval_every: 50,
-            eval_episodes: 200,
+            eval_episodes: crate::learning::refine::VALIDATION_EPISODES,
         }
     }
 }

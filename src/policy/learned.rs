@@ -8,8 +8,9 @@
 //! state filter has learned of its robot ([`super::steered_against_drift`]), as `expert` steers
 //! its own: the network says where {M} should go, the cell makes the robot go there. The
 //! demonstrators the policies learn from decide on the state alone and do not steer, so
-//! training (behaviour cloning, DAgger's episodes, TD3) runs the bare policy and the steering
-//! is added here, where a policy is run (decision 0026).
+//! training (behaviour cloning, DAgger's episodes, TD3's episodes) runs the bare policy and the
+//! steering is added here, where a policy is run (decision 0026); TD3's validations run the
+//! policy as it is deployed, through this type (decision 0029).
 
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
