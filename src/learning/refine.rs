@@ -45,8 +45,8 @@ pub const TRUST_REGION: f64 = 0.002;
 /// Episodes of each validation by default. The refinement keeps its best validation, and
 /// TD3's gain over BC is about half a step per episode. Steps per episode vary with σ ≈ 2.4,
 /// so a 200-episode mean varies by about 0.17 from the episodes drawn alone: enough to keep
-/// a worse policy. With kept robots, 200 episodes are also mostly robots the cell has barely
-/// learned. 2000 bring the variation to about 0.05 for about 15 s of a 500-episode run
+/// a worse policy. With kept robots, 200 episodes are also many on robots whose drift the
+/// cell is still learning. 2000 bring the variation to about 0.05 for about 15 s of a 500-episode run
 /// (decision 0029).
 pub const VALIDATION_EPISODES: usize = 2000;
 
