@@ -46,8 +46,8 @@ pub const TRUST_REGION: f64 = 0.002;
 /// TD3's gain over BC is about half a step per episode. Steps per episode vary with σ ≈ 2.4,
 /// so a 200-episode mean varies by about 0.17 from the episodes drawn alone: enough to keep
 /// a worse policy. With kept robots, 200 episodes are also many on robots whose drift the
-/// cell is still learning. 2000 bring the variation to about 0.05 for about 15 s of a 500-episode run
-/// (decision 0029).
+/// cell is still learning. 2000 bring the variation to about 0.05 for about 15 s of a
+/// 500-episode run (decision 0029).
 pub const VALIDATION_EPISODES: usize = 2000;
 
 /// Refinement settings. TD3's own defaults are Table 1's; the exploration noise (not in Table
@@ -712,6 +712,44 @@ mod tests {
             .collect();
         out.sort_by(|a, b| a.0.cmp(&b.0));
         out
+    }
+
+    /// A validation scores the policy as `celld eval` runs it from its file: steered against
+    /// the drift the cell learns of each kept robot, not the bare network.
+    #[test]
+    fn a_validation_scores_the_policy_as_it_is_deployed() {
+        use crate::learning::pipeline::vars_of;
+        use crate::policy::ControllerFactory;
+        use crate::policy::file::PolicyFile;
+        let cell = CellConfig::reference();
+        let bytes = crate::policy::bundled_policy("hierarchical-swift").unwrap();
+        let file = PolicyFile::from_bytes(bytes).unwrap();
+        let options = EnvOptions {
+            kept_robots: 2,
+            ..EnvOptions::from_cell(&cell)
+        };
+        let (episodes, seed) = (16, 7);
+        let vars = vars_of(&file).unwrap();
+        let validated = evaluate_vars(
+            &cell,
+            options,
+            &vars,
+            &PolicyConfig::from_file(&file),
+            episodes,
+            seed,
+        )
+        .unwrap();
+        let score = |factory: ControllerFactory| {
+            let summary = eval::evaluate(&cell, options, episodes, seed, &factory, &|_| {}).0;
+            (summary.success_rate, summary.avg_steps)
+        };
+        let deployed = LearnedPolicy::from_bytes(bytes).unwrap();
+        let as_deployed = score(Box::new(move || Box::new(deployed.clone())));
+        let bare = HierarchicalPolicy::from_file(&file).unwrap();
+        let as_bare = score(Box::new(move || Box::new(bare.clone())));
+        assert_eq!((validated.success_rate, validated.avg_steps), as_deployed);
+        // The steering changes the episodes, so the check can tell the two apart.
+        assert_ne!(as_deployed, as_bare);
     }
 
     #[test]
