@@ -10,7 +10,7 @@ use crate::config::cell::CellConfig;
 use crate::geometry::Move;
 use crate::geometry::pose::pose_from_mm_deg;
 use crate::sim::Observation;
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point3, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -167,6 +167,23 @@ pub fn tip_in_bore(insertion_mm: f64) -> bool {
     insertion_mm > -0.2
 }
 
+/// How far off the bore's axis (mm, x and y) the point the demonstrators centre is, for the
+/// estimated pose P (mm) and O (deg) of a shaft `shaft_length_mm` long: the middle of the part
+/// of the shaft that will be in the bore after a step of `limit_mm`, not the shoulder, since a
+/// small tilt swings the tip sideways. Moving by minus this centres that point.
+pub fn engaged_middle_off_axis_mm(
+    p: Vector3<f64>,
+    o: Vector3<f64>,
+    shaft_length_mm: f64,
+    limit_mm: f64,
+) -> Vector2<f64> {
+    // P is {F}'s origin in {M}: the tip is in the bore once P_z > -L.
+    let insertion_mm = p.z + shaft_length_mm;
+    let engaged_mm = (insertion_mm.max(0.0) + limit_mm).min(shaft_length_mm);
+    let reference = Point3::new(0.0, 0.0, -shaft_length_mm + engaged_mm / 2.0);
+    (pose_from_mm_deg(p, o).inverse() * reference).coords.xy()
+}
+
 pub struct Expert {
     name: &'static str,
     tuning: ExpertTuning,
@@ -258,11 +275,7 @@ impl Expert {
                 scale: Some(theta.amax() / self.limit_deg),
             };
         }
-        // Centre the part of the shaft that will be in the bore after this step (its midpoint),
-        // not the shoulder: a small tilt swings the tip sideways.
-        let engaged_mm = (insertion_mm.max(0.0) + self.limit_mm).min(self.shaft_length_mm);
-        let reference = Point3::new(0.0, 0.0, -self.shaft_length_mm + engaged_mm / 2.0);
-        let off_axis = (pose_from_mm_deg(p, o).inverse() * reference).coords.xy();
+        let off_axis = engaged_middle_off_axis_mm(p, o, self.shaft_length_mm, self.limit_mm);
         let lateral = off_axis.norm();
         // Height of the tip above the entrance (negative once inside).
         let height_mm = -insertion_mm;

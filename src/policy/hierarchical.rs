@@ -28,13 +28,14 @@
 //!
 //! As a [`Controller`] the policy adds rules to the forward pass. The actor that acts is one
 //! the demonstrators would use in the state ([`actor_with_work`]), a position move at the top
-//! of the actor's range is the full step its labels stand for ([`full_step`]), and the move is
-//! limited ([`limit_move`]): after a move refused for a predicted contact the next move does
+//! of the actor's range is the full step its labels stand for ([`full_step`]), a sideways move
+//! towards the axis covers at least the demonstrators' share of the offset
+//! ([`not_short_of_the_axis`]), and the move is limited ([`limit_move`]): after a move refused for a predicted contact the next move does
 //! not go deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at
 //! level, and a turn in the bore pivots about the engaged shaft ([`pivot_in_bore`]).
 //! `celld policy run` prints the forward pass alone.
 
-use super::expert::{ExpertTuning, tip_in_bore};
+use super::expert::{ExpertTuning, engaged_middle_off_axis_mm, tip_in_bore};
 use super::file::{ACTOR_DIM, HEAD_DIM, PolicyFile, STATE_DIM};
 use super::inputs::PolicyInputs;
 use super::mlp::{Mlp, MlpConfig};
@@ -190,9 +191,49 @@ pub fn full_step(translation_mm: Vector3<f64>, step_limit_mm: f64) -> Vector3<f6
     (translation_mm * (stretched_mm / largest_mm)).map(|v| v.clamp(-step_limit_mm, step_limit_mm))
 }
 
+/// The shortest share of the offset to the axis that a demonstrator's sideways move covers:
+/// `expert` moves by 0.8 of it above the entrance within 0.5 mm of the axis, by all of it
+/// elsewhere (by 0.85–1 of it, a person's variability, when the move is over 1 mm).
+pub const SHORTEST_CENTRING_SHARE: f64 = 0.8;
+
+/// `translation_mm` with each sideways component (x, y in {M}) that moves towards the axis
+/// made at least [`SHORTEST_CENTRING_SHARE`] of the demonstrators' centring move
+/// ([`engaged_middle_off_axis_mm`]), up to `step_limit_mm`. A component away from the axis,
+/// and a hold, are left as they are; [`not_past_the_axis`] bounds the other side.
+///
+/// A cloned actor's sideways move is the small part of a move that is mostly along the axis,
+/// and it is off by about a hundredth of a millimetre: a policy centred to 0.01–0.02 mm where
+/// its demonstrator centres exactly, and its moves into the bore were refused or shortened;
+/// on a loose, shallow cell one policy hovered 0.02 mm off the axis at the standoff, moving
+/// sideways by 0.001 mm each way, until the step limit; and on the approach the policy went
+/// 3.9–4.5 mm sideways where its demonstrator goes the whole 5 mm (decision 0030).
+pub fn not_short_of_the_axis(
+    observation: &Observation,
+    translation_mm: Vector3<f64>,
+    step_limit_mm: f64,
+) -> Vector3<f64> {
+    let s = &observation.state;
+    let centring = -engaged_middle_off_axis_mm(
+        Vector3::new(s[6], s[7], s[8]),
+        Vector3::new(s[9], s[10], s[11]),
+        observation.cell.bore_depth_mm,
+        step_limit_mm,
+    );
+    let mut stretched = translation_mm;
+    for axis in 0..2 {
+        let shortest_mm =
+            (centring[axis] * SHORTEST_CENTRING_SHARE).clamp(-step_limit_mm, step_limit_mm);
+        let towards = stretched[axis] * centring[axis] > 0.0;
+        if towards && stretched[axis].abs() < shortest_mm.abs() {
+            stretched[axis] = shortest_mm;
+        }
+    }
+    stretched
+}
+
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
-/// read by [`full_step`], then the move of either actor limited by [`limit_move`]. The
-/// controller and TD3's episodes both make it here.
+/// read by [`full_step`] and [`not_short_of_the_axis`], then the move of either actor limited
+/// by [`limit_move`]. The controller and TD3's episodes both make it here.
 pub fn asked_move(
     observation: &Observation,
     config: &PolicyConfig,
@@ -201,7 +242,11 @@ pub fn asked_move(
 ) -> Move {
     let step = match actor {
         Actor::Position => Move {
-            translation_mm: full_step(step.translation_mm, config.step_limit_mm),
+            translation_mm: not_short_of_the_axis(
+                observation,
+                full_step(step.translation_mm, config.step_limit_mm),
+                config.step_limit_mm,
+            ),
             ..step
         },
         Actor::Orientation => step,
@@ -1154,6 +1199,46 @@ mod tests {
             (limited - Vector3::new(1.615, -0.2, -0.3)).norm() < 1e-12,
             "{limited}"
         );
+    }
+
+    #[test]
+    fn a_sideways_move_towards_the_axis_covers_the_demonstrators_share() {
+        // Level, 3 mm above the entrance: the demonstrators centre the shoulder's offset.
+        let mut observation = observation_above(3.0);
+        observation.state[6] = 0.02;
+        observation.state[7] = -0.01;
+        let stretched_is = |observation: &Observation, asked: [f64; 3], expected: [f64; 3]| {
+            let stretched = not_short_of_the_axis(observation, Vector3::from(asked), 5.0);
+            assert!(
+                (stretched - Vector3::from(expected)).norm() < 1e-9,
+                "{asked:?}: {stretched}"
+            );
+        };
+        // Towards the axis on both: at least 0.8 of the offset, the move down kept.
+        stretched_is(&observation, [0.001, -0.002, -2.0], [0.016, -0.008, -2.0]);
+        // Away from the axis, a hold, and a move already longer: as they are.
+        stretched_is(&observation, [-0.001, 0.002, -2.0], [-0.001, 0.002, -2.0]);
+        stretched_is(&observation, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        stretched_is(&observation, [0.019, -0.009, 0.0], [0.019, -0.009, 0.0]);
+        // Far off the axis: the whole step, no more.
+        observation.state[6] = 20.0;
+        observation.state[7] = 3.0;
+        stretched_is(&observation, [4.2, 1.0, -1.0], [5.0, 2.4, -1.0]);
+        // Tilted by 0.01° about y, 0.5 mm above: the point centred is the middle of the 5 mm a
+        // full step engages, (0, 0, −57.5) in {M}, 3 mm from P along the axis; seen from {F}
+        // turned by 0.01° it is 3 × sin(0.01°) mm further along x than P.
+        let mut tilted = observation_above(0.5);
+        tilted.state[6] = 0.02;
+        tilted.state[10] = 0.01;
+        let centring = -engaged_middle_off_axis_mm(
+            Vector3::new(0.02, 0.0, -60.5),
+            Vector3::new(0.0, 0.01, 0.0),
+            60.0,
+            5.0,
+        );
+        let by_hand = 0.02 * 0.01f64.to_radians().cos() + 3.0 * 0.01f64.to_radians().sin();
+        assert!((centring.x - by_hand).abs() < 1e-12, "{centring}");
+        stretched_is(&tilted, [0.001, 0.0, -1.0], [0.8 * centring.x, 0.0, -1.0]);
     }
 
     /// A turn goes at most to level (and the holes to their line), never past it or away from
