@@ -30,9 +30,10 @@
 //! the demonstrators would use in the state ([`actor_with_work`]), a position move at the top
 //! of the actor's range is the full step its labels stand for ([`full_step`]), a sideways move
 //! towards the axis covers at least the demonstrators' share of the offset
-//! ([`not_short_of_the_axis`]), and the move is limited ([`limit_move`]): after a move refused for a predicted contact the next move does
-//! not go deeper ([`holds_depth_after`]), a sideways move stops just past the axis, a turn at
-//! level, and a turn in the bore pivots about the engaged shaft ([`pivot_in_bore`]).
+//! ([`not_short_of_the_axis`]), and the move is limited ([`limit_move`]): after a move refused
+//! for a predicted contact the next move does not go deeper ([`holds_depth_after`]), a
+//! sideways move stops just past the axis, a turn at level, and a turn in the bore pivots
+//! about the engaged shaft ([`pivot_in_bore`]).
 //! `celld policy run` prints the forward pass alone.
 
 use super::expert::{ExpertTuning, engaged_middle_off_axis_mm, tip_in_bore};
