@@ -29,8 +29,8 @@
 //! As a [`Controller`] the policy adds rules to the forward pass. The actor that acts is one
 //! the demonstrators would use in the state ([`actor_with_work`]), a position move at the top
 //! of the actor's range is the full step its labels stand for ([`full_step`]), a sideways move
-//! towards the axis covers at least the demonstrators' share of the offset
-//! ([`not_short_of_the_axis`]), and the move is limited ([`limit_move`]): after a move refused
+//! towards the axis covers the demonstrators' share of the offset, no less and no more
+//! ([`centred_as_the_demonstrators`]), and the move is limited ([`limit_move`]): after a move refused
 //! for a predicted contact the next move does not go deeper ([`holds_depth_after`]), a
 //! sideways move stops just past the axis, a turn at level, and a turn in the bore pivots
 //! about the engaged shaft ([`pivot_in_bore`]).
@@ -199,16 +199,19 @@ pub const SHORTEST_CENTRING_SHARE: f64 = 0.8;
 
 /// `translation_mm` with each sideways component (x, y in {M}) that moves towards the axis
 /// made at least [`SHORTEST_CENTRING_SHARE`] of the demonstrators' centring move
-/// ([`engaged_middle_off_axis_mm`]), up to `step_limit_mm`. A component away from the axis,
-/// and a hold, are left as they are; [`not_past_the_axis`] bounds the other side.
+/// ([`engaged_middle_off_axis_mm`]), up to `step_limit_mm`, and at most the whole centring
+/// move: no demonstrator goes further. A component away from the axis, and a hold, are left
+/// as they are; [`not_past_the_axis`] still bounds the shoulder.
 ///
 /// A cloned actor's sideways move is the small part of a move that is mostly along the axis,
 /// and it is off by about a hundredth of a millimetre: a policy centred to 0.01–0.02 mm where
 /// its demonstrator centres exactly, and its moves into the bore were refused or shortened;
 /// on a loose, shallow cell one policy hovered 0.02 mm off the axis at the standoff, moving
 /// sideways by 0.001 mm each way, until the step limit; and on the approach the policy went
-/// 3.9–4.5 mm sideways where its demonstrator goes the whole 5 mm (decision 0030).
-pub fn not_short_of_the_axis(
+/// 3.9–4.5 mm sideways where its demonstrator goes the whole 5 mm. Past the centring move,
+/// up to [`not_past_the_axis`]'s allowance, it carried the engaged shaft across the axis and
+/// back (decisions 0030, 0031).
+pub fn centred_as_the_demonstrators(
     observation: &Observation,
     translation_mm: Vector3<f64>,
     step_limit_mm: f64,
@@ -220,20 +223,22 @@ pub fn not_short_of_the_axis(
         observation.cell.bore_depth_mm,
         step_limit_mm,
     );
-    let mut stretched = translation_mm;
+    let mut centred = translation_mm;
     for axis in 0..2 {
         let shortest_mm =
             (centring[axis] * SHORTEST_CENTRING_SHARE).clamp(-step_limit_mm, step_limit_mm);
-        let towards = stretched[axis] * centring[axis] > 0.0;
-        if towards && stretched[axis].abs() < shortest_mm.abs() {
-            stretched[axis] = shortest_mm;
+        let towards = centred[axis] * centring[axis] > 0.0;
+        if towards && centred[axis].abs() < shortest_mm.abs() {
+            centred[axis] = shortest_mm;
+        } else if towards && centred[axis].abs() > centring[axis].abs() {
+            centred[axis] = centring[axis];
         }
     }
-    stretched
+    centred
 }
 
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
-/// read by [`full_step`] and [`not_short_of_the_axis`], then the move of either actor limited
+/// read by [`full_step`] and [`centred_as_the_demonstrators`], then the move of either actor limited
 /// by [`limit_move`]. The controller and TD3's episodes both make it here.
 pub fn asked_move(
     observation: &Observation,
@@ -243,7 +248,7 @@ pub fn asked_move(
 ) -> Move {
     let step = match actor {
         Actor::Position => Move {
-            translation_mm: not_short_of_the_axis(
+            translation_mm: centred_as_the_demonstrators(
                 observation,
                 full_step(step.translation_mm, config.step_limit_mm),
                 config.step_limit_mm,
@@ -1203,13 +1208,13 @@ mod tests {
     }
 
     #[test]
-    fn a_sideways_move_towards_the_axis_covers_the_demonstrators_share() {
+    fn a_sideways_move_towards_the_axis_covers_the_demonstrators_share_and_no_more() {
         // Level, 3 mm above the entrance: the demonstrators centre the shoulder's offset.
         let mut observation = observation_above(3.0);
         observation.state[6] = 0.02;
         observation.state[7] = -0.01;
         let stretched_is = |observation: &Observation, asked: [f64; 3], expected: [f64; 3]| {
-            let stretched = not_short_of_the_axis(observation, Vector3::from(asked), 5.0);
+            let stretched = centred_as_the_demonstrators(observation, Vector3::from(asked), 5.0);
             assert!(
                 (stretched - Vector3::from(expected)).norm() < 1e-9,
                 "{asked:?}: {stretched}"
@@ -1217,10 +1222,12 @@ mod tests {
         };
         // Towards the axis on both: at least 0.8 of the offset, the move down kept.
         stretched_is(&observation, [0.001, -0.002, -2.0], [0.016, -0.008, -2.0]);
-        // Away from the axis, a hold, and a move already longer: as they are.
+        // Away from the axis, a hold, and a move between 0.8 and all of it: as they are.
         stretched_is(&observation, [-0.001, 0.002, -2.0], [-0.001, 0.002, -2.0]);
         stretched_is(&observation, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
         stretched_is(&observation, [0.019, -0.009, 0.0], [0.019, -0.009, 0.0]);
+        // Further than the offset (within not_past_the_axis's allowance): cut to it.
+        stretched_is(&observation, [0.03, -0.012, -2.0], [0.02, -0.01, -2.0]);
         // Far off the axis: the whole step, no more.
         observation.state[6] = 20.0;
         observation.state[7] = 3.0;
@@ -1240,6 +1247,7 @@ mod tests {
         let by_hand = 0.02 * 0.01f64.to_radians().cos() + 3.0 * 0.01f64.to_radians().sin();
         assert!((centring.x - by_hand).abs() < 1e-12, "{centring}");
         stretched_is(&tilted, [0.001, 0.0, -1.0], [0.8 * centring.x, 0.0, -1.0]);
+        stretched_is(&tilted, [0.05, 0.0, -1.0], [centring.x, 0.0, -1.0]);
     }
 
     /// A turn goes at most to level (and the holes to their line), never past it or away from
