@@ -30,8 +30,8 @@
 //! the demonstrators would use in the state ([`actor_with_work`]), a position move at the top
 //! of the actor's range is the full step its labels stand for ([`full_step`]), a sideways move
 //! towards the axis covers the demonstrators' share of the offset, no less and no more
-//! ([`centred_as_the_demonstrators`]), and the move is limited ([`limit_move`]): after a move refused
-//! for a predicted contact the next move does not go deeper ([`holds_depth_after`]), a
+//! ([`centred_as_the_demonstrators`]), and the move is limited ([`limit_move`]): after a move
+//! refused for a predicted contact the next move does not go deeper ([`holds_depth_after`]), a
 //! sideways move stops just past the axis, a turn at level, and a turn in the bore pivots
 //! about the engaged shaft ([`pivot_in_bore`]).
 //! `celld policy run` prints the forward pass alone.
@@ -238,8 +238,8 @@ pub fn centred_as_the_demonstrators(
 }
 
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
-/// read by [`full_step`] and [`centred_as_the_demonstrators`], then the move of either actor limited
-/// by [`limit_move`]. The controller and TD3's episodes both make it here.
+/// read by [`full_step`] and [`centred_as_the_demonstrators`], then the move of either actor
+/// limited by [`limit_move`]. The controller and TD3's episodes both make it here.
 pub fn asked_move(
     observation: &Observation,
     config: &PolicyConfig,
@@ -1213,25 +1213,25 @@ mod tests {
         let mut observation = observation_above(3.0);
         observation.state[6] = 0.02;
         observation.state[7] = -0.01;
-        let stretched_is = |observation: &Observation, asked: [f64; 3], expected: [f64; 3]| {
-            let stretched = centred_as_the_demonstrators(observation, Vector3::from(asked), 5.0);
+        let centred_is = |observation: &Observation, asked: [f64; 3], expected: [f64; 3]| {
+            let centred = centred_as_the_demonstrators(observation, Vector3::from(asked), 5.0);
             assert!(
-                (stretched - Vector3::from(expected)).norm() < 1e-9,
-                "{asked:?}: {stretched}"
+                (centred - Vector3::from(expected)).norm() < 1e-9,
+                "{asked:?}: {centred}"
             );
         };
         // Towards the axis on both: at least 0.8 of the offset, the move down kept.
-        stretched_is(&observation, [0.001, -0.002, -2.0], [0.016, -0.008, -2.0]);
+        centred_is(&observation, [0.001, -0.002, -2.0], [0.016, -0.008, -2.0]);
         // Away from the axis, a hold, and a move between 0.8 and all of it: as they are.
-        stretched_is(&observation, [-0.001, 0.002, -2.0], [-0.001, 0.002, -2.0]);
-        stretched_is(&observation, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
-        stretched_is(&observation, [0.019, -0.009, 0.0], [0.019, -0.009, 0.0]);
+        centred_is(&observation, [-0.001, 0.002, -2.0], [-0.001, 0.002, -2.0]);
+        centred_is(&observation, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        centred_is(&observation, [0.019, -0.009, 0.0], [0.019, -0.009, 0.0]);
         // Further than the offset (within not_past_the_axis's allowance): cut to it.
-        stretched_is(&observation, [0.03, -0.012, -2.0], [0.02, -0.01, -2.0]);
+        centred_is(&observation, [0.03, -0.012, -2.0], [0.02, -0.01, -2.0]);
         // Far off the axis: the whole step, no more.
         observation.state[6] = 20.0;
         observation.state[7] = 3.0;
-        stretched_is(&observation, [4.2, 1.0, -1.0], [5.0, 2.4, -1.0]);
+        centred_is(&observation, [4.2, 1.0, -1.0], [5.0, 2.4, -1.0]);
         // Tilted by 0.01° about y, 0.5 mm above: the point centred is the middle of the 5 mm a
         // full step engages, (0, 0, −57.5) in {M}, 3 mm from P along the axis; seen from {F}
         // turned by 0.01° it is 3 × sin(0.01°) mm further along x than P.
@@ -1246,8 +1246,8 @@ mod tests {
         );
         let by_hand = 0.02 * 0.01f64.to_radians().cos() + 3.0 * 0.01f64.to_radians().sin();
         assert!((centring.x - by_hand).abs() < 1e-12, "{centring}");
-        stretched_is(&tilted, [0.001, 0.0, -1.0], [0.8 * centring.x, 0.0, -1.0]);
-        stretched_is(&tilted, [0.05, 0.0, -1.0], [centring.x, 0.0, -1.0]);
+        centred_is(&tilted, [0.001, 0.0, -1.0], [0.8 * centring.x, 0.0, -1.0]);
+        centred_is(&tilted, [0.05, 0.0, -1.0], [centring.x, 0.0, -1.0]);
     }
 
     /// A turn goes at most to level (and the holes to their line), never past it or away from
