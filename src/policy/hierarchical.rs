@@ -225,13 +225,14 @@ pub fn centred_as_the_demonstrators(
     );
     let mut centred = translation_mm;
     for axis in 0..2 {
-        let shortest_mm =
-            (centring[axis] * SHORTEST_CENTRING_SHARE).clamp(-step_limit_mm, step_limit_mm);
-        let towards = centred[axis] * centring[axis] > 0.0;
-        if towards && centred[axis].abs() < shortest_mm.abs() {
-            centred[axis] = shortest_mm;
-        } else if towards && centred[axis].abs() > centring[axis].abs() {
-            centred[axis] = centring[axis];
+        let whole_mm = centring[axis].abs();
+        let shortest_mm = (whole_mm * SHORTEST_CENTRING_SHARE).min(step_limit_mm);
+        if centred[axis] * centring[axis] > 0.0 {
+            // Towards the axis: between the shortest share and the whole move, same direction.
+            centred[axis] = centred[axis]
+                .abs()
+                .clamp(shortest_mm, whole_mm)
+                .copysign(centring[axis]);
         }
     }
     centred
