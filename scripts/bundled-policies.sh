@@ -67,11 +67,13 @@ cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
 
 # hierarchical-swift 3: TD3 with the step-size agent from that policy (policies/swift-bc is the
 # file the two runs above made on their day): the selector's step size on the approach learns
-# from the twin; the best of the validations every 50 episodes is kept
+# from the twin, and near the entrance and in the bore it may move 0.6 from its start (the
+# default 0.3 left the bore's first steps short, decision 0032); the best of the validations
+# every 50 episodes is kept
 mkdir -p "$RUNS/S30r1-td3"
 cp policies/swift-bc.safetensors "$RUNS/S30r1-td3/lstm.safetensors"
 step hierarchical-swift-3 env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/S30r1-td3" \
-    --seed 2027 --robots 10 --td3-step-size
+    --seed 2027 --robots 10 --td3-step-size --td3-step-fine-trust-region 0.6
 cp "$RUNS/S30r1-td3/policy.safetensors" policies/swift.safetensors
 
 # bc: plain behaviour cloning on 800 demonstrations of expert-state-only (the default

@@ -8,7 +8,8 @@
 #         exploration noise 0.002) in a run directory whose lstm.safetensors is the bundled
 #         policy: BC+TD3 in the hierarchy
 #   NB27  the same with --no-bc-init: TD3 in the hierarchy from fresh actors
-#   SW27  `celld train td3 --seed 2027 --robots 10 --td3-step-size` from policies/swift-bc:
+#   SW27  `celld train td3 --seed 2027 --robots 10 --td3-step-size
+#         --td3-step-fine-trust-region 0.6` from policies/swift-bc:
 #         BC+TD3 with the step-size agent, the run that makes policies/swift.safetensors
 #   flat  `celld train flat --seed 2026 --demonstrator expert`: the flat TD3 baseline, the run
 #         that makes policies/td3.safetensors (scripts/bundled-policies.sh)
@@ -35,7 +36,7 @@ second=$!
 wait "$first"
 wait "$second"
 step td3-step-size env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/SW27" --seed 2027 \
-    --robots 10 --td3-step-size
+    --robots 10 --td3-step-size --td3-step-fine-trust-region 0.6
 step td3-flat env RAYON_NUM_THREADS=1 "$CELLD" train flat --out "$RUNS/flat" --seed 2026 --demonstrator expert
 
 step report "$CELLD" report --episodes 1000 --out docs/report --made-by scripts/report.sh \
