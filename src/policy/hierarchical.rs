@@ -197,16 +197,22 @@ pub fn full_step(translation_mm: Vector3<f64>, step_limit_mm: f64) -> Vector3<f6
 /// elsewhere (by 0.85–1 of it, a person's variability, when the move is over 1 mm).
 pub const SHORTEST_CENTRING_SHARE: f64 = 0.8;
 
+/// The approach ends this many times the demonstrators' standoff above the entrance: half as
+/// much again as the standoff, for the estimate's jitter there.
+pub const APPROACH_STANDOFF_FACTOR: f64 = 1.5;
+
 /// Height of the tip above the bore's entrance (mm) above which a learned position move goes
-/// neither away from the axis nor up: the demonstrators' standoff (1 mm) and half as much
-/// again for the estimate's jitter there.
-pub const APPROACH_ABOVE_MM: f64 = 1.5;
+/// neither away from the axis nor up: [`APPROACH_STANDOFF_FACTOR`] times the demonstrators'
+/// standoff ([`ExpertTuning::standoff_mm`], 1 mm), so 1.5 mm.
+pub fn approach_above_mm() -> f64 {
+    APPROACH_STANDOFF_FACTOR * ExpertTuning::default().standoff_mm
+}
 
 /// `translation_mm` with each sideways component (x, y in {M}) that moves towards the axis
 /// made at least [`SHORTEST_CENTRING_SHARE`] of the demonstrators' centring move
 /// ([`engaged_middle_off_axis_mm`]), up to `step_limit_mm`, and at most the whole centring
 /// move: no demonstrator goes further. On the approach, with the tip more than
-/// [`APPROACH_ABOVE_MM`] above the entrance, a component away from the axis and a move up
+/// [`approach_above_mm`] above the entrance, a component away from the axis and a move up
 /// are dropped, as no demonstrator makes them; lower down they are left as they are. A hold
 /// is left as it is, and [`not_past_the_axis`] still bounds the shoulder.
 ///
@@ -235,7 +241,7 @@ pub fn centred_as_the_demonstrators(
         observation.cell.bore_depth_mm,
         step_limit_mm,
     );
-    let approaching = insertion_mm(observation) < -APPROACH_ABOVE_MM;
+    let approaching = insertion_mm(observation) < -approach_above_mm();
     let mut centred = translation_mm;
     for axis in 0..2 {
         let whole_mm = centring[axis].abs();
