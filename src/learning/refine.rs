@@ -852,8 +852,8 @@ mod tests {
         assert_eq!(one, run_at_once(3, 2, 0));
         assert_eq!(one.0.len(), 3);
         // Transitions were gathered. A one-epoch policy may never level the shaft to within
-        // 1.5 times the demonstrators' tolerance in these episodes, so the position actor may
-        // not act at all (`hierarchical::actor_with_work`).
+        // the tolerance the position actor acts within in these episodes, so it may not act
+        // at all (`hierarchical::actor_with_work`).
         assert!(one.2[0] + one.2[1] > 0, "buffers {:?}", one.2);
     }
 
