@@ -357,7 +357,7 @@ const TOLERANCE_FACTOR_TO_MOVE_WITH: f64 = 1.5;
 /// Without it, selectors kept choosing the position actor at the entrance with a 0.022–0.031°
 /// tilt or, seated, with the holes 0.05–0.12° off, and the orientation actor with nothing to
 /// turn 11–15 mm off the axis above the bore, each until the step limit (decision 0024).
-/// Above the bore the extra half saves turns the supervisor does not need. In the bore a tilt
+/// Above the bore the extra half saves a few turns on the reference cell. In the bore a tilt
 /// left there narrows the gap to the wall along the whole engaged length: at four times the
 /// camera's noise, with 1.5 times the tolerance in the bore too, the supervisor refused the
 /// moves down until more episodes ran out of steps (decision 0033).
