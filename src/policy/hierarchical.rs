@@ -340,7 +340,7 @@ pub fn pivot_in_bore(observation: &Observation, step: Move) -> Move {
 /// How far past the demonstrators' tolerance (a factor on the tilt and on the roll) the
 /// position actor may still act above the bore. In the bore it acts only within the
 /// tolerances, as the demonstrators do.
-const TOLERANCE_FACTOR_TO_MOVE_WITH: f64 = 1.5;
+const TOLERANCE_FACTOR_TO_MOVE_WITH_ABOVE_THE_BORE: f64 = 1.5;
 
 /// The actor that acts for the selector's choice `selected` on `observation`: the choice,
 /// but for two states where the demonstrators never use the chosen actor.
@@ -372,7 +372,7 @@ pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
     let factor = if inside {
         1.0
     } else {
-        TOLERANCE_FACTOR_TO_MOVE_WITH
+        TOLERANCE_FACTOR_TO_MOVE_WITH_ABOVE_THE_BORE
     };
     match selected {
         Actor::Position if tilt > factor * tilt_tolerance || roll > factor * roll_tolerance => {
