@@ -1,0 +1,124 @@
+//! Where a learned policy loses to its demonstrator: the policy acts, but in one zone of the
+//! tip's height (mm past the bore's entrance, from FROM to TO) a part of its move is replaced
+//! by what the demonstrator would do on the same observation. The success rate that comes back
+//! says how much that part of the policy's behaviour there costs; at four times the camera's
+//! noise it splits the learned policies' gap to their demonstrators by zone and by part of the
+//! move (docs/learning.md).
+//!
+//! `cargo run --release --example teacher_in_the_zone -- POLICY DEMONSTRATOR MODE [FROM [TO
+//! [NOISE [EPISODES [SEED]]]]]` (built-in controllers; defaults 0.2, ∞, 4, 4000, 2). MODE:
+//! - `none`: the policy alone, as `celld eval` runs it;
+//! - `all`: the demonstrator's whole move;
+//! - `xy`: the demonstrator's sideways move (x, y of {M}) with the policy's move along the
+//!   axis and its turn;
+//! - `xy-when-moving`: the same, only when the policy moves without turning (a demonstrator
+//!   that turns meanwhile gives no sideways move);
+//! - `z`: the demonstrator's move along the axis when either goes deeper;
+//! - `turn`: the demonstrator's turn with the policy's translation.
+//!
+//! The demonstrator runs beside the policy on the same observations, with its own state (its
+//! holds at the standoff), reset with the same seed. 10 kept robots, as `celld eval`.
+
+use assembly_cell::config::cell::CellConfig;
+use assembly_cell::geometry::Move;
+use assembly_cell::policy;
+use assembly_cell::policy::eval::{episode_seed, robot_blocks};
+use assembly_cell::sim::{AssemblyEnv, EnvOptions, Outcome};
+use rayon::prelude::*;
+
+fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
+    std::env::args()
+        .nth(index)
+        .and_then(|a| a.parse().ok())
+        .unwrap_or(default)
+}
+
+/// The move made: the policy's, with the part `mode` names taken from the demonstrator's.
+fn mixed(mode: &str, policy: Move, demonstrator: Move) -> anyhow::Result<Move> {
+    let mut made = policy;
+    let turns = |m: &Move| m.rotation_deg.norm() > 0.0;
+    match mode {
+        "none" => {}
+        "all" => made = demonstrator,
+        "xy" => {
+            made.translation_mm.x = demonstrator.translation_mm.x;
+            made.translation_mm.y = demonstrator.translation_mm.y;
+        }
+        "xy-when-moving" => {
+            if !turns(&policy) {
+                made.translation_mm.x = demonstrator.translation_mm.x;
+                made.translation_mm.y = demonstrator.translation_mm.y;
+            }
+        }
+        "z" => {
+            if policy.translation_mm.z < 0.0 || demonstrator.translation_mm.z < 0.0 {
+                made.translation_mm.z = demonstrator.translation_mm.z;
+            }
+        }
+        "turn" => made.rotation_deg = demonstrator.rotation_deg,
+        other => anyhow::bail!("unknown mode {other:?}: none, all, xy, xy-when-moving, z or turn"),
+    }
+    Ok(made)
+}
+
+fn main() -> anyhow::Result<()> {
+    let learned: String = arg(1, "hierarchical-cells".to_string());
+    let teacher: String = arg(2, "expert-careful".to_string());
+    let mode: String = arg(3, "none".to_string());
+    let from_mm: f64 = arg(4, 0.2);
+    let to_mm: f64 = arg(5, f64::INFINITY);
+    let noise_scale: f64 = arg(6, 4.0);
+    let episodes: usize = arg(7, 4000);
+    let seed: u64 = arg(8, 2);
+    mixed(&mode, Move::default(), Move::default())?;
+    let cell = CellConfig::reference();
+    let depth_mm = cell.bore.depth_mm;
+    let make_policy = policy::builtin_factory(&learned, &cell)?;
+    let make_teacher = policy::builtin_factory(&teacher, &cell)?;
+    let options = EnvOptions {
+        noise_scale,
+        kept_robots: 10,
+        ..EnvOptions::from_cell(&cell)
+    };
+    let results: Vec<Option<u32>> = robot_blocks(options, episodes, seed)
+        .into_par_iter()
+        .flat_map_iter(|(kept, block)| {
+            let mut env = AssemblyEnv::new(&cell, kept);
+            let (mut acting, mut shadow) = (make_policy(), make_teacher());
+            let mut ends = Vec::new();
+            for index in block {
+                let episode = episode_seed(seed, index);
+                acting.reset(episode ^ 0x5EED_C0DE);
+                shadow.reset(episode ^ 0x5EED_C0DE);
+                let mut observation = env.reset(episode).expect("the twin resets");
+                loop {
+                    let policy_move = acting.act(&observation).action;
+                    let teacher_move = shadow.act(&observation).action;
+                    let inserted_mm = observation.state[8] + depth_mm;
+                    let made = if inserted_mm > from_mm && inserted_mm <= to_mm {
+                        mixed(&mode, policy_move, teacher_move).expect("checked above")
+                    } else {
+                        policy_move
+                    };
+                    let result = env.step(&made).expect("the twin steps");
+                    observation = result.observation;
+                    if let Some(outcome) = result.outcome {
+                        ends.push(matches!(outcome, Outcome::Success).then(|| env.steps()));
+                        break;
+                    }
+                }
+            }
+            ends
+        })
+        .collect();
+    let steps: Vec<u32> = results.iter().flatten().copied().collect();
+    println!(
+        "{learned} with {teacher}'s `{mode}` from {from_mm} to {to_mm} mm (noise ×{noise_scale}, \
+         seed {seed}): {} of {} succeeded ({:.4}) in {:.2} steps",
+        steps.len(),
+        results.len(),
+        steps.len() as f64 / results.len() as f64,
+        steps.iter().map(|&s| f64::from(s)).sum::<f64>() / steps.len() as f64,
+    );
+    Ok(())
+}
