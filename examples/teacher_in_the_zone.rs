@@ -21,10 +21,9 @@
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;
-use assembly_cell::policy;
-use assembly_cell::policy::eval::{episode_seed, robot_blocks};
-use assembly_cell::sim::{AssemblyEnv, EnvOptions, Outcome};
-use rayon::prelude::*;
+use assembly_cell::policy::eval::evaluate;
+use assembly_cell::policy::{self, Controller, Decision};
+use assembly_cell::sim::{EnvOptions, Observation};
 
 fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
     std::env::args()
@@ -61,6 +60,40 @@ fn mixed(mode: &str, policy: Move, demonstrator: Move) -> anyhow::Result<Move> {
     Ok(made)
 }
 
+/// The policy acting, with its demonstrator's move mixed in while the tip is in the zone.
+struct InTheZone {
+    acting: Box<dyn Controller>,
+    shadow: Box<dyn Controller>,
+    mode: String,
+    /// The zone: more than `from_mm` and at most `to_mm` past the entrance.
+    from_mm: f64,
+    to_mm: f64,
+    depth_mm: f64,
+}
+
+impl Controller for InTheZone {
+    fn name(&self) -> &str {
+        "teacher-in-the-zone"
+    }
+
+    fn reset(&mut self, seed: u64) {
+        self.acting.reset(seed);
+        self.shadow.reset(seed);
+    }
+
+    fn act(&mut self, observation: &Observation) -> Decision {
+        let policy_move = self.acting.act(observation).action;
+        let teacher_move = self.shadow.act(observation).action;
+        let inserted_mm = observation.state[8] + self.depth_mm;
+        let made = if inserted_mm > self.from_mm && inserted_mm <= self.to_mm {
+            mixed(&self.mode, policy_move, teacher_move).expect("checked in main")
+        } else {
+            policy_move
+        };
+        Decision::plain(made)
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     let learned: String = arg(1, "hierarchical-cells".to_string());
     let teacher: String = arg(2, "expert-careful".to_string());
@@ -72,7 +105,6 @@ fn main() -> anyhow::Result<()> {
     let seed: u64 = arg(8, 2);
     mixed(&mode, Move::default(), Move::default())?;
     let cell = CellConfig::reference();
-    let depth_mm = cell.bore.depth_mm;
     let make_policy = policy::builtin_factory(&learned, &cell)?;
     let make_teacher = policy::builtin_factory(&teacher, &cell)?;
     let options = EnvOptions {
@@ -80,45 +112,24 @@ fn main() -> anyhow::Result<()> {
         kept_robots: 10,
         ..EnvOptions::from_cell(&cell)
     };
-    let results: Vec<Option<u32>> = robot_blocks(options, episodes, seed)
-        .into_par_iter()
-        .flat_map_iter(|(kept, block)| {
-            let mut env = AssemblyEnv::new(&cell, kept);
-            let (mut acting, mut shadow) = (make_policy(), make_teacher());
-            let mut ends = Vec::new();
-            for index in block {
-                let episode = episode_seed(seed, index);
-                acting.reset(episode ^ 0x5EED_C0DE);
-                shadow.reset(episode ^ 0x5EED_C0DE);
-                let mut observation = env.reset(episode).expect("the twin resets");
-                loop {
-                    let policy_move = acting.act(&observation).action;
-                    let teacher_move = shadow.act(&observation).action;
-                    let inserted_mm = observation.state[8] + depth_mm;
-                    let made = if inserted_mm > from_mm && inserted_mm <= to_mm {
-                        mixed(&mode, policy_move, teacher_move).expect("checked above")
-                    } else {
-                        policy_move
-                    };
-                    let result = env.step(&made).expect("the twin steps");
-                    observation = result.observation;
-                    if let Some(outcome) = result.outcome {
-                        ends.push(matches!(outcome, Outcome::Success).then(|| env.steps()));
-                        break;
-                    }
-                }
-            }
-            ends
-        })
-        .collect();
-    let steps: Vec<u32> = results.iter().flatten().copied().collect();
+    let make = || {
+        Box::new(InTheZone {
+            acting: make_policy(),
+            shadow: make_teacher(),
+            mode: mode.clone(),
+            from_mm,
+            to_mm,
+            depth_mm: cell.bore.depth_mm,
+        }) as Box<dyn Controller>
+    };
+    let (summary, _) = evaluate(&cell, options, episodes, seed, &make, &|_| {});
     println!(
         "{learned} with {teacher}'s `{mode}` from {from_mm} to {to_mm} mm (noise ×{noise_scale}, \
          seed {seed}): {} of {} succeeded ({:.4}) in {:.2} steps",
-        steps.len(),
-        results.len(),
-        steps.len() as f64 / results.len() as f64,
-        steps.iter().map(|&s| f64::from(s)).sum::<f64>() / steps.len() as f64,
+        summary.successes,
+        summary.episodes,
+        summary.success_rate,
+        summary.avg_steps.unwrap_or(f64::NAN),
     );
     Ok(())
 }
