@@ -10,13 +10,19 @@
 //! demonstrators the policies learn from decide on the state alone and do not steer, so
 //! training (behaviour cloning, DAgger's episodes, TD3's episodes) runs the bare policy and the
 //! steering is added here, where a policy is run (decision 0026); TD3's validations run the
-//! policy as it is deployed, through this type (decision 0029).
+//! policy as it is deployed, through this type (decision 0029). With a camera three times
+//! noisier than its data sheet or more, a position move down the bore is made as the
+//! demonstrators make it instead: their exact centring, not steered
+//! ([`super::hierarchical::descends_as_the_demonstrators`], decision 0034).
 
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
-use super::hierarchical::HierarchicalPolicy;
+use super::hierarchical::{
+    HierarchicalPolicy, demonstrators_centring_mm, descends_as_the_demonstrators,
+};
 use super::{Controller, Decision, clamp_components, steered_against_drift};
 use crate::sim::Observation;
+use nalgebra::Vector3;
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -144,10 +150,13 @@ impl Controller for LearnedPolicy {
             Self::Flat(p) => (p.act(observation), p.step_limit_mm()),
         };
         let wanted_mm = decision.action.translation_mm;
-        decision.action.translation_mm = clamp_components(
-            steered_against_drift(&observation.estimate.drift(), wanted_mm),
-            step_limit_mm,
-        );
+        let command_mm = if descends_as_the_demonstrators(observation, &decision) {
+            let centring = demonstrators_centring_mm(observation, step_limit_mm);
+            Vector3::new(centring.x, centring.y, wanted_mm.z)
+        } else {
+            steered_against_drift(&observation.estimate.drift(), wanted_mm)
+        };
+        decision.action.translation_mm = clamp_components(command_mm, step_limit_mm);
         decision
     }
 }
@@ -256,5 +265,61 @@ mod tests {
             off(wanted)
         );
         assert_eq!(command.z, wanted.z);
+    }
+
+    /// 10 mm into the bore and 0.02 mm off the axis, on a robot whose drift the cell has
+    /// learned: with the camera at its data sheet's noise the policy's move down is steered
+    /// against the drift; at four times, it is the demonstrators' move, their exact centring
+    /// and not steered (`descends_as_the_demonstrators`).
+    #[test]
+    fn under_a_noisy_camera_a_move_down_the_bore_is_the_demonstrators() {
+        use crate::camera::drift::DriftKnowledge;
+        use crate::config::cell::CellConfig;
+        use crate::policy::Actor;
+        use crate::policy::hierarchical::demonstrators_centring_mm;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        use nalgebra::{Matrix6, Vector2, Vector6};
+        let cell = CellConfig::reference();
+        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
+        let mut observation = env.reset(4).unwrap();
+        observation.state[6..12].copy_from_slice(&[0.02, -0.01, -50.0, 0.0, 0.0, 0.0]);
+        let per_mm = Vector6::new(0.0, 0.0, 0.01, 0.0, 0.0, -0.008);
+        let known = DriftKnowledge::new(&per_mm, &(Matrix6::identity() * 1e-8), 5);
+        observation.estimate.reset_from(&known);
+        let LearnedPolicy::Hierarchical(bare) =
+            LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical-cells").unwrap())
+                .unwrap()
+        else {
+            panic!("the bundled policy is hierarchical");
+        };
+        let step_limit_mm = bare.config().step_limit_mm;
+        let act = |noise_scale: f64| {
+            let mut observation = observation.clone();
+            observation.estimate.set_noise_scale(noise_scale);
+            let asked = bare.clone().act(&observation);
+            let made = LearnedPolicy::Hierarchical(bare.clone()).act(&observation);
+            (asked, made)
+        };
+        let ((asked, quiet), (asked_noisy, noisy)) = (act(1.0), act(4.0));
+        assert_eq!(
+            asked, asked_noisy,
+            "the network does not see the noise scale"
+        );
+        assert_eq!(asked.actor, Some(Actor::Position), "{asked:?}");
+        let dz = asked.action.translation_mm.z;
+        assert!(dz < -0.5, "{asked:?}");
+        // Quiet: steered, the drift of the move down (0.01 and −0.008 per mm) taken off.
+        let steered = asked.action.translation_mm.xy() - Vector2::new(0.01 * dz, -0.008 * dz);
+        assert!((quiet.action.translation_mm.xy() - steered).norm() < 1e-12);
+        assert_eq!(quiet.action.translation_mm.z, dz);
+        // Noisy: the demonstrators' centring, {M} moved by {F}'s offset in it (level, so
+        // the engaged middle is as far off the axis as {F}'s origin).
+        let centring = demonstrators_centring_mm(&observation, step_limit_mm);
+        assert!(
+            (centring - Vector2::new(0.02, -0.01)).norm() < 1e-12,
+            "{centring}"
+        );
+        assert_eq!(noisy.action.translation_mm.xy(), centring);
+        assert_eq!(noisy.action.translation_mm.z, dz);
     }
 }
