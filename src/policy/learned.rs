@@ -231,20 +231,34 @@ mod tests {
     /// On a robot whose drift the cell has learned, the command a learned policy gives, moved
     /// as that robot moves it (c + drift · c sideways), lands where the bare network asked, to
     /// second order in the drift; the bare network's own command would land drift · w off.
-    #[test]
-    fn a_learned_policy_steers_its_moves_against_the_drift_the_cell_has_learned() {
+    /// An observation on the reference cell with the estimated pose `p_mm` ({F} in {M}),
+    /// level, on a robot whose drift per mm (`StateFilter::drift`, x then y per mm along x, y
+    /// and z) the cell has learned to σ `drift_sd`.
+    fn observed_with_drift(
+        p_mm: [f64; 3],
+        per_mm: nalgebra::Vector6<f64>,
+        drift_sd: f64,
+    ) -> crate::sim::Observation {
         use crate::camera::drift::DriftKnowledge;
         use crate::config::cell::CellConfig;
         use crate::sim::{AssemblyEnv, EnvOptions};
-        use nalgebra::{Matrix6, Vector2, Vector6};
         let cell = CellConfig::reference();
         let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
         let mut observation = env.reset(4).unwrap();
-        // 3 mm and 2 mm off the axis, 20 mm above the entrance, level.
-        observation.state[6..12].copy_from_slice(&[3.0, -2.0, -80.0, 0.0, 0.0, 0.0]);
-        let per_mm = Vector6::new(0.02, -0.01, 0.004, 0.015, 0.01, -0.003);
-        let known = DriftKnowledge::new(&per_mm, &(Matrix6::identity() * 1e-6), 5);
+        observation.state[6..9].copy_from_slice(&p_mm);
+        observation.state[9..12].fill(0.0);
+        let covariance = nalgebra::Matrix6::identity() * drift_sd.powi(2);
+        let known = DriftKnowledge::new(&per_mm, &covariance, 5);
         observation.estimate.reset_from(&known);
+        observation
+    }
+
+    #[test]
+    fn a_learned_policy_steers_its_moves_against_the_drift_the_cell_has_learned() {
+        use nalgebra::{Vector2, Vector6};
+        // 3 mm and 2 mm off the axis, 20 mm above the entrance.
+        let per_mm = Vector6::new(0.02, -0.01, 0.004, 0.015, 0.01, -0.003);
+        let observation = observed_with_drift([3.0, -2.0, -80.0], per_mm, 1e-3);
         let drift = observation.estimate.drift();
         let LearnedPolicy::Hierarchical(bare) =
             LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical").unwrap())
@@ -273,19 +287,11 @@ mod tests {
     /// and not steered (`descends_as_the_demonstrators`).
     #[test]
     fn under_a_noisy_camera_a_move_down_the_bore_is_the_demonstrators() {
-        use crate::camera::drift::DriftKnowledge;
-        use crate::config::cell::CellConfig;
         use crate::policy::Actor;
         use crate::policy::hierarchical::demonstrators_centring_mm;
-        use crate::sim::{AssemblyEnv, EnvOptions};
-        use nalgebra::{Matrix6, Vector2, Vector6};
-        let cell = CellConfig::reference();
-        let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
-        let mut observation = env.reset(4).unwrap();
-        observation.state[6..12].copy_from_slice(&[0.02, -0.01, -50.0, 0.0, 0.0, 0.0]);
+        use nalgebra::{Vector2, Vector6};
         let per_mm = Vector6::new(0.0, 0.0, 0.01, 0.0, 0.0, -0.008);
-        let known = DriftKnowledge::new(&per_mm, &(Matrix6::identity() * 1e-8), 5);
-        observation.estimate.reset_from(&known);
+        let observation = observed_with_drift([0.02, -0.01, -50.0], per_mm, 1e-4);
         let LearnedPolicy::Hierarchical(bare) =
             LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical-cells").unwrap())
                 .unwrap()
