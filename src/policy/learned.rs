@@ -228,9 +228,6 @@ mod tests {
         assert_eq!(summary.failures.get("contact"), None);
     }
 
-    /// On a robot whose drift the cell has learned, the command a learned policy gives, moved
-    /// as that robot moves it (c + drift · c sideways), lands where the bare network asked, to
-    /// second order in the drift; the bare network's own command would land drift · w off.
     /// An observation on the reference cell with the estimated pose `p_mm` ({F} in {M}),
     /// level, on a robot whose drift per mm (`StateFilter::drift`, x then y per mm along x, y
     /// and z) the cell has learned to σ `drift_sd`.
@@ -253,6 +250,9 @@ mod tests {
         observation
     }
 
+    /// On a robot whose drift the cell has learned, the command a learned policy gives, moved
+    /// as that robot moves it (c + drift · c sideways), lands where the bare network asked, to
+    /// second order in the drift; the bare network's own command would land drift · w off.
     #[test]
     fn a_learned_policy_steers_its_moves_against_the_drift_the_cell_has_learned() {
         use nalgebra::{Vector2, Vector6};
