@@ -8,7 +8,7 @@
 #         exploration noise 0.002) in a run directory whose lstm.safetensors is the bundled
 #         policy: BC+TD3 in the hierarchy
 #   NB27  the same with --no-bc-init: TD3 in the hierarchy from fresh actors
-#   SW28  `celld train td3 --seed 2028 --robots 10 --td3-step-size
+#   SW30  `celld train td3 --seed 2030 --robots 10 --td3-step-size
 #         --td3-step-fine-trust-region 0.6` from policies/swift-bc:
 #         BC+TD3 with the step-size agent, the run that makes policies/swift.safetensors
 #   flat  `celld train flat --seed 2026 --demonstrator expert`: the flat TD3 baseline, the run
@@ -23,10 +23,10 @@ RUNS=runs/report
 total=$SECONDS
 
 rm -rf "$RUNS"
-mkdir -p "$RUNS/T27" "$RUNS/NB27" "$RUNS/SW28"
+mkdir -p "$RUNS/T27" "$RUNS/NB27" "$RUNS/SW30"
 cp policies/default.safetensors "$RUNS/T27/lstm.safetensors"
 cp policies/default.safetensors "$RUNS/NB27/lstm.safetensors"
-cp policies/swift-bc.safetensors "$RUNS/SW28/lstm.safetensors"
+cp policies/swift-bc.safetensors "$RUNS/SW30/lstm.safetensors"
 
 # The two TD3 runs side by side, one thread each; then the flat baseline.
 step td3-bc-init env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/T27" --seed 2027 &
@@ -35,7 +35,7 @@ step td3-no-bc-init env RAYON_NUM_THREADS=1 "$CELLD" train td3 --no-bc-init --ou
 second=$!
 wait "$first"
 wait "$second"
-step td3-step-size env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/SW28" --seed 2028 \
+step td3-step-size env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/SW30" --seed 2030 \
     --robots 10 --td3-step-size --td3-step-fine-trust-region 0.6
 step td3-flat env RAYON_NUM_THREADS=1 "$CELLD" train flat --out "$RUNS/flat" --seed 2026 --demonstrator expert
 
@@ -43,6 +43,6 @@ step report "$CELLD" report --episodes 1000 --out docs/report --made-by scripts/
     --curve "BC+TD3 (hierarchical)=$RUNS/T27/td3_curve.json" \
     --curve "TD3 without BC (hierarchical)=$RUNS/NB27/td3_curve.json" \
     --curve "TD3, one 6-DoF actor (td3)=$RUNS/flat/td3-flat_curve.json" \
-    --curve "BC+TD3 with the step-size agent (hierarchical-swift)=$RUNS/SW28/td3_curve.json"
+    --curve "BC+TD3 with the step-size agent (hierarchical-swift)=$RUNS/SW30/td3_curve.json"
 
 echo "== all done in $((SECONDS - total)) s; git diff docs/report shows what changed"

@@ -33,7 +33,8 @@
 //! ([`centred_as_the_demonstrators`]), and the move is limited ([`limit_move`]): after a move
 //! refused for a predicted contact the next move does not go deeper ([`holds_depth_after`]), a
 //! sideways move stops just past the axis, a turn at level, and a turn in the bore pivots
-//! about the engaged shaft ([`pivot_in_bore`]).
+//! about the engaged shaft ([`pivot_in_bore`]). Where a learned policy runs, the move after
+//! such a refusal centres as the demonstrators do ([`centres_after_a_refusal`]).
 //! `celld policy run` prints the forward pass alone.
 
 use super::expert::{ExpertTuning, engaged_middle_off_axis_mm, tip_in_bore};
@@ -294,6 +295,21 @@ pub fn descends_as_the_demonstrators(observation: &Observation, decision: &Decis
         && observation.estimate.noise_scale() > NOISY_CAMERA_SCALE
 }
 
+/// Whether `decision` is a position move right after a move refused for a predicted contact
+/// ([`holds_depth_after`]): the move that holds the depth so that its sideways part can centre
+/// the shaft. A learned policy then moves sideways exactly by its demonstrators' centring move
+/// ([`demonstrators_centring_mm`]), not steered against the learned drift (`LearnedPolicy`).
+///
+/// A cloned actor's sideways part is the small part of a move that is mostly along the axis,
+/// and after a refusal it is all there is. On a deep, tight bore it went away from the axis
+/// the demonstrators centre (the middle of the engaged shaft): in the bore it narrowed the
+/// gap to the wall, the supervisor refused it for the wall margin and the policy asked the
+/// same again until 20 refusals ended the episode; at the entrance, refused for the wall, it
+/// went 0.1 mm further off and hovered there until the step limit (decision 0035).
+pub fn centres_after_a_refusal(observation: &Observation, decision: &Decision) -> bool {
+    decision.actor == Some(Actor::Position) && holds_depth_after(observation.last_veto.as_ref())
+}
+
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
 /// read by [`full_step`] and [`centred_as_the_demonstrators`], then the move of either actor
 /// limited by [`limit_move`]. The controller and TD3's episodes both make it here.
@@ -382,17 +398,20 @@ const TOLERANCE_FACTOR_TO_MOVE_WITH_ABOVE_THE_BORE: f64 = 1.5;
 ///   of more than 1.5 times it above the bore: the orientation actor acts. A demonstrator
 ///   turns first.
 /// - The orientation actor, with nothing to turn (tilt and roll within the tolerances) and
-///   the tip above the bore: the position actor acts. A demonstrator moves. In the bore a
-///   chosen turn with nothing to turn stands for a hold while the estimate settles, and is
+///   the tip above the bore or the shaft being seated (within [`BEING_SEATED_WITHIN_MM`] of
+///   the seated depth): the position actor acts. A demonstrator moves. Elsewhere in the bore
+///   a chosen turn with nothing to turn stands for a hold while the estimate settles, and is
 ///   left alone.
 ///
 /// Without it, selectors kept choosing the position actor at the entrance with a 0.022–0.031°
 /// tilt or, seated, with the holes 0.05–0.12° off, and the orientation actor with nothing to
 /// turn 11–15 mm off the axis above the bore, each until the step limit (decision 0024).
-/// Above the bore the extra half saves a few turns on the reference cell. In the bore a tilt
-/// left there narrows the gap to the wall along the whole engaged length: at four times the
-/// camera's noise, with 1.5 times the tolerance in the bore too, the supervisor refused the
-/// moves down until more episodes ran out of steps (decision 0033).
+/// Seated to within 0.05–0.2 mm, with nothing left to turn, a selector held until the step
+/// limit (decision 0035). Above the bore the extra half saves a few turns on the reference
+/// cell. In the bore a tilt left there narrows the gap to the wall along the whole engaged
+/// length: at four times the camera's noise, with 1.5 times the tolerance in the bore too,
+/// the supervisor refused the moves down until more episodes ran out of steps (decision
+/// 0033).
 pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
     let s = &observation.state;
     let cell = &observation.cell;
@@ -410,11 +429,26 @@ pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
         Actor::Position if tilt > factor * tilt_tolerance || roll > factor * roll_tolerance => {
             Actor::Orientation
         }
-        Actor::Orientation if tilt <= tilt_tolerance && roll <= roll_tolerance && !inside => {
+        Actor::Orientation
+            if tilt <= tilt_tolerance
+                && roll <= roll_tolerance
+                && (!inside || being_seated(observation)) =>
+        {
             Actor::Position
         }
         actor => actor,
     }
+}
+
+/// How far short of the seated depth (mm, by the estimate) the tip is when the shaft counts
+/// as being seated ([`actor_with_work`]).
+pub const BEING_SEATED_WITHIN_MM: f64 = 1.0;
+
+/// Whether the tip is within [`BEING_SEATED_WITHIN_MM`] of the seated depth the estimate sees,
+/// or past it.
+fn being_seated(observation: &Observation) -> bool {
+    // P_z is 0 seated, negative short of it.
+    -observation.state[8] < BEING_SEATED_WITHIN_MM
 }
 
 /// Which actor acts, from the selector's choice.
@@ -1091,6 +1125,50 @@ mod tests {
     }
 
     #[test]
+    fn only_a_position_move_after_a_refusal_for_contact_centres_as_the_demonstrators() {
+        let wall = VetoReason::WallMargin {
+            clearance_mm: 0.017,
+            margin_mm: 0.02,
+            start_mm: 0.025,
+        };
+        let after = |veto: Option<VetoReason>| {
+            let mut observation = observation_above(-3.0);
+            observation.last_veto = veto;
+            observation
+        };
+        let position = Decision {
+            action: Move::translation(0.0, 0.007, 0.0),
+            actor: Some(Actor::Position),
+            scale: None,
+        };
+        let contact = VetoReason::Collision {
+            kind: crate::collision::clearance::ContactKind::Wall,
+            clearance_mm: -0.25,
+        };
+        assert!(centres_after_a_refusal(
+            &after(Some(wall.clone())),
+            &position
+        ));
+        assert!(centres_after_a_refusal(&after(Some(contact)), &position));
+        // Refused as uncertain, or not refused, the policy moves as it asks.
+        let uncertain = VetoReason::Uncertain {
+            risk: 2e-4,
+            bound: 1e-4,
+            clearance_mm: 0.02,
+        };
+        assert!(!centres_after_a_refusal(&after(Some(uncertain)), &position));
+        assert!(!centres_after_a_refusal(&after(None), &position));
+        // Nor a turn, or a move with no actor (a flat policy).
+        let turn = Decision {
+            actor: Some(Actor::Orientation),
+            ..position
+        };
+        assert!(!centres_after_a_refusal(&after(Some(wall.clone())), &turn));
+        let flat = Decision::plain(position.action);
+        assert!(!centres_after_a_refusal(&after(Some(wall)), &flat));
+    }
+
+    #[test]
     fn an_actor_acts_only_where_a_demonstrator_would_use_it() {
         let (pos, ori) = (Actor::Position, Actor::Orientation);
         let at = |above_mm: f64, o: [f64; 3]| {
@@ -1118,6 +1196,12 @@ mod tests {
         assert_eq!(actor_with_work(ori, &at(10.0, [0.012, 0.012, 0.0])), ori);
         assert_eq!(actor_with_work(ori, &at(0.1, [0.0; 3])), ori);
         assert_eq!(actor_with_work(ori, &at(-30.0, [0.0; 3])), ori);
+        // Being seated (the reference bore is 60 mm deep), with nothing to turn: the position
+        // actor; 1.5 mm short, the choice stands; with a roll to turn, it stands too.
+        assert_eq!(actor_with_work(ori, &at(-59.5, [0.0; 3])), pos);
+        assert_eq!(actor_with_work(ori, &at(-60.02, [0.0; 3])), pos);
+        assert_eq!(actor_with_work(ori, &at(-58.5, [0.0; 3])), ori);
+        assert_eq!(actor_with_work(ori, &at(-59.5, [0.0, 0.0, 0.03])), ori);
         // On a Φ100 bore 100 mm deep with 0.03 mm of clearance the tilt tolerance is
         // atan(0.01 / 100) / 2 = 0.00286°: a 0.005° tilt is past 1.5 times it.
         let mut tight = at(10.0, [0.003, 0.004, 0.0]);

@@ -18,7 +18,8 @@
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
 use super::hierarchical::{
-    HierarchicalPolicy, demonstrators_centring_mm, descends_as_the_demonstrators,
+    HierarchicalPolicy, centres_after_a_refusal, demonstrators_centring_mm,
+    descends_as_the_demonstrators,
 };
 use super::{Controller, Decision, clamp_components, steered_against_drift};
 use crate::sim::Observation;
@@ -150,7 +151,9 @@ impl Controller for LearnedPolicy {
             Self::Flat(p) => (p.act(observation), p.step_limit_mm()),
         };
         let wanted_mm = decision.action.translation_mm;
-        let command_mm = if descends_as_the_demonstrators(observation, &decision) {
+        let command_mm = if descends_as_the_demonstrators(observation, &decision)
+            || centres_after_a_refusal(observation, &decision)
+        {
             let centring = demonstrators_centring_mm(observation, step_limit_mm);
             Vector3::new(centring.x, centring.y, wanted_mm.z)
         } else {
@@ -279,6 +282,38 @@ mod tests {
             off(wanted)
         );
         assert_eq!(command.z, wanted.z);
+    }
+
+    /// 10 mm into the bore and 0.02 mm off the axis, right after a move refused for the wall
+    /// margin, on a robot that drifts a fifth of each sideways move: the policy's move holds
+    /// the depth and is the demonstrators' exact centring, not steered against the drift
+    /// (`centres_after_a_refusal`).
+    #[test]
+    fn after_a_refusal_for_the_wall_margin_the_move_is_the_demonstrators_centring() {
+        use crate::collision::supervisor::VetoReason;
+        use crate::policy::Actor;
+        use crate::policy::hierarchical::demonstrators_centring_mm;
+        use nalgebra::Vector6;
+        let per_mm = Vector6::new(0.2, 0.0, 0.01, 0.0, 0.2, -0.008);
+        let mut observation = observed_with_drift([0.02, -0.01, -50.0], per_mm, 1e-4);
+        observation.last_veto = Some(VetoReason::WallMargin {
+            clearance_mm: 0.019,
+            margin_mm: 0.02,
+            start_mm: 0.021,
+        });
+        let LearnedPolicy::Hierarchical(bare) =
+            LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical-cells").unwrap())
+                .unwrap()
+        else {
+            panic!("the bundled policy is hierarchical");
+        };
+        let centring = demonstrators_centring_mm(&observation, bare.config().step_limit_mm);
+        let asked = bare.clone().act(&observation).action.translation_mm;
+        assert!(asked.xy() != nalgebra::Vector2::zeros(), "{asked}");
+        let made = LearnedPolicy::Hierarchical(bare).act(&observation);
+        assert_eq!(made.actor, Some(Actor::Position), "{made:?}");
+        assert_eq!(made.action.translation_mm.xy(), centring);
+        assert_eq!(made.action.translation_mm.z, 0.0, "{made:?}");
     }
 
     /// 10 mm into the bore and 0.02 mm off the axis, on a robot whose drift the cell has
