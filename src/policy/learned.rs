@@ -253,6 +253,15 @@ mod tests {
         observation
     }
 
+    /// The bundled hierarchical policy `name`, bare (without the rules `LearnedPolicy` adds).
+    fn bundled_hierarchical(name: &str) -> HierarchicalPolicy {
+        let bytes = crate::policy::bundled_policy(name).unwrap();
+        let LearnedPolicy::Hierarchical(bare) = LearnedPolicy::from_bytes(bytes).unwrap() else {
+            panic!("the bundled policy {name} is hierarchical");
+        };
+        *bare
+    }
+
     /// On a robot whose drift the cell has learned, the command a learned policy gives, moved
     /// as that robot moves it (c + drift · c sideways), lands where the bare network asked, to
     /// second order in the drift; the bare network's own command would land drift · w off.
@@ -263,14 +272,9 @@ mod tests {
         let per_mm = Vector6::new(0.02, -0.01, 0.004, 0.015, 0.01, -0.003);
         let observation = observed_with_drift([3.0, -2.0, -80.0], per_mm, 1e-3);
         let drift = observation.estimate.drift();
-        let LearnedPolicy::Hierarchical(bare) =
-            LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical").unwrap())
-                .unwrap()
-        else {
-            panic!("the bundled policy is hierarchical");
-        };
+        let bare = bundled_hierarchical("hierarchical");
         let wanted = bare.clone().act(&observation).action.translation_mm;
-        let mut steered = LearnedPolicy::Hierarchical(bare);
+        let mut steered = LearnedPolicy::Hierarchical(Box::new(bare));
         let command = steered.act(&observation).action.translation_mm;
         assert!(wanted.norm() > 1.0, "{wanted}");
         let lands = |c: nalgebra::Vector3<f64>| Vector2::new(c.x, c.y) + drift * c;
@@ -301,16 +305,11 @@ mod tests {
             margin_mm: 0.02,
             start_mm: 0.021,
         });
-        let LearnedPolicy::Hierarchical(bare) =
-            LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical-cells").unwrap())
-                .unwrap()
-        else {
-            panic!("the bundled policy is hierarchical");
-        };
+        let bare = bundled_hierarchical("hierarchical-cells");
         let centring = demonstrators_centring_mm(&observation, bare.config().step_limit_mm);
         let asked = bare.clone().act(&observation).action.translation_mm;
         assert!(asked.xy() != nalgebra::Vector2::zeros(), "{asked}");
-        let made = LearnedPolicy::Hierarchical(bare).act(&observation);
+        let made = LearnedPolicy::Hierarchical(Box::new(bare)).act(&observation);
         assert_eq!(made.actor, Some(Actor::Position), "{made:?}");
         assert_eq!(made.action.translation_mm.xy(), centring);
         assert_eq!(made.action.translation_mm.z, 0.0, "{made:?}");
@@ -327,18 +326,13 @@ mod tests {
         use nalgebra::{Vector2, Vector6};
         let per_mm = Vector6::new(0.0, 0.0, 0.01, 0.0, 0.0, -0.008);
         let observation = observed_with_drift([0.02, -0.01, -50.0], per_mm, 1e-4);
-        let LearnedPolicy::Hierarchical(bare) =
-            LearnedPolicy::from_bytes(crate::policy::bundled_policy("hierarchical-cells").unwrap())
-                .unwrap()
-        else {
-            panic!("the bundled policy is hierarchical");
-        };
+        let bare = bundled_hierarchical("hierarchical-cells");
         let step_limit_mm = bare.config().step_limit_mm;
         let act = |noise_scale: f64| {
             let mut observation = observation.clone();
             observation.estimate.set_noise_scale(noise_scale);
             let asked = bare.clone().act(&observation);
-            let made = LearnedPolicy::Hierarchical(bare.clone()).act(&observation);
+            let made = LearnedPolicy::Hierarchical(Box::new(bare.clone())).act(&observation);
             (asked, made)
         };
         let ((asked, quiet), (asked_noisy, noisy)) = (act(1.0), act(4.0));
