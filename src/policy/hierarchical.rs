@@ -310,9 +310,43 @@ pub fn centres_after_a_refusal(observation: &Observation, decision: &Decision) -
     decision.actor == Some(Actor::Position) && holds_depth_after(observation.last_veto.as_ref())
 }
 
+/// The shortest share of the orientation error the estimate sees that a demonstrator's turn
+/// covers: `expert` turns by 0.85–1 of it (a person's variability), by 0.9 of it below 0.2°.
+pub const SHORTEST_TURN_SHARE: f64 = 0.85;
+
+/// `rotation_deg` (an orientation move of the network) with every component made a turn
+/// towards level of at least [`SHORTEST_TURN_SHARE`] of the error the estimate sees on that
+/// axis (O_x, O_y, O_z), up to `step_limit_deg`, and of at most the whole error, as the
+/// demonstrators turn. Only where there is a tilt or a roll to turn by the demonstrators'
+/// tolerances ([`has_turn_to_make`]): elsewhere in the bore a chosen turn with nothing to
+/// turn stands for a hold while the estimate settles, and is left as it is.
+///
+/// A cloned actor's turn is a move of hundredths of a degree read off a tanh. Above the
+/// entrance with a tilt just over the tolerance (0.016–0.024° against 0.0143°), the swift
+/// cross-cell recipe's policy asked for turns of under 0.0005° at every step until the step
+/// limit (decision 0036).
+pub fn turned_as_the_demonstrators(
+    observation: &Observation,
+    rotation_deg: Vector3<f64>,
+    step_limit_deg: f64,
+) -> Vector3<f64> {
+    if !has_turn_to_make(observation, 1.0) {
+        return rotation_deg;
+    }
+    Vector3::from_fn(|axis, _| {
+        let error_deg = observation.state[9 + axis];
+        let whole_deg = error_deg.abs();
+        let shortest_deg = (whole_deg * SHORTEST_TURN_SHARE).min(step_limit_deg);
+        // The turn along the error's direction, between the shortest share and the whole.
+        (rotation_deg[axis] * error_deg.signum())
+            .clamp(shortest_deg, whole_deg)
+            .copysign(error_deg)
+    })
+}
+
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
-/// read by [`full_step`] and [`centred_as_the_demonstrators`], then the move of either actor
-/// limited by [`limit_move`]. The controller and TD3's episodes both make it here.
+/// read by [`full_step`] and [`centred_as_the_demonstrators`], an orientation move by
+/// [`turned_as_the_demonstrators`], then the move of either actor limited by [`limit_move`]. The controller and TD3's episodes both make it here.
 pub fn asked_move(
     observation: &Observation,
     config: &PolicyConfig,
@@ -328,7 +362,14 @@ pub fn asked_move(
             ),
             ..step
         },
-        Actor::Orientation => step,
+        Actor::Orientation => Move {
+            rotation_deg: turned_as_the_demonstrators(
+                observation,
+                step.rotation_deg,
+                config.step_limit_deg,
+            ),
+            ..step
+        },
     };
     limit_move(observation, actor, step)
 }
@@ -413,31 +454,34 @@ const TOLERANCE_FACTOR_TO_MOVE_WITH_ABOVE_THE_BORE: f64 = 1.5;
 /// the supervisor refused the moves down until more episodes ran out of steps (decision
 /// 0033).
 pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
-    let s = &observation.state;
-    let cell = &observation.cell;
-    let demonstrators = ExpertTuning::default();
     let inside = tip_in_bore(insertion_mm(observation));
-    let tilt_tolerance = demonstrators.tilt_tolerance_deg_on(cell.clearance_tilt_deg(), inside);
-    let roll_tolerance = demonstrators.roll_tolerance_deg;
-    let (tilt, roll) = (s[9].hypot(s[10]), s[11].abs());
     let factor = if inside {
         1.0
     } else {
         TOLERANCE_FACTOR_TO_MOVE_WITH_ABOVE_THE_BORE
     };
     match selected {
-        Actor::Position if tilt > factor * tilt_tolerance || roll > factor * roll_tolerance => {
-            Actor::Orientation
-        }
+        Actor::Position if has_turn_to_make(observation, factor) => Actor::Orientation,
         Actor::Orientation
-            if tilt <= tilt_tolerance
-                && roll <= roll_tolerance
-                && (!inside || being_seated(observation)) =>
+            if !has_turn_to_make(observation, 1.0) && (!inside || being_seated(observation)) =>
         {
             Actor::Position
         }
         actor => actor,
     }
+}
+
+/// Whether the estimate sees a tilt or a roll of more than `factor` times the demonstrators'
+/// tolerance on this cell, with the tip where it is
+/// ([`ExpertTuning::tilt_tolerance_deg_on`], the roll tolerance).
+fn has_turn_to_make(observation: &Observation, factor: f64) -> bool {
+    let s = &observation.state;
+    let demonstrators = ExpertTuning::default();
+    let inside = tip_in_bore(insertion_mm(observation));
+    let tilt_tolerance =
+        demonstrators.tilt_tolerance_deg_on(observation.cell.clearance_tilt_deg(), inside);
+    s[9].hypot(s[10]) > factor * tilt_tolerance
+        || s[11].abs() > factor * demonstrators.roll_tolerance_deg
 }
 
 /// How far short of the seated depth (mm, by the estimate) the tip is when the shaft counts
@@ -1166,6 +1210,42 @@ mod tests {
         assert!(!centres_after_a_refusal(&after(Some(wall.clone())), &turn));
         let flat = Decision::plain(position.action);
         assert!(!centres_after_a_refusal(&after(Some(wall)), &flat));
+    }
+
+    #[test]
+    fn a_turn_covers_the_demonstrators_share_of_the_error_where_there_is_one_to_make() {
+        let at = |above_mm: f64, o: [f64; 3]| {
+            let mut observation = observation_above(above_mm);
+            observation.state[9..12].copy_from_slice(&o);
+            observation
+        };
+        let close = |a: Vector3<f64>, b: [f64; 3]| (a - Vector3::from(b)).amax() < 1e-12;
+        // A 0.036° tilt above the reference bore (tolerance 0.0143°): a turn to make.
+        let tilted = at(10.0, [0.03, -0.02, 0.01]);
+        // x: 0.012° of 0.03° becomes 0.85 of it, 0.0255°; y: -0.02° of -0.02° is whole and
+        // stays; z, a turn away from level, becomes 0.85 of the roll, 0.0085°.
+        let turned = turned_as_the_demonstrators(&tilted, Vector3::new(0.012, -0.02, -0.005), 0.2);
+        assert!(close(turned, [0.0255, -0.02, 0.0085]), "{turned:?}");
+        // Never past the whole error; the shortest share no longer than the step limit.
+        let long = turned_as_the_demonstrators(&tilted, Vector3::new(0.05, -0.001, 0.0), 0.2);
+        assert!(close(long, [0.03, -0.017, 0.0085]), "{long:?}");
+        let limited = turned_as_the_demonstrators(&tilted, Vector3::new(0.012, 0.0, 0.0), 0.02);
+        assert!(close(limited, [0.02, -0.017, 0.0085]), "{limited:?}");
+        // Within the tolerances (tilt 0.01°, roll 0.02°) above the bore, or in the bore with
+        // nothing to turn, a chosen turn is left as it is.
+        let small = Vector3::new(0.001, 0.001, 0.001);
+        assert_eq!(
+            turned_as_the_demonstrators(&at(10.0, [0.006, 0.008, 0.02]), small, 0.2),
+            small
+        );
+        assert_eq!(
+            turned_as_the_demonstrators(&at(-30.0, [0.0; 3]), small, 0.2),
+            small
+        );
+        // A roll alone past its tolerance (0.025°) is a turn to make; with no tilt there is
+        // nothing to turn about x and y.
+        let rolled = turned_as_the_demonstrators(&at(-30.0, [0.0, 0.0, -0.04]), small, 0.2);
+        assert!(close(rolled, [0.0, 0.0, -0.034]), "{rolled:?}");
     }
 
     #[test]
