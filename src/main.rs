@@ -70,7 +70,7 @@ enum PolicyCommand {
 struct EvalArgs {
     /// A built-in controller (expert, expert-state-only, expert-careful, expert-swift,
     /// visual-servo, spiral, da-dmp, hierarchical, bc, td3, hierarchical-cells,
-    /// hierarchical-swift) or a policy file (.safetensors).
+    /// hierarchical-swift, hierarchical-swift-cells) or a policy file (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).

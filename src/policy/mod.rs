@@ -85,13 +85,16 @@ pub const BUILTIN_CONTROLLERS: [&str; 7] = [
 /// flat`), and `hierarchical-cells` (BC + LSTM on cell-scaled inputs, every demonstration
 /// on a randomised cell: the policy for cells none was trained on), and `hierarchical-swift`
 /// (BC + LSTM on `expert-swift`, a DAgger round, then TD3 on the selector's step size: the
-/// fast policy, a third fewer steps than `hierarchical`). See the README.
-pub const LEARNED_CONTROLLERS: [&str; 5] = [
+/// fast policy, a third fewer steps than `hierarchical`), and `hierarchical-swift-cells`
+/// (the recipe of `hierarchical-cells` on `expert-swift`'s demonstrations: fast on every
+/// cell). See the README.
+pub const LEARNED_CONTROLLERS: [&str; 6] = [
     "hierarchical",
     "bc",
     "td3",
     "hierarchical-cells",
     "hierarchical-swift",
+    "hierarchical-swift-cells",
 ];
 
 /// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
@@ -102,6 +105,9 @@ pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
         "td3" => Some(include_bytes!("../../policies/td3.safetensors")),
         "hierarchical-cells" => Some(include_bytes!("../../policies/across-cells.safetensors")),
         "hierarchical-swift" => Some(include_bytes!("../../policies/swift.safetensors")),
+        "hierarchical-swift-cells" => {
+            Some(include_bytes!("../../policies/swift-cells.safetensors"))
+        }
         _ => None,
     }
 }
