@@ -346,7 +346,8 @@ pub fn turned_as_the_demonstrators(
 
 /// The move the policy makes of `step`, the forward pass's move by `actor`: a position move
 /// read by [`full_step`] and [`centred_as_the_demonstrators`], an orientation move by
-/// [`turned_as_the_demonstrators`], then the move of either actor limited by [`limit_move`]. The controller and TD3's episodes both make it here.
+/// [`turned_as_the_demonstrators`], then the move of either actor limited by [`limit_move`].
+/// The controller and TD3's episodes and validations all make it here.
 pub fn asked_move(
     observation: &Observation,
     config: &PolicyConfig,
@@ -1246,6 +1247,27 @@ mod tests {
         // nothing to turn about x and y.
         let rolled = turned_as_the_demonstrators(&at(-30.0, [0.0, 0.0, -0.04]), small, 0.2);
         assert!(close(rolled, [0.0, 0.0, -0.034]), "{rolled:?}");
+        // The move the policy makes of an orientation actor's step turns so too, and a
+        // position actor's step is not turned.
+        let config = PolicyConfig {
+            hidden_size: 64,
+            actor_width: 64,
+            step_limit_mm: 5.0,
+            step_limit_deg: 0.2,
+            inputs: PolicyInputs::Absolute,
+        };
+        let step = Move {
+            translation_mm: Vector3::zeros(),
+            rotation_deg: small,
+        };
+        let asked = asked_move(&tilted, &config, Actor::Orientation, step);
+        assert!(
+            close(asked.rotation_deg, [0.0255, -0.017, 0.0085]),
+            "{asked:?}"
+        );
+        assert_eq!(asked.translation_mm, Vector3::zeros());
+        let position = asked_move(&tilted, &config, Actor::Position, step);
+        assert_eq!(position.rotation_deg, small);
     }
 
     #[test]
