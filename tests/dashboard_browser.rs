@@ -87,9 +87,9 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     let shots = screenshots();
     browser.set_screenshot_dir(Some(&shots));
     let dir = tempfile::tempdir().unwrap();
-    // A gate of 1: a policy must succeed in every episode of its evaluation. The bundled `bc`
-    // policy, uploaded below, fails about one episode in twenty, so the page can show the
-    // gate's refusal.
+    // A gate of 1: a policy must succeed in every episode of its evaluation. The bundled flat
+    // `td3` baseline, uploaded below, succeeds in none, so the page can show the gate's
+    // refusal.
     let mut server = Server::start(
         dir.path(),
         &[
@@ -216,10 +216,10 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         b.exists("tr[data-policy-id='1']")
     });
 
-    // Upload through the form: the bundled `bc` policy file becomes policy 2, as stored.
-    let file = concat!(env!("CARGO_MANIFEST_DIR"), "/policies/bc.safetensors");
+    // Upload through the form: the bundled `td3` policy file becomes policy 2, as stored.
+    let file = concat!(env!("CARGO_MANIFEST_DIR"), "/policies/td3.safetensors");
     browser.find("#policy-file").send_keys(file);
-    browser.find("#policy-name").send_keys("bc from the page");
+    browser.find("#policy-name").send_keys("td3 from the page");
     browser
         .find("form:has(#policy-file) button[type=submit]")
         .click();
@@ -227,7 +227,7 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         text_of(b, "#policy-answer").contains("Registered policy 2")
     });
     let (_, uploaded) = server.get("/api/policies/2", Some(&server.admin));
-    assert_eq!(uploaded["name"], "bc from the page");
+    assert_eq!(uploaded["name"], "td3 from the page");
     assert_eq!(
         uploaded["size_bytes"].as_u64().unwrap(),
         std::fs::metadata(file).unwrap().len()
