@@ -3,8 +3,9 @@
 
 use super::{Robot, RobotError};
 use crate::collision::clearance::clearance;
-use crate::collision::supervisor::{Supervisor, VetoReason};
+use crate::collision::supervisor::{Allowed, Supervisor, VetoReason};
 use crate::geometry::{Belief, Move, Pose};
+use nalgebra::Point3;
 
 /// `inner` behind the supervisor. The supervisor judges a move against the robot's setpoint
 /// and the cell's latest estimate of {F} in {M} with its uncertainty, given by
@@ -43,11 +44,16 @@ impl<'s, R: Robot> Supervised<'s, R> {
     /// If no share is allowed and the move goes deeper along the shaft's axis, its sideways and
     /// turning part alone (`sideways_parts`), provided its probability of contact
     /// is within the bound: the cell centres the shaft before it goes on, rather than holding
-    /// off-centre while the controller keeps asking to go in. (A move the supervisor allows
-    /// only because it leaves the cell no nearer the wall is not good enough here: the
-    /// controller did not ask for it, and a controller that searches by its refusals, such as
-    /// `spiral`, would no longer be told.) Answers the move executed; the first refusal when
-    /// none is allowed.
+    /// off-centre while the controller keeps asking to go in. Failing that, with the tip in the
+    /// bore, the sideways part that leaves the most room, if that is more than there is now
+    /// and the supervisor allows it (it adds no risk to where the cell stands, and the
+    /// estimate is sure enough of where it ends): without it a shaft that stopped a few
+    /// hundredths of a millimetre off the axis holds there until the episode ends, every share
+    /// of the move going deeper and a partial centring not bringing the probability of contact
+    /// from where it stands under the bound. Only in the bore, where waiting makes a settled
+    /// estimate no surer: above it a controller that searches for the entrance by its refusals
+    /// (`spiral`) is still told, and a shaft at the entrance on an unsure estimate is not moved
+    /// about. Answers the move executed; the first refusal when none is allowed.
     pub fn execute_cautiously(&mut self, step: &Move) -> Result<Move, RobotError> {
         let setpoint = self.inner.setpoint();
         let mut refusal = None;
@@ -71,21 +77,52 @@ impl<'s, R: Robot> Supervised<'s, R> {
         let refusal = refusal.expect("every share was refused as uncertain or near the wall");
         // Deeper is −z of {M}: Segment I's tip leads along −z.
         if step.translation_mm.z < 0.0 {
-            let roomiest = self
-                .sideways_parts(step)
-                .into_iter()
-                .filter(|candidate| {
-                    let allowed = self.supervisor.check(&setpoint, self.belief, candidate);
-                    allowed.is_ok_and(|a| a.contact_risk <= self.supervisor.risk_bound())
-                })
-                .map(|candidate| (candidate, self.clearance_after(&candidate)))
-                .max_by(|a, b| a.1.total_cmp(&b.1));
-            if let Some((centring, _)) = roomiest {
+            let bound = self.supervisor.risk_bound();
+            let centring = self
+                .roomiest_sideways_part(step, |allowed, _| allowed.contact_risk <= bound)
+                .or_else(|| {
+                    let now_mm = self.clearance_after(&Move::default());
+                    self.tip_in_the_bore()
+                        .then(|| self.roomiest_sideways_part(step, |_, after_mm| after_mm > now_mm))
+                        .flatten()
+                });
+            if let Some(centring) = centring {
                 self.inner.execute(&centring)?;
                 return Ok(centring);
             }
         }
         Err(RobotError::Vetoed(refusal))
+    }
+
+    /// Of `step`'s sideways parts (`sideways_parts`) that the supervisor allows and `good_enough`
+    /// accepts (given the verdict and the clearance where the part ends, mm), the one that
+    /// leaves Segment I the most room.
+    fn roomiest_sideways_part(
+        &self,
+        step: &Move,
+        good_enough: impl Fn(&Allowed, f64) -> bool,
+    ) -> Option<Move> {
+        let setpoint = self.inner.setpoint();
+        self.sideways_parts(step)
+            .into_iter()
+            .filter_map(|candidate| {
+                let allowed = self
+                    .supervisor
+                    .check(&setpoint, self.belief, &candidate)
+                    .ok()?;
+                let after_mm = self.clearance_after(&candidate);
+                good_enough(&allowed, after_mm).then_some((candidate, after_mm))
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(candidate, _)| candidate)
+    }
+
+    /// Whether the tip is past the bore's entrance by the estimate.
+    fn tip_in_the_bore(&self) -> bool {
+        self.belief.is_some_and(|belief| {
+            let tip = Point3::new(0.0, 0.0, -self.supervisor.parts().shaft_length_mm);
+            (belief.m_f().inverse() * tip).z < 0.0
+        })
     }
 
     /// The clearance (mm) where `step` leaves Segment I, by the estimate (drift included).
@@ -337,5 +374,40 @@ mod tests {
             Err(RobotError::Vetoed(reason)) if reason.code() == "wall_margin"
         ));
         assert_eq!(recorder.executed, vec![steering.scaled(0.6)]);
+    }
+
+    #[test]
+    fn in_the_bore_a_centring_that_leaves_more_room_is_made_beyond_the_bound() {
+        let supervisor = Supervisor::new(&CellConfig::reference());
+        let mut recorder = Recorder::default();
+        let mut robot = Supervised::new(&supervisor, &mut recorder);
+        // 0.04 mm off the axis, 30 mm into the bore, σ 0.004 mm sideways. Centring by
+        // 0.01 mm starts 0.01 mm from the wall, so its probability of contact (about 3e-3) is
+        // above the bound, but it ends 0.02 mm from the wall, 5 σ, and adds no risk to where
+        // the shaft stands: it is made. By 0.005 mm it ends 0.015 mm from the wall, under the
+        // 4.57 σ the supervisor wants for its bound of 1e-4, and the whole move is refused.
+        let belief = Unsure(inserted_off_axis(), 0.004);
+        robot.observe(Some(&belief));
+        assert!(robot.tip_in_the_bore());
+        let a_little = Move::translation(-0.005, 0.0, -4.0);
+        assert!(matches!(
+            robot.execute_cautiously(&a_little),
+            Err(RobotError::Vetoed(reason)) if reason.code() == "uncertain"
+        ));
+        let more = Move::translation(-0.01, 0.0, -4.0);
+        let centred = robot
+            .execute_cautiously(&more)
+            .expect("the centring is made");
+        let expected = Move::translation(-0.01, 0.0, 0.0);
+        assert!(
+            (centred.to_array().iter().zip(expected.to_array()))
+                .all(|(a, b)| (a - b).abs() < 1e-12),
+            "{centred:?}"
+        );
+        // Above the entrance the rule does not act: 1 mm above it the tip is not in the bore.
+        let above = Exact(Isometry3::translation(0.04, 0.0, 61.0).inverse());
+        robot.observe(Some(&above));
+        assert!(!robot.tip_in_the_bore());
+        assert_eq!(recorder.executed, vec![centred]);
     }
 }
