@@ -33,7 +33,7 @@
 use super::obb::Obb;
 use crate::config::cell::CellConfig;
 use crate::geometry::pose::{Pose, interpolate};
-use nalgebra::{Isometry3, Translation3, Vector2, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, Vector2, Vector3};
 
 /// Thickness of the slab above the shoulder face included in Segment I's OBB, mm.
 const SHOULDER_SLAB_MM: f64 = 1.0;
@@ -70,6 +70,12 @@ impl PartGeometry {
             axial_relief_mm: cell.bore.axial_relief_mm,
             bore_outer_radius_mm: cell.bore.outer_diameter_mm / 2.0,
         }
+    }
+
+    /// How far the tip is below the bore's entrance (mm; negative above it) with the shaft at
+    /// `f_m` ({M} in {F}): the tip is the engaged length below {M}'s origin at the shoulder.
+    pub fn tip_depth_mm(&self, f_m: &Pose) -> f64 {
+        -(f_m * Point3::new(0.0, 0.0, -self.shaft_length_mm)).z
     }
 
     /// Depth of the bore bottom below the entrance, h = depth + relief (mm).

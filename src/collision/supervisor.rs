@@ -21,7 +21,7 @@ use crate::geometry::belief::largest_sd;
 use crate::geometry::{Belief, CellFrames, Move, Pose, pose};
 use crate::kinematics::{KinematicsError, StewartGeometry};
 use nalgebra::Vector3;
-use nalgebra::{Matrix2x6, Matrix6, Point3};
+use nalgebra::{Matrix2x6, Matrix6};
 
 /// Why a move was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -267,8 +267,7 @@ impl Supervisor {
     fn spread(&self, m_f: &Pose, to: &Pose, covariances: &[Matrix6<f64>; 2]) -> risk::Spread {
         let parts = &self.parts;
         let from = m_f.inverse();
-        let tip = Point3::new(0.0, 0.0, -parts.shaft_length_mm);
-        let depth = |f_m: &Pose| (-(f_m * tip).z).clamp(0.0, parts.shaft_length_mm);
+        let depth = |f_m: &Pose| parts.tip_depth_mm(f_m).clamp(0.0, parts.shaft_length_mm);
         let lever_mm = depth(&from).max(depth(to));
         let (a, b) = (-m_f.translation.vector.x, -m_f.translation.vector.y);
         let sideways_at = |c: &Matrix6<f64>, z: f64| {

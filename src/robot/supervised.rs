@@ -5,7 +5,6 @@ use super::{Robot, RobotError};
 use crate::collision::clearance::clearance;
 use crate::collision::supervisor::{Allowed, Supervisor, VetoReason};
 use crate::geometry::{Belief, Move, Pose};
-use nalgebra::Point3;
 
 /// `inner` behind the supervisor. The supervisor judges a move against the robot's setpoint
 /// and the cell's latest estimate of {F} in {M} with its uncertainty, given by
@@ -81,9 +80,11 @@ impl<'s, R: Robot> Supervised<'s, R> {
             let centring = self
                 .roomiest_sideways_part(step, |allowed, _| allowed.contact_risk <= bound)
                 .or_else(|| {
-                    let now_mm = self.clearance_after(&Move::default());
                     self.tip_in_the_bore()
-                        .then(|| self.roomiest_sideways_part(step, |_, after_mm| after_mm > now_mm))
+                        .then(|| {
+                            let now_mm = self.clearance_after(&Move::default());
+                            self.roomiest_sideways_part(step, |_, after_mm| after_mm > now_mm)
+                        })
                         .flatten()
                 });
             if let Some(centring) = centring {
@@ -120,8 +121,10 @@ impl<'s, R: Robot> Supervised<'s, R> {
     /// Whether the tip is past the bore's entrance by the estimate.
     fn tip_in_the_bore(&self) -> bool {
         self.belief.is_some_and(|belief| {
-            let tip = Point3::new(0.0, 0.0, -self.supervisor.parts().shaft_length_mm);
-            (belief.m_f().inverse() * tip).z < 0.0
+            self.supervisor
+                .parts()
+                .tip_depth_mm(&belief.m_f().inverse())
+                > 0.0
         })
     }
 
