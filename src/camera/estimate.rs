@@ -4,13 +4,25 @@ use super::sim::nominal_point_sigma_mm;
 use super::uncertainty::{FixtureCovariance, fit_covariance, relative_covariance};
 use super::{CameraError, CameraFrame, Fixture, PointNoise, wrap_deg};
 use crate::config::cell::CellConfig;
-use crate::geometry::fit::{FitError, FrameFit, MAX_FIT_POINTS, fit_frame};
+use crate::geometry::fit::{
+    FitError, FrameFit, MAX_FIT_POINTS, MIN_FIT_POINTS, fit_frame, refit_without,
+};
 use crate::geometry::pose::{is_finite, rotation_vector_deg};
 use crate::geometry::{CellFrames, Pose};
 use nalgebra::{Matrix6, Point3, Vector3};
 
 /// Smallest outlier rejection threshold, mm.
 const MIN_REJECTION_MM: f64 = 0.05;
+
+/// The median residual of a point over its σ that a rigid fit of six points leaves: the median
+/// of a χ with 3 degrees of freedom (1.538), shrunk by the fit's 6 of 18 degrees of freedom
+/// (× √(12/18)).
+const SHEET_MEDIAN_RESIDUAL: f64 = 1.256;
+
+/// A fit's residuals, each over its point's σ, squared and summed, are beyond what the camera's
+/// noise gives by chance when over the χ² quantile of this upper tail (1e-4): one point is then
+/// left out (`StateEstimator::without_the_unexplained_point`).
+const RESIDUALS_TAIL_SIGMAS: f64 = 3.719;
 
 /// The state estimator: fits {C1} and {C2} to a capture and applies Eq. 1.
 #[derive(Debug, Clone)]
@@ -83,6 +95,47 @@ impl StateEstimator {
         self.reject_above_mm
     }
 
+    /// How noisy the camera looks in this one capture (× the data sheet, from 1 up to
+    /// `up_to`): each fixture fitted with the threshold of a camera `up_to` times the data
+    /// sheet's, the median of its points' residuals over their data-sheet σ against the median
+    /// the data sheet's noise leaves; the quieter fixture's. A median, and the quieter fixture,
+    /// so that a point gone astray, and the fit it bent, do not make the camera look noisy. For
+    /// the first frame of an episode, before any has shown the camera's noise: at the data
+    /// sheet's threshold a camera four times as noisy loses good points down to a fit of three.
+    pub fn noise_scale_of(&self, frame: &CameraFrame, up_to: f64) -> f64 {
+        let up_to = up_to.max(1.0);
+        let reject_above_mm = self.reject_above_mm * up_to;
+        let median_of = |fixture: Fixture, layout: &[Point3<f64>]| -> Option<f64> {
+            let (model, measured): (Vec<_>, Vec<_>) = frame
+                .points
+                .iter()
+                .filter(|p| p.fixture == fixture)
+                .filter_map(|p| Some((*layout.get(usize::from(p.id))?, p.position_mm)))
+                .unzip();
+            let fit = fit_frame(&model, &measured, reject_above_mm).ok()?;
+            let mut ratios: Vec<f64> = model
+                .iter()
+                .zip(&measured)
+                .map(|(m, q)| {
+                    let fitted = fit.pose * m;
+                    (q - fitted).norm() / self.sheet.at_mm(&fitted)
+                })
+                .collect();
+            ratios.sort_by(f64::total_cmp);
+            Some(ratios[ratios.len() / 2])
+        };
+        [
+            median_of(Fixture::C1, &self.c1_model),
+            median_of(Fixture::C2, &self.c2_model),
+        ]
+        .into_iter()
+        .flatten()
+        .min_by(f64::total_cmp)
+        .map_or(1.0, |median| {
+            (median / SHEET_MEDIAN_RESIDUAL).clamp(1.0, up_to)
+        })
+    }
+
     /// Estimates the segment poses from one capture. `noise_scale` is how noisy the camera is
     /// believed to be (× the data sheet): the outlier rejection threshold grows with it. Points
     /// with non-finite coordinates or unknown ids are dropped; a fixture with fewer than 3
@@ -92,9 +145,21 @@ impl StateEstimator {
         frame: &CameraFrame,
         noise_scale: f64,
     ) -> Result<Measurement, CameraError> {
-        let reject_above_mm = self.reject_above_mm * noise_scale.max(1.0);
-        let c1 = self.fit_fixture(frame, Fixture::C1, reject_above_mm)?;
-        let c2 = self.fit_fixture(frame, Fixture::C2, reject_above_mm)?;
+        self.estimate_screened(frame, noise_scale, None)
+    }
+
+    /// [`estimate`](Self::estimate), and when the camera's variance factor is known
+    /// (`known_variance_factor`, × the data sheet's), each fixture's residuals are screened as
+    /// a whole against it: a point that bent the fit towards itself is left out even when its
+    /// own residual is under the threshold (`without_the_unexplained_point`).
+    pub fn estimate_screened(
+        &self,
+        frame: &CameraFrame,
+        noise_scale: f64,
+        known_variance_factor: Option<f64>,
+    ) -> Result<Measurement, CameraError> {
+        let c1 = self.fit_fixture(frame, Fixture::C1, noise_scale, known_variance_factor)?;
+        let c2 = self.fit_fixture(frame, Fixture::C2, noise_scale, known_variance_factor)?;
         let w_m = c1.fit.pose * self.c1_m;
         let w_f = c2.fit.pose * self.c2_f;
         let m_f = w_m.inverse() * w_f;
@@ -119,12 +184,18 @@ impl StateEstimator {
         })
     }
 
+    /// Fits one fixture: the points whose residual is beyond the rejection threshold (scaled by
+    /// `noise_scale`, at least the data sheet's) are left out one by one, then, with a
+    /// `known_variance_factor`, while the residuals as a whole are beyond that noise, the point
+    /// without which the fit explains the others best.
     fn fit_fixture(
         &self,
         frame: &CameraFrame,
         fixture: Fixture,
-        reject_above_mm: f64,
+        noise_scale: f64,
+        known_variance_factor: Option<f64>,
     ) -> Result<FixtureFit, CameraError> {
+        let reject_above_mm = self.reject_above_mm * noise_scale.max(1.0);
         let layout = match fixture {
             Fixture::C1 => &self.c1_model,
             Fixture::C2 => &self.c2_model,
@@ -156,20 +227,30 @@ impl StateEstimator {
             measured[usable] = *p;
             usable += 1;
         }
-        let mut fit = fit_frame(&model[..usable], &measured[..usable], reject_above_mm)
+        let (model, measured) = (&model[..usable], &measured[..usable]);
+        let mut fit = fit_frame(model, measured, reject_above_mm)
             .map_err(|source| CameraError::Fixture { fixture, source })?;
-        // The fitted positions of the points used, their data-sheet σ and residuals.
+        if let Some(variance_factor) = known_variance_factor {
+            while let Some(better) = self.without_the_unexplained_point(
+                model,
+                measured,
+                reject_above_mm,
+                variance_factor,
+                &fit,
+            ) {
+                fit = better;
+            }
+        }
+        // The fitted positions of the points used and their data-sheet σ.
         let mut fitted = [Point3::origin(); MAX_FIT_POINTS];
         let mut sigmas = [0.0; MAX_FIT_POINTS];
         let mut count = 0;
-        let mut residual_squares = 0.0;
         for i in (0..usable).filter(|i| fit.inliers & (1u64 << i) != 0) {
             fitted[count] = fit.pose * model[i];
             sigmas[count] = self.sheet.at_mm(&fitted[count]);
-            residual_squares +=
-                (measured[i] - fitted[count]).norm_squared() / sigmas[count].powi(2);
             count += 1;
         }
+        let residual_squares = self.residual_squares(model, measured, &fit);
         let centre = Point3::from(
             fitted[..count]
                 .iter()
@@ -191,6 +272,60 @@ impl StateEstimator {
             residual_dof: 3 * count - 6,
         })
     }
+
+    /// The residuals of the points `fit` used, each over its point's data-sheet σ, squared and
+    /// summed.
+    fn residual_squares(
+        &self,
+        model: &[Point3<f64>],
+        measured: &[Point3<f64>],
+        fit: &FrameFit,
+    ) -> f64 {
+        (0..model.len())
+            .filter(|i| fit.inliers & (1u64 << i) != 0)
+            .map(|i| {
+                let fitted = fit.pose * model[i];
+                (measured[i] - fitted).norm_squared() / self.sheet.at_mm(&fitted).powi(2)
+            })
+            .sum()
+    }
+
+    /// When `fit`'s residuals are beyond what a camera of `variance_factor` × the data sheet's
+    /// variance (at least the data sheet's) gives by chance, the fit without the point that leaves the others best explained. A
+    /// gross error on one of six points bends the fit towards it, and at four times the data
+    /// sheet's noise the per-point threshold grows with the noise while the error does not: the
+    /// point then hides under the threshold and pulls the fixture's frame several σ off. At
+    /// least four points are kept.
+    fn without_the_unexplained_point(
+        &self,
+        model: &[Point3<f64>],
+        measured: &[Point3<f64>],
+        reject_above_mm: f64,
+        variance_factor: f64,
+        fit: &FrameFit,
+    ) -> Option<FrameFit> {
+        if fit.used <= MIN_FIT_POINTS + 1 {
+            return None;
+        }
+        let dof = (3 * fit.used - 6) as f64;
+        let chance = chi2_upper_quantile(dof, RESIDUALS_TAIL_SIGMAS) * variance_factor.max(1.0);
+        if self.residual_squares(model, measured, fit) <= chance {
+            return None;
+        }
+        (0..model.len())
+            .filter(|i| fit.inliers & (1u64 << i) != 0)
+            .filter_map(|i| refit_without(model, measured, reject_above_mm, fit, i).ok())
+            .map(|without| (self.residual_squares(model, measured, &without), without))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, without)| without)
+    }
+}
+
+/// The χ² value with `dof` degrees of freedom exceeded with the probability of a normal
+/// variable exceeding `sigmas` (Wilson and Hilferty's cube-root approximation).
+fn chi2_upper_quantile(dof: f64, sigmas: f64) -> f64 {
+    let spread = 2.0 / (9.0 * dof);
+    dof * (1.0 - spread + sigmas * spread.sqrt()).powi(3)
 }
 
 impl Measurement {
@@ -311,6 +446,102 @@ mod tests {
         assert!((m.w_m.inverse() * w_m).rotation.angle() < 1e-12);
         assert!((m.w_f.inverse() * w_f).rotation.angle() < 1e-12);
         assert!(estimator.rejection_threshold_mm() > 0.2);
+    }
+
+    #[test]
+    fn a_point_the_fit_bent_towards_is_left_out_when_the_residuals_are_beyond_the_noise() {
+        // An exact capture but for 0.6 mm on one of C2's points: under the per-point threshold
+        // of a camera four times the data sheet's (6 σ of ~0.036 mm × 4), so rejection keeps
+        // it and the fit bends towards it. Screened against the data sheet's noise (the
+        // residuals' χ² with 12 degrees of freedom is then hundreds of times its 1e-4 quantile),
+        // the fit without it is the exact one again.
+        let (cell, frames, w_m, w_f) = setup();
+        let camera = SimCamera::new(&cell, &frames, 1.0);
+        let estimator = StateEstimator::new(&cell, &frames);
+        let mut frame = camera.capture(&w_m, &w_f, &mut ChaCha8Rng::seed_from_u64(1));
+        let astray = frame
+            .points
+            .iter_mut()
+            .find(|p| p.fixture == Fixture::C2)
+            .expect("a point of C2");
+        astray.position_mm +=
+            Vector3::new(0.0, 0.6, 0.0) / 2f64.sqrt() + Vector3::new(0.0, 0.0, 0.3);
+        let error_mm = |m: &Measurement| (m.w_f.translation.vector - w_f.translation.vector).norm();
+        let kept = estimator.estimate(&frame, 4.0).unwrap();
+        assert_eq!(kept.fit_c2.used, 6);
+        assert!(error_mm(&kept) > 0.01, "bent by {} mm", error_mm(&kept));
+        let screened = estimator.estimate_screened(&frame, 4.0, Some(1.0)).unwrap();
+        assert_eq!((screened.fit_c2.used, screened.fit_c2.rejected), (5, 1));
+        assert!(error_mm(&screened) < 1e-9, "{} mm", error_mm(&screened));
+        // C1's exact fit is left as it is.
+        assert_eq!(screened.fit_c1.used, 6);
+        // A camera as noisy as that point says is not screened: 16 times the variance.
+        let noisy = estimator
+            .estimate_screened(&frame, 4.0, Some(16.0))
+            .unwrap();
+        assert_eq!(noisy.fit_c2.used, 6);
+    }
+
+    #[test]
+    fn a_first_frame_shows_how_noisy_the_camera_is_and_one_point_astray_does_not() {
+        // A camera four times as noisy as its data sheet: at the data sheet's threshold most
+        // frames lose good points; read from the frame itself the noise is three to four
+        // times the sheet's, and at that threshold nearly every frame keeps all twelve.
+        let (mut cell, frames, w_m, w_f) = setup();
+        cell.imperfections.camera_noise = true;
+        let noisy = SimCamera::new(&cell, &frames, 4.0);
+        let estimator = StateEstimator::new(&cell, &frames);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let used = |m: &Measurement| m.fit_c1.used + m.fit_c2.used;
+        let (mut losing_at_sheet, mut losing_as_seen, mut scales) = (0, 0, Vec::new());
+        for _ in 0..200 {
+            let frame = noisy.capture(&w_m, &w_f, &mut rng);
+            let seen = estimator.noise_scale_of(&frame, 4.0);
+            scales.push(seen);
+            losing_at_sheet += usize::from(used(&estimator.estimate(&frame, 1.0).unwrap()) < 12);
+            losing_as_seen += usize::from(used(&estimator.estimate(&frame, seen).unwrap()) < 12);
+        }
+        scales.sort_by(f64::total_cmp);
+        assert!((3.0..=4.0).contains(&scales[100]), "median {}", scales[100]);
+        assert!(
+            losing_at_sheet > 150,
+            "{losing_at_sheet} of 200 at the sheet's threshold"
+        );
+        assert!(losing_as_seen < 10, "{losing_as_seen} of 200 as seen");
+        // At the data sheet's noise, a point of C2 2 mm astray bends that fixture's fit, but C1
+        // shows the camera as it is (a median of six, so within about half the sheet's), and at
+        // that threshold the point is left out.
+        let quiet = SimCamera::new(&cell, &frames, 1.0);
+        for _ in 0..50 {
+            let mut frame = quiet.capture(&w_m, &w_f, &mut rng);
+            assert_eq!(frame.points[7].fixture, Fixture::C2);
+            frame.points[7].position_mm += Vector3::new(2.0, 0.0, 0.0);
+            let seen = estimator.noise_scale_of(&frame, 4.0);
+            assert!(seen < 2.0, "{seen}");
+            assert_eq!(estimator.estimate(&frame, seen).unwrap().fit_c2.rejected, 1);
+        }
+    }
+
+    #[test]
+    fn the_residual_screens_quantile_is_the_chi2_tail_of_1e_4() {
+        // For an even number k of degrees of freedom the χ² upper tail is exact:
+        // e^(−x/2) Σ_{i<k/2} (x/2)^i / i!. The cube-root approximation's quantile for the
+        // normal tail of 3.719 σ (1e-4) leaves a tail within a quarter of 1e-4.
+        let tail = |k: usize, x: f64| {
+            let mut term = 1.0;
+            let mut sum = 0.0;
+            for i in 0..k / 2 {
+                if i > 0 {
+                    term *= x / 2.0 / i as f64;
+                }
+                sum += term;
+            }
+            (-x / 2.0).exp() * sum
+        };
+        for k in [6, 12, 18, 36] {
+            let p = tail(k, chi2_upper_quantile(k as f64, RESIDUALS_TAIL_SIGMAS));
+            assert!((p - 1e-4).abs() < 2.5e-5, "{k} degrees of freedom: {p}");
+        }
     }
 
     #[test]

@@ -144,6 +144,9 @@ impl FrameWatch {
     }
 }
 
+/// The noisiest camera the cell is specified for, × its data sheet's point noise.
+const NOISIEST_SPECIFIED_CAMERA: f64 = 4.0;
+
 /// Frames in [`StaticSegment`]'s recent window, compared as one with the frames before them.
 const STATIC_WINDOW: usize = 8;
 /// The recent window's mean is a shift when its Mahalanobis distance² from the earlier frames'
@@ -624,13 +627,32 @@ impl Ingest {
         frame: &CameraFrame,
         remaining: Option<&Pose>,
     ) -> Result<Option<Detected>, CameraError> {
-        let mut measurement = match self.estimator.estimate(frame, self.noise.scale()) {
-            Ok(measurement) => measurement,
-            Err(error) => {
-                self.estimated_m_f = None;
-                return Err(error);
-            }
+        // Until frames have shown how noisy the camera is, the first is fitted for the noise it
+        // shows itself (up to the noisiest camera the cell is specified for): at the data
+        // sheet's threshold a camera four times as noisy loses good points down to a fit of
+        // three, and the episode's view of Segment II starts from it. Once seen, the fits are
+        // also screened against that noise, taken cautiously high so that a noise still being
+        // learned does not read as a point gone astray.
+        let (noise_scale, known_variance_factor) = if self.noise.has_seen_frames() {
+            let factor = self.noise.cautious_variance_factor();
+            (self.noise.scale(), Some(factor))
+        } else {
+            let seen = self
+                .estimator
+                .noise_scale_of(frame, NOISIEST_SPECIFIED_CAMERA);
+            (seen, None)
         };
+        let mut measurement =
+            match self
+                .estimator
+                .estimate_screened(frame, noise_scale, known_variance_factor)
+            {
+                Ok(measurement) => measurement,
+                Err(error) => {
+                    self.estimated_m_f = None;
+                    return Err(error);
+                }
+            };
         if let Some(remaining) = remaining {
             measurement.w_m *= remaining;
             measurement.m_f = remaining.inverse() * measurement.m_f;

@@ -188,6 +188,12 @@ impl NoiseScale {
         self.weighted_squares / self.dof
     }
 
+    /// Whether any frame has been taken in since the data sheet's prior: until then the
+    /// estimate is the data sheet's, whatever the camera really is.
+    pub fn has_seen_frames(&self) -> bool {
+        self.dof > PRIOR_DOF
+    }
+
     /// s² raised by two standard errors of its estimate (`√(2/ν)` relative for ν degrees of
     /// freedom): the factor covariances use, so that a camera seen for a few frames only is not
     /// trusted as if it were known.

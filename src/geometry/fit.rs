@@ -94,7 +94,35 @@ pub fn fit_frame(
             needed: MIN_FIT_POINTS,
         });
     }
-    let mut mask: u64 = if n == 64 { u64::MAX } else { (1u64 << n) - 1 };
+    let all: u64 = if n == 64 { u64::MAX } else { (1u64 << n) - 1 };
+    fit_within(model, measured, reject_above_mm, all)
+}
+
+/// [`fit_frame`] again on the points `fit` used, but for point `left_out`: the fit a point
+/// that the others do not explain would have had without it. Errors as [`fit_frame`]'s.
+pub fn refit_without(
+    model: &[Point3<f64>],
+    measured: &[Point3<f64>],
+    reject_above_mm: f64,
+    fit: &FrameFit,
+    left_out: usize,
+) -> Result<FrameFit, FitError> {
+    fit_within(
+        model,
+        measured,
+        reject_above_mm,
+        fit.inliers & !(1u64 << left_out),
+    )
+}
+
+/// The fit with rejection, starting from the points selected by `mask`.
+fn fit_within(
+    model: &[Point3<f64>],
+    measured: &[Point3<f64>],
+    reject_above_mm: f64,
+    mut mask: u64,
+) -> Result<FrameFit, FitError> {
+    let n = model.len();
     loop {
         let pose = solve(model, measured, mask)?;
         let mut sum_sq = 0.0;
