@@ -101,7 +101,8 @@ impl StateEstimator {
     /// the data sheet's noise leaves; the quieter fixture's. A median, and the quieter fixture,
     /// so that a point gone astray, and the fit it bent, do not make the camera look noisy. For
     /// the first frame of an episode, before any has shown the camera's noise: at the data
-    /// sheet's threshold a camera four times as noisy loses good points down to a fit of three.
+    /// sheet's threshold a camera four times as noisy loses one or two good points of six in
+    /// most fits.
     pub fn noise_scale_of(&self, frame: &CameraFrame, up_to: f64) -> f64 {
         let up_to = up_to.max(1.0);
         let reject_above_mm = self.reject_above_mm * up_to;

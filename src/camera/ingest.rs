@@ -629,8 +629,8 @@ impl Ingest {
     ) -> Result<Option<Detected>, CameraError> {
         // Until frames have shown how noisy the camera is, the first is fitted for the noise it
         // shows itself (up to the noisiest camera the cell is specified for): at the data
-        // sheet's threshold a camera four times as noisy loses good points down to a fit of
-        // three, and the episode's view of Segment II starts from it. Once seen, the fits are
+        // sheet's threshold a camera four times as noisy loses one or two good points of six in
+        // most fits, and the episode's view of Segment II starts from it. Once seen, the fits are
         // also screened against that noise, taken cautiously high so that a noise still being
         // learned does not read as a point gone astray.
         let (noise_scale, known_variance_factor) = if self.noise.has_seen_frames() {
