@@ -292,11 +292,11 @@ impl StateEstimator {
     }
 
     /// When `fit`'s residuals are beyond what a camera of `variance_factor` × the data sheet's
-    /// variance (at least the data sheet's) gives by chance, the fit without the point that leaves the others best explained. A
-    /// gross error on one of six points bends the fit towards it, and at four times the data
-    /// sheet's noise the per-point threshold grows with the noise while the error does not: the
-    /// point then hides under the threshold and pulls the fixture's frame several σ off. At
-    /// least four points are kept.
+    /// variance (at least the data sheet's) gives by chance, the fit without the point that
+    /// leaves the others best explained. A gross error on one of six points bends the fit
+    /// towards it, and at four times the data sheet's noise the per-point threshold grows with
+    /// the noise while the error does not: the point then hides under the threshold and pulls
+    /// the fixture's frame several σ off. At least four points are kept.
     fn without_the_unexplained_point(
         &self,
         model: &[Point3<f64>],
