@@ -58,12 +58,11 @@ fn still(cell: &CellConfig, noise_scale: f64, episodes: u64, frames: usize) -> V
 
 fn run(
     cell: &CellConfig,
-    controller: &str,
+    make: &policy::ControllerFactory,
     noise_scale: f64,
     episodes: usize,
     seed: u64,
 ) -> Vec<Seen> {
-    let make = policy::builtin_factory(controller, cell).expect("a built-in controller");
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,
@@ -97,7 +96,7 @@ fn run(
         .collect()
 }
 
-fn main() {
+fn main() -> anyhow::Result<()> {
     let what: String = arg(1, "still".to_string());
     let noise_scale: f64 = arg(2, 1.0);
     let cell = CellConfig::reference();
@@ -107,8 +106,9 @@ fn main() {
         still(&cell, noise_scale, episodes, frames)
     } else {
         let (episodes, seed) = (arg(3, 4000usize), arg(4, 1u64));
+        let make = policy::builtin_factory(&what, &cell)?;
         println!("{what}, noise ×{noise_scale}, {episodes} episodes, seed {seed}:");
-        run(&cell, &what, noise_scale, episodes, seed)
+        run(&cell, &make, noise_scale, episodes, seed)
     };
     let count = |f: fn(&Seen) -> bool| seen.iter().filter(|s| f(s)).count();
     println!("  suspected at some step: {}", count(|s| s.suspected));
@@ -120,4 +120,5 @@ fn main() {
             count(|s| !s.succeeded && s.suspected)
         );
     }
+    Ok(())
 }
