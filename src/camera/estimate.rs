@@ -106,17 +106,13 @@ impl StateEstimator {
     pub fn noise_scale_of(&self, frame: &CameraFrame, up_to: f64) -> f64 {
         let up_to = up_to.max(1.0);
         let reject_above_mm = self.reject_above_mm * up_to;
-        let median_of = |fixture: Fixture, layout: &[Point3<f64>]| -> Option<f64> {
-            let (model, measured): (Vec<_>, Vec<_>) = frame
-                .points
-                .iter()
-                .filter(|p| p.fixture == fixture)
-                .filter_map(|p| Some((*layout.get(usize::from(p.id))?, p.position_mm)))
-                .unzip();
-            let fit = fit_frame(&model, &measured, reject_above_mm).ok()?;
+        let median_of = |fixture: Fixture| -> Option<f64> {
+            let points = self.fixture_points(frame, fixture).ok()?;
+            let (model, measured) = (points.model(), points.measured());
+            let fit = fit_frame(model, measured, reject_above_mm).ok()?;
             let mut ratios: Vec<f64> = model
                 .iter()
-                .zip(&measured)
+                .zip(measured)
                 .map(|(m, q)| {
                     let fitted = fit.pose * m;
                     (q - fitted).norm() / self.sheet.at_mm(&fitted)
@@ -125,16 +121,13 @@ impl StateEstimator {
             ratios.sort_by(f64::total_cmp);
             Some(ratios[ratios.len() / 2])
         };
-        [
-            median_of(Fixture::C1, &self.c1_model),
-            median_of(Fixture::C2, &self.c2_model),
-        ]
-        .into_iter()
-        .flatten()
-        .min_by(f64::total_cmp)
-        .map_or(1.0, |median| {
-            (median / SHEET_MEDIAN_RESIDUAL).clamp(1.0, up_to)
-        })
+        [median_of(Fixture::C1), median_of(Fixture::C2)]
+            .into_iter()
+            .flatten()
+            .min_by(f64::total_cmp)
+            .map_or(1.0, |median| {
+                (median / SHEET_MEDIAN_RESIDUAL).clamp(1.0, up_to)
+            })
     }
 
     /// Estimates the segment poses from one capture. `noise_scale` is how noisy the camera is
@@ -197,38 +190,8 @@ impl StateEstimator {
         known_variance_factor: Option<f64>,
     ) -> Result<FixtureFit, CameraError> {
         let reject_above_mm = self.reject_above_mm * noise_scale.max(1.0);
-        let layout = match fixture {
-            Fixture::C1 => &self.c1_model,
-            Fixture::C2 => &self.c2_model,
-        };
-        let mut model = [Point3::origin(); MAX_FIT_POINTS];
-        let mut measured = [Point3::origin(); MAX_FIT_POINTS];
-        let mut usable = 0usize;
-        let mut dropped = 0usize;
-        for point in frame.points.iter().filter(|p| p.fixture == fixture) {
-            let p = &point.position_mm;
-            let Some(model_point) = layout.get(usize::from(point.id)) else {
-                dropped += 1;
-                continue;
-            };
-            if !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite()) {
-                dropped += 1;
-                continue;
-            }
-            if usable == MAX_FIT_POINTS {
-                return Err(CameraError::Fixture {
-                    fixture,
-                    source: FitError::TooManyPoints {
-                        found: usable + 1,
-                        max: MAX_FIT_POINTS,
-                    },
-                });
-            }
-            model[usable] = *model_point;
-            measured[usable] = *p;
-            usable += 1;
-        }
-        let (model, measured) = (&model[..usable], &measured[..usable]);
+        let points = self.fixture_points(frame, fixture)?;
+        let (model, measured) = (points.model(), points.measured());
         let mut fit = fit_frame(model, measured, reject_above_mm)
             .map_err(|source| CameraError::Fixture { fixture, source })?;
         if let Some(variance_factor) = known_variance_factor {
@@ -246,7 +209,7 @@ impl StateEstimator {
         let mut fitted = [Point3::origin(); MAX_FIT_POINTS];
         let mut sigmas = [0.0; MAX_FIT_POINTS];
         let mut count = 0;
-        for i in (0..usable).filter(|i| fit.inliers & (1u64 << i) != 0) {
+        for i in (0..model.len()).filter(|i| fit.inliers & (1u64 << i) != 0) {
             fitted[count] = fit.pose * model[i];
             sigmas[count] = self.sheet.at_mm(&fitted[count]);
             count += 1;
@@ -265,13 +228,56 @@ impl StateEstimator {
                 source: FitError::Degenerate,
             },
         )?;
-        fit.rejected += dropped;
+        fit.rejected += points.dropped;
         Ok(FixtureFit {
             fit,
             covariance: FixtureCovariance { covariance, centre },
             residual_squares,
             residual_dof: 3 * count - 6,
         })
+    }
+
+    /// The points of `fixture` in `frame` a fit can use, beside their model points: those with
+    /// a known id and finite coordinates (the others are counted as dropped).
+    fn fixture_points(
+        &self,
+        frame: &CameraFrame,
+        fixture: Fixture,
+    ) -> Result<FixturePoints, CameraError> {
+        let layout = match fixture {
+            Fixture::C1 => &self.c1_model,
+            Fixture::C2 => &self.c2_model,
+        };
+        let mut points = FixturePoints {
+            model: [Point3::origin(); MAX_FIT_POINTS],
+            measured: [Point3::origin(); MAX_FIT_POINTS],
+            usable: 0,
+            dropped: 0,
+        };
+        for point in frame.points.iter().filter(|p| p.fixture == fixture) {
+            let p = &point.position_mm;
+            let Some(model_point) = layout.get(usize::from(point.id)) else {
+                points.dropped += 1;
+                continue;
+            };
+            if !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite()) {
+                points.dropped += 1;
+                continue;
+            }
+            if points.usable == MAX_FIT_POINTS {
+                return Err(CameraError::Fixture {
+                    fixture,
+                    source: FitError::TooManyPoints {
+                        found: points.usable + 1,
+                        max: MAX_FIT_POINTS,
+                    },
+                });
+            }
+            points.model[points.usable] = *model_point;
+            points.measured[points.usable] = *p;
+            points.usable += 1;
+        }
+        Ok(points)
     }
 
     /// The residuals of the points `fit` used, each over its point's data-sheet σ, squared and
@@ -319,6 +325,25 @@ impl StateEstimator {
             .map(|without| (self.residual_squares(model, measured, &without), without))
             .min_by(|a, b| a.0.total_cmp(&b.0))
             .map(|(_, without)| without)
+    }
+}
+
+/// A fixture's usable points in a capture ([`StateEstimator::fixture_points`]).
+struct FixturePoints {
+    model: [Point3<f64>; MAX_FIT_POINTS],
+    measured: [Point3<f64>; MAX_FIT_POINTS],
+    usable: usize,
+    /// Points left out for an unknown id or non-finite coordinates.
+    dropped: usize,
+}
+
+impl FixturePoints {
+    fn model(&self) -> &[Point3<f64>] {
+        &self.model[..self.usable]
+    }
+
+    fn measured(&self) -> &[Point3<f64>] {
+        &self.measured[..self.usable]
     }
 }
 
@@ -520,6 +545,29 @@ mod tests {
             let seen = estimator.noise_scale_of(&frame, 4.0);
             assert!(seen < 2.0, "{seen}");
             assert_eq!(estimator.estimate(&frame, seen).unwrap().fit_c2.rejected, 1);
+        }
+    }
+
+    #[test]
+    fn a_first_frame_reads_its_noise_from_the_points_a_fit_can_use() {
+        // A point with a non-finite coordinate or an unknown id is left out of the noise read,
+        // as the fit leaves it out: the read is the one without that point.
+        let (mut cell, frames, w_m, w_f) = setup();
+        cell.imperfections.camera_noise = true;
+        let camera = SimCamera::new(&cell, &frames, 2.0);
+        let estimator = StateEstimator::new(&cell, &frames);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..20 {
+            let frame = camera.capture(&w_m, &w_f, &mut rng);
+            let mut without = frame.clone();
+            without.points.remove(7);
+            let expected = estimator.noise_scale_of(&without, 4.0);
+            let mut broken = frame.clone();
+            broken.points[7].position_mm.z = f64::NAN;
+            assert_eq!(estimator.noise_scale_of(&broken, 4.0), expected);
+            let mut unknown = frame;
+            unknown.points[7].id = 200;
+            assert_eq!(estimator.noise_scale_of(&unknown, 4.0), expected);
         }
     }
 

@@ -642,17 +642,10 @@ impl Ingest {
                 .noise_scale_of(frame, NOISIEST_SPECIFIED_CAMERA);
             (seen, None)
         };
-        let mut measurement =
-            match self
-                .estimator
-                .estimate_screened(frame, noise_scale, known_variance_factor)
-            {
-                Ok(measurement) => measurement,
-                Err(error) => {
-                    self.estimated_m_f = None;
-                    return Err(error);
-                }
-            };
+        let mut measurement = self
+            .estimator
+            .estimate_screened(frame, noise_scale, known_variance_factor)
+            .inspect_err(|_| self.estimated_m_f = None)?;
         if let Some(remaining) = remaining {
             measurement.w_m *= remaining;
             measurement.m_f = remaining.inverse() * measurement.m_f;
