@@ -1,22 +1,26 @@
-//! What a controller's next move down the bore after a refusal as uncertain is worth. The
-//! controller acts as `celld eval` runs it, but after a move down is refused as uncertain (the
-//! supervisor finding no share of it sure enough) its next move down, with the tip between
-//! 0.2 mm past the entrance and 6 mm short of the seat, is made as MODE says:
+//! What a controller's next move down the bore after a refusal as uncertain is worth. After a
+//! move down is refused as uncertain (the supervisor finding no share of it sure enough), the
+//! controller's next move down, with the tip between 0.2 mm past the entrance and 6 mm short
+//! of the seat, is made as MODE says:
 //!
-//! - `none`: left as it is;
-//! - `full`: asks the full step (5 mm on the reference cell), so that the cell's cautious
-//!   execution tries shares of it down to a quarter;
+//! - `deployed`: as `celld eval` runs the controller (a learned policy asks the full step
+//!   there, but not after a refusal for the wall until a move is made:
+//!   `policy::learned::FullStepAfterUncertainty`, decision 0040);
+//! - `none`: as the controller asks it (a learned policy with that rule switched off);
+//! - `full`: the full step (5 mm on the reference cell) after every such refusal, also after
+//!   refusals for the wall, so that the cell's cautious execution tries shares of it down to a
+//!   quarter;
 //! - a number of mm: no longer than that, until a move is made.
 //!
 //! `cargo run --release --example after_an_uncertain_refusal -- CONTROLLER MODE [NOISE
 //! [EPISODES [SEEDS]]]` (built-in controllers; defaults 2, 4000, 30; SEEDS comma-separated,
-//! their episodes summed). 10 kept robots, as `celld eval`. At twice the camera's noise the
-//! full step brought the policies learnt from `expert-careful` to about `expert`'s failures
-//! (docs/experiments/2026-12-02-ed43ee7-fresh-seeds-at-twice-and-four-times-the-noise.md).
+//! their episodes summed). 10 kept robots, as `celld eval`. For a controller that is not a
+//! learned policy `deployed` and `none` are the same.
 
 use assembly_cell::collision::supervisor::VetoReason;
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
+use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{EnvOptions, Observation};
 use std::collections::BTreeMap;
@@ -31,6 +35,7 @@ fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
 /// How the move down after a refusal as uncertain is made.
 #[derive(Debug, Clone, Copy)]
 enum Mode {
+    Deployed,
     AsItIs,
     FullStep,
     AtMostMm(f64),
@@ -39,11 +44,14 @@ enum Mode {
 impl Mode {
     fn parse(text: &str) -> anyhow::Result<Self> {
         match text {
+            "deployed" => Ok(Mode::Deployed),
             "none" => Ok(Mode::AsItIs),
             "full" => Ok(Mode::FullStep),
             mm => match mm.parse::<f64>() {
                 Ok(mm) if mm > 0.0 && mm.is_finite() => Ok(Mode::AtMostMm(mm)),
-                _ => anyhow::bail!("unknown mode {text:?}: none, full or a length in mm above 0"),
+                _ => anyhow::bail!(
+                    "unknown mode {text:?}: deployed, none, full or a length in mm above 0"
+                ),
             },
         }
     }
@@ -84,7 +92,7 @@ impl Controller for AfterARefusal {
         let z = &mut decision.action.translation_mm.z;
         if self.refused && in_the_bore && *z < 0.0 {
             *z = match self.mode {
-                Mode::AsItIs => *z,
+                Mode::Deployed | Mode::AsItIs => *z,
                 Mode::FullStep => -self.step_limit_mm,
                 Mode::AtMostMm(mm) => z.max(-mm),
             };
@@ -96,7 +104,7 @@ impl Controller for AfterARefusal {
 
 fn main() -> anyhow::Result<()> {
     let controller: String = arg(1, "hierarchical".to_string());
-    let mode_text: String = arg(2, "none".to_string());
+    let mode_text: String = arg(2, "deployed".to_string());
     let noise_scale: f64 = arg(3, 2.0);
     let episodes: usize = arg(4, 4000);
     let seeds_text: String = arg(5, "30".to_string());
@@ -109,7 +117,15 @@ fn main() -> anyhow::Result<()> {
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
     let cell = CellConfig::reference();
-    let make_inner = policy::builtin_factory(&controller, &cell)?;
+    let make_inner: policy::ControllerFactory = match policy::bundled_policy(&controller) {
+        Some(bytes) if !matches!(mode, Mode::Deployed) => {
+            let bare = LearnedPolicy::from_bytes(bytes)?
+                .with_name(controller.as_str())
+                .without_full_step_after_uncertainty();
+            Box::new(move || Box::new(bare.clone()))
+        }
+        _ => policy::builtin_factory(&controller, &cell)?,
+    };
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,

@@ -336,7 +336,7 @@ impl FlatTraining {
     /// is the best so far.
     pub fn validate(&mut self) -> candle_core::Result<FlatValidation> {
         // As the policy runs once deployed: steered against the learned drift.
-        let policy = LearnedPolicy::Flat(Box::new(self.policy()?));
+        let policy = LearnedPolicy::flat(self.policy()?);
         let factory: ControllerFactory = Box::new(move || Box::new(policy.clone()));
         let (summary, _) = eval::evaluate(
             &self.cell,

@@ -615,7 +615,7 @@ pub fn evaluate_vars(
     seed: u64,
 ) -> candle_core::Result<EvalSummary> {
     // As the policy runs once deployed: steered against the learned drift.
-    let policy = LearnedPolicy::Hierarchical(Box::new(policy_from_vars(vars, config)?));
+    let policy = LearnedPolicy::hierarchical(policy_from_vars(vars, config)?);
     let factory: crate::policy::ControllerFactory = Box::new(move || Box::new(policy.clone()));
     Ok(eval::evaluate(cell, options, episodes, seed, &factory, &|_| {}).0)
 }
