@@ -101,7 +101,7 @@ pub struct LearnedPolicy {
 
 impl LearnedPolicy {
     /// `network` run as deployed.
-    pub fn new(network: LearnedNetwork) -> Self {
+    fn new(network: LearnedNetwork) -> Self {
         Self {
             network,
             after_uncertainty: Some(FullStepAfterUncertainty::default()),
@@ -123,11 +123,6 @@ impl LearnedPolicy {
     /// A flat policy run as deployed.
     pub fn flat(policy: FlatPolicy) -> Self {
         Self::new(LearnedNetwork::Flat(Box::new(policy)))
-    }
-
-    /// The network, without the rules.
-    pub fn network(&self) -> &LearnedNetwork {
-        &self.network
     }
 
     /// The policy of a checked file, on the CPU (named "hierarchical" or "td3").
