@@ -614,7 +614,8 @@ pub fn evaluate_vars(
     episodes: usize,
     seed: u64,
 ) -> candle_core::Result<EvalSummary> {
-    // As the policy runs once deployed: steered against the learned drift.
+    // As the policy runs once deployed, with the rules `LearnedPolicy` adds (the steering
+    // against the learned drift, the full step after a refusal as uncertain).
     let policy = LearnedPolicy::hierarchical(policy_from_vars(vars, config)?);
     let factory: crate::policy::ControllerFactory = Box::new(move || Box::new(policy.clone()));
     Ok(eval::evaluate(cell, options, episodes, seed, &factory, &|_| {}).0)
