@@ -13,7 +13,8 @@
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. hierarchical, bc and td3 were made under an earlier
-# supervisor: run today, these commands give them other weights (docs/learning.md). The run directories go to runs/bundled/ (ignored by git);
+# supervisor, hierarchical-cells under an earlier shift watch (decision 0041): run today, these
+# commands give them other weights (docs/learning.md). The run directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
 # It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies has each run's time).

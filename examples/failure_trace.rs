@@ -1,0 +1,117 @@
+//! The last steps of every episode that ended one way: runs a controller on the reference cell
+//! as `celld eval` does (4000 episodes a seed, 10 kept robots) and, for each episode whose
+//! outcome is OUTCOME (`success` or a failure code such as `uncertain` or `step_limit`),
+//! prints its last STEPS steps: the true insertion (mm), sideways error (mm) and tilt (deg); the
+//! estimate's insertion and sideways σ (mm) as the controller saw them; the move asked (mm);
+//! the supervisor's refusal; and the step's `detected` field (docs/estimation.md §5).
+//!
+//! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS]`
+//! (SEEDS comma-separated; STEPS default 40).
+
+use assembly_cell::config::cell::CellConfig;
+use assembly_cell::policy::eval::{episode_seed, robot_blocks};
+use assembly_cell::policy::{self, Controller};
+use assembly_cell::sim::{AssemblyEnv, EnvOptions, Outcome};
+use rayon::prelude::*;
+
+const EPISODES: usize = 4000;
+
+fn code(outcome: &Outcome) -> &'static str {
+    match outcome {
+        Outcome::Success => "success",
+        Outcome::Failure(reason) => reason.code(),
+    }
+}
+
+/// The episodes of one evaluation seed that ended in `wanted`, each with its last `keep` lines.
+fn traces(
+    cell: &CellConfig,
+    make: &policy::ControllerFactory,
+    noise_scale: f64,
+    wanted: &str,
+    seed: u64,
+    keep: usize,
+) -> Vec<(usize, Vec<String>)> {
+    let options = EnvOptions {
+        noise_scale,
+        kept_robots: 10,
+        ..EnvOptions::from_cell(cell)
+    };
+    let depth_mm = cell.bore.depth_mm;
+    robot_blocks(options, EPISODES, seed)
+        .into_par_iter()
+        .flat_map_iter(|(kept, block)| {
+            let mut env = AssemblyEnv::new(cell, kept);
+            let mut controller: Box<dyn Controller> = make();
+            block
+                .into_iter()
+                .filter_map(|index| {
+                    let episode = episode_seed(seed, index);
+                    controller.reset(episode ^ 0x5EED_C0DE);
+                    let mut observation = env.reset(episode).expect("the twin resets");
+                    let mut lines = Vec::new();
+                    loop {
+                        let decision = controller.act(&observation);
+                        let result = env.step(&decision.action).expect("the twin steps");
+                        let (asked, truth) = (decision.action.translation_mm, result.true_errors);
+                        lines.push(format!(
+                            "{:3} in {:6.2} off {:.3} tilt {:.3} | est in {:6.2} σ {:.4} | asked ({:+.3}, {:+.3}, {:+.2}) refused {} detected {}",
+                            observation.step,
+                            truth.depth_error_mm + depth_mm,
+                            truth.lateral_mm,
+                            truth.tilt_deg,
+                            observation.state[8] + depth_mm,
+                            observation.estimate.lateral_sd_mm(),
+                            asked.x,
+                            asked.y,
+                            asked.z,
+                            result.veto.as_ref().map_or("-", |v| v.code()),
+                            result.detected.unwrap_or("-"),
+                        ));
+                        observation = result.observation;
+                        if let Some(outcome) = result.outcome {
+                            let start = lines.len().saturating_sub(keep);
+                            return (code(&outcome) == wanted)
+                                .then(|| (index, lines.split_off(start)));
+                        }
+                    }
+                })
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS]";
+    let (Some(name), Some(noise), Some(wanted), Some(seeds)) =
+        (args.get(1), args.get(2), args.get(3), args.get(4))
+    else {
+        anyhow::bail!(usage);
+    };
+    let noise_scale: f64 = noise
+        .parse()
+        .map_err(|_| anyhow::anyhow!("NOISE: {noise}"))?;
+    let seeds = seeds
+        .split(',')
+        .map(|s| s.parse::<u64>())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|_| anyhow::anyhow!("SEEDS must be comma-separated integers: {seeds}"))?;
+    let keep: usize = match args.get(5) {
+        Some(steps) => steps
+            .parse()
+            .map_err(|_| anyhow::anyhow!("STEPS: {steps}"))?,
+        None => 40,
+    };
+    let cell = CellConfig::reference();
+    let make = policy::builtin_factory(name, &cell)?;
+    for seed in seeds {
+        for (index, lines) in traces(&cell, &make, noise_scale, wanted, seed, keep) {
+            println!("== {name}, noise ×{noise_scale}, seed {seed}, episode {index}: {wanted}");
+            for line in lines {
+                println!("{line}");
+            }
+        }
+    }
+    Ok(())
+}
