@@ -20,8 +20,7 @@
 use assembly_cell::collision::supervisor::VetoReason;
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
-use assembly_cell::policy::hierarchical::DESCENT_AS_DEMONSTRATED_FROM_MM;
-use assembly_cell::policy::learned::{FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM, LearnedPolicy};
+use assembly_cell::policy::learned::{FullStepAfterUncertainty, LearnedPolicy};
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{EnvOptions, Observation};
 use std::collections::BTreeMap;
@@ -90,10 +89,8 @@ impl Controller for AfterARefusal {
         }
         // Where the deployed rule applies (0.2 mm in to 6 mm short of the seat here).
         let inserted_mm = observation.state[8] + self.depth_mm;
-        let deepest_start_mm =
-            self.depth_mm - self.step_limit_mm - FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM;
         let in_the_bore =
-            inserted_mm > DESCENT_AS_DEMONSTRATED_FROM_MM && inserted_mm < deepest_start_mm;
+            FullStepAfterUncertainty::applies_at(inserted_mm, self.depth_mm, self.step_limit_mm);
         let z = &mut decision.action.translation_mm.z;
         if self.refused && in_the_bore && *z < 0.0 {
             *z = match self.mode {

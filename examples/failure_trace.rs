@@ -9,18 +9,35 @@
 //! (SEEDS comma-separated; STEPS default 40).
 
 use assembly_cell::config::cell::CellConfig;
-use assembly_cell::policy::eval::{episode_seed, robot_blocks};
-use assembly_cell::policy::{self, Controller};
-use assembly_cell::sim::{AssemblyEnv, EnvOptions, Outcome};
+use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
+use assembly_cell::policy::{self, Controller, Decision};
+use assembly_cell::sim::{AssemblyEnv, EnvOptions, Observation, StepResult};
 use rayon::prelude::*;
 
 const EPISODES: usize = 4000;
 
-fn code(outcome: &Outcome) -> &'static str {
-    match outcome {
-        Outcome::Success => "success",
-        Outcome::Failure(reason) => reason.code(),
-    }
+/// One step as a line: the truth after it, the estimate the controller acted on, its move.
+fn line(
+    depth_mm: f64,
+    observation: &Observation,
+    decision: &Decision,
+    result: &StepResult,
+) -> String {
+    let (asked, truth) = (decision.action.translation_mm, result.true_errors);
+    format!(
+        "{:3} in {:6.2} off {:.3} tilt {:.3} | est in {:6.2} σ {:.4} | asked ({:+.3}, {:+.3}, {:+.2}) refused {} detected {}",
+        observation.step,
+        truth.depth_error_mm + depth_mm,
+        truth.lateral_mm,
+        truth.tilt_deg,
+        observation.state[8] + depth_mm,
+        observation.estimate.lateral_sd_mm(),
+        asked.x,
+        asked.y,
+        asked.z,
+        result.veto.as_ref().map_or("-", |v| v.code()),
+        result.detected.unwrap_or("-"),
+    )
 }
 
 /// The episodes of one evaluation seed that ended in `wanted`, each with its last `keep` lines.
@@ -46,35 +63,18 @@ fn traces(
             block
                 .into_iter()
                 .filter_map(|index| {
-                    let episode = episode_seed(seed, index);
-                    controller.reset(episode ^ 0x5EED_C0DE);
-                    let mut observation = env.reset(episode).expect("the twin resets");
                     let mut lines = Vec::new();
-                    loop {
-                        let decision = controller.act(&observation);
-                        let result = env.step(&decision.action).expect("the twin steps");
-                        let (asked, truth) = (decision.action.translation_mm, result.true_errors);
-                        lines.push(format!(
-                            "{:3} in {:6.2} off {:.3} tilt {:.3} | est in {:6.2} σ {:.4} | asked ({:+.3}, {:+.3}, {:+.2}) refused {} detected {}",
-                            observation.step,
-                            truth.depth_error_mm + depth_mm,
-                            truth.lateral_mm,
-                            truth.tilt_deg,
-                            observation.state[8] + depth_mm,
-                            observation.estimate.lateral_sd_mm(),
-                            asked.x,
-                            asked.y,
-                            asked.z,
-                            result.veto.as_ref().map_or("-", |v| v.code()),
-                            result.detected.unwrap_or("-"),
-                        ));
-                        observation = result.observation;
-                        if let Some(outcome) = result.outcome {
-                            let start = lines.len().saturating_sub(keep);
-                            return (code(&outcome) == wanted)
-                                .then(|| (index, lines.split_off(start)));
-                        }
-                    }
+                    let report = run_episode_watched(
+                        &mut env,
+                        controller.as_mut(),
+                        index,
+                        episode_seed(seed, index),
+                        &mut |observation, decision, result| {
+                            lines.push(line(depth_mm, observation, decision, result))
+                        },
+                    );
+                    let start = lines.len().saturating_sub(keep);
+                    (report.outcome == wanted).then(|| (index, lines.split_off(start)))
                 })
                 .collect::<Vec<_>>()
         })

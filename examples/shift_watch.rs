@@ -9,9 +9,9 @@
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;
-use assembly_cell::policy::eval::{episode_seed, robot_blocks};
+use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
 use assembly_cell::policy::{self, Controller};
-use assembly_cell::sim::{AssemblyEnv, EnvOptions, Outcome};
+use assembly_cell::sim::{AssemblyEnv, EnvOptions};
 use rayon::prelude::*;
 
 /// What one episode showed: suspected at some step, a shift confirmed, succeeded.
@@ -76,20 +76,16 @@ fn run(
             block
                 .into_iter()
                 .map(|index| {
-                    let episode = episode_seed(seed, index);
-                    controller.reset(episode ^ 0x5EED_C0DE);
-                    let mut observation = env.reset(episode).expect("the twin resets");
                     let mut seen = Seen::default();
-                    loop {
-                        let decision = controller.act(&observation);
-                        let result = env.step(&decision.action).expect("the twin steps");
-                        note(&mut seen, result.detected);
-                        observation = result.observation;
-                        if let Some(outcome) = result.outcome {
-                            seen.succeeded = matches!(outcome, Outcome::Success);
-                            return seen;
-                        }
-                    }
+                    let report = run_episode_watched(
+                        &mut env,
+                        controller.as_mut(),
+                        index,
+                        episode_seed(seed, index),
+                        &mut |_, _, result| note(&mut seen, result.detected),
+                    );
+                    seen.succeeded = report.succeeded();
+                    seen
                 })
                 .collect::<Vec<_>>()
         })

@@ -12,9 +12,9 @@
 //! estimate rather than centring on its noise. 10 kept robots, as `celld eval`.
 
 use assembly_cell::config::cell::CellConfig;
-use assembly_cell::policy::eval::{episode_seed, robot_blocks};
+use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
 use assembly_cell::policy::{self, Controller, Decision, steered_against_drift};
-use assembly_cell::sim::{AssemblyEnv, EnvOptions, Observation, Outcome};
+use assembly_cell::sim::{AssemblyEnv, EnvOptions, Observation};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -94,44 +94,42 @@ fn main() -> anyhow::Result<()> {
             }
             let mut successes = Vec::new();
             for index in block {
-                let episode = episode_seed(seed, index);
-                controller.reset(episode ^ 0x5EED_C0DE);
-                let mut observation = env.reset(episode).expect("the twin resets");
                 let mut count = BTreeMap::<String, f64>::new();
-                loop {
-                    let decision = controller.act(&observation);
-                    let result = env.step(&decision.action).expect("the twin steps");
-                    let inserted_mm = observation.state[8] + depth_mm;
-                    let zone = match inserted_mm {
-                        i if i > 0.2 => "bore",
-                        i if i > -5.0 => "entrance",
-                        _ => "far",
-                    };
-                    let action = &decision.action;
-                    let kind = match (action.translation_mm.norm(), action.rotation_deg.norm()) {
-                        (t, r) if t == 0.0 && r == 0.0 => "hold",
-                        (_, r) if r > 0.0 => "turn",
-                        _ => "move",
-                    };
-                    *count.entry(format!("{zone} {kind}")).or_default() += 1.0;
-                    if action.translation_mm.z < 0.0 {
-                        *count
-                            .entry(format!("{zone} descent asked (mm)"))
-                            .or_default() -= action.translation_mm.z;
-                    }
-                    if let Some(veto) = &result.veto {
-                        *count
-                            .entry(format!("{zone} refused: {}", veto.code()))
-                            .or_default() += 1.0;
-                    }
-                    observation = result.observation;
-                    if let Some(outcome) = result.outcome {
-                        if matches!(outcome, Outcome::Success) {
-                            count.insert("steps".into(), env.steps() as f64);
-                            successes.push(count);
+                let report = run_episode_watched(
+                    &mut env,
+                    controller.as_mut(),
+                    index,
+                    episode_seed(seed, index),
+                    &mut |observation, decision, result| {
+                        let inserted_mm = observation.state[8] + depth_mm;
+                        let zone = match inserted_mm {
+                            i if i > 0.2 => "bore",
+                            i if i > -5.0 => "entrance",
+                            _ => "far",
+                        };
+                        let action = &decision.action;
+                        let kind = match (action.translation_mm.norm(), action.rotation_deg.norm())
+                        {
+                            (t, r) if t == 0.0 && r == 0.0 => "hold",
+                            (_, r) if r > 0.0 => "turn",
+                            _ => "move",
+                        };
+                        *count.entry(format!("{zone} {kind}")).or_default() += 1.0;
+                        if action.translation_mm.z < 0.0 {
+                            *count
+                                .entry(format!("{zone} descent asked (mm)"))
+                                .or_default() -= action.translation_mm.z;
                         }
-                        break;
-                    }
+                        if let Some(veto) = &result.veto {
+                            *count
+                                .entry(format!("{zone} refused: {}", veto.code()))
+                                .or_default() += 1.0;
+                        }
+                    },
+                );
+                if report.succeeded() {
+                    count.insert("steps".into(), report.steps as f64);
+                    successes.push(count);
                 }
             }
             successes

@@ -1,9 +1,9 @@
 //! Evaluating a controller in the twin: many seeded episodes on all cores, summarised.
 
-use super::Controller;
+use super::{Controller, Decision};
 use crate::config::cell::CellConfig;
 use crate::sim::randomise::{CellRanges, cell_for};
-use crate::sim::{AssemblyEnv, EnvOptions, Outcome, PoseErrors};
+use crate::sim::{AssemblyEnv, EnvOptions, Observation, Outcome, PoseErrors, StepResult};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -78,6 +78,18 @@ pub fn run_episode(
     index: usize,
     seed: u64,
 ) -> EpisodeReport {
+    run_episode_watched(env, controller, index, seed, &mut |_, _, _| {})
+}
+
+/// [`run_episode`], showing `watch` every step: the observation the controller acted on, its
+/// decision, and what the step did (for tools that look inside the episodes of an evaluation).
+pub fn run_episode_watched(
+    env: &mut AssemblyEnv,
+    controller: &mut dyn Controller,
+    index: usize,
+    seed: u64,
+    watch: &mut dyn FnMut(&Observation, &Decision, &StepResult),
+) -> EpisodeReport {
     controller.reset(seed ^ 0x5EED_C0DE);
     let mut observation = match env.reset(seed) {
         Ok(observation) => observation,
@@ -100,6 +112,7 @@ pub fn run_episode(
         let result = env
             .step(&decision.action)
             .expect("the loop stops when the episode ends");
+        watch(&observation, &decision, &result);
         reward += result.reward.total;
         vetoes += u32::from(result.veto.is_some());
         observation = result.observation;

@@ -235,6 +235,15 @@ pub struct FullStepAfterUncertainty {
 }
 
 impl FullStepAfterUncertainty {
+    /// Whether the tip, `inserted_mm` past the entrance of a bore `depth_mm` deep, is where
+    /// the rule asks the full step (`step_limit_mm`): more than
+    /// [`DESCENT_AS_DEMONSTRATED_FROM_MM`] in, and more than the full step and
+    /// [`FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM`] short of the seat.
+    pub fn applies_at(inserted_mm: f64, depth_mm: f64, step_limit_mm: f64) -> bool {
+        let deepest_start_mm = depth_mm - step_limit_mm - FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM;
+        inserted_mm > DESCENT_AS_DEMONSTRATED_FROM_MM && inserted_mm < deepest_start_mm
+    }
+
     /// Whether the move down the bore asked now (`asked_z_mm`, negative is deeper) is made
     /// the full step (`step_limit_mm`) instead.
     pub fn step(&mut self, observation: &Observation, asked_z_mm: f64, step_limit_mm: f64) -> bool {
@@ -243,14 +252,14 @@ impl FullStepAfterUncertainty {
             None => self.refused_near_the_wall = false,
             Some(_) => {}
         }
-        let inserted_mm = insertion_mm(observation);
-        let deepest_start_mm =
-            observation.cell.bore_depth_mm - step_limit_mm - FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM;
         matches!(observation.last_veto, Some(VetoReason::Uncertain { .. }))
             && !self.refused_near_the_wall
             && asked_z_mm < 0.0
-            && inserted_mm > DESCENT_AS_DEMONSTRATED_FROM_MM
-            && inserted_mm < deepest_start_mm
+            && Self::applies_at(
+                insertion_mm(observation),
+                observation.cell.bore_depth_mm,
+                step_limit_mm,
+            )
     }
 }
 
@@ -450,8 +459,8 @@ mod tests {
     }
 
     /// A move refused as uncertain, 10 mm into the reference bore (60 mm deep).
-    fn uncertain() -> crate::collision::supervisor::VetoReason {
-        crate::collision::supervisor::VetoReason::Uncertain {
+    fn uncertain() -> VetoReason {
+        VetoReason::Uncertain {
             risk: 2e-3,
             bound: 1e-3,
             clearance_mm: 0.03,
@@ -460,7 +469,7 @@ mod tests {
 
     /// The reference cell 0.02 mm off the axis, P_z = `p_z_mm` (the tip `60 + p_z_mm` into
     /// the bore), right after `veto`.
-    fn in_the_bore(p_z_mm: f64, veto: Option<VetoReason>) -> crate::sim::Observation {
+    fn in_the_bore(p_z_mm: f64, veto: Option<VetoReason>) -> Observation {
         let zero = nalgebra::Vector6::zeros();
         let mut observation = observed_with_drift([0.02, -0.01, p_z_mm], zero, 1e-4);
         observation.last_veto = veto;
