@@ -211,7 +211,8 @@ impl Supervisor {
     /// leaves the grown shaft no nearer Segment II than it is now is allowed too: it adds no risk
     /// to where the cell already stands (this is how the cell backs away from a wall it is
     /// unsure of); it is judged with the move's own error, against the envelope of the estimate
-    /// as it is now. Otherwise the move is refused as uncertain.
+    /// as it is now, on each gap the grown shaft closes (decision 0042). Otherwise the move is
+    /// refused as uncertain.
     fn judge_risk(
         &self,
         m_f: &Pose,
@@ -233,7 +234,9 @@ impl Supervisor {
         // Where the cell stands now: the envelope of the estimate now, at the depth it is at.
         let standing = self.spread(m_f, from, &[covariances[0], covariances[0]]);
         let now = clearance_grown(&self.parts, from, &standing.scaled(self.sigmas));
-        let no_nearer = |after: f64, before: f64| after >= before - GAP_ROUNDING_MM;
+        // A gap the grown shaft keeps open (the seat far below while the shaft centres at the
+        // wall) adds no risk, however little it narrows; only a gap it closes must not narrow.
+        let no_nearer = |after: f64, before: f64| after > 0.0 || after >= before - GAP_ROUNDING_MM;
         // Backing away is worth its risk only to a place the cell is sure of: where the estimate
         // is so uncertain that even there the grown shaft would touch, the cell holds, and its
         // frames make it surer, rather than move on a mean that may be far off.
@@ -591,6 +594,55 @@ mod tests {
         fn covariance_after(&self, _step: &Move) -> Matrix6<f64> {
             self.covariance()
         }
+    }
+
+    /// [`Spread`] whose error grows by `growth_mm` along the bore axis over a move, as the
+    /// cell's filter predicts: the axial σ after a move is a little larger than before it.
+    struct GrowingAxially(Pose, PoseSd, f64);
+
+    impl Belief for GrowingAxially {
+        fn m_f(&self) -> Pose {
+            self.0
+        }
+        fn covariance(&self) -> Matrix6<f64> {
+            Spread(self.0, self.1).covariance()
+        }
+        fn covariance_after(&self, _step: &Move) -> Matrix6<f64> {
+            let mut after = self.covariance();
+            after[(2, 2)] = (self.1.axial_mm + self.2).powi(2);
+            after
+        }
+    }
+
+    #[test]
+    fn an_unsure_shaft_at_the_wall_may_centre_though_the_far_seat_gap_narrows_by_its_growth() {
+        let (supervisor, home) = setup();
+        // 38 mm in, 0.02 mm off the axis (0.03 mm from the wall), the estimate unsure by 7 µm
+        // sideways: the shaft grown by the chance constraint's σs touches the wall where it
+        // stands, so only a move that brings it no nearer the wall is allowed. The seat is 22 mm below; its gap, grown by
+        // the move's axial error (2 µm more after the move), narrows by micrometres and stays
+        // wide open.
+        let sd = PoseSd {
+            lateral_mm: 0.007,
+            axial_mm: 0.005,
+            tilt_rad: 5e-5,
+            twist_rad: 5e-5,
+        };
+        let belief = GrowingAxially(inserted(38.0, 0.02), sd, 0.002);
+        let centring = Move::translation(-0.02, 0.0, 0.0);
+        let verdict = supervisor.check(&home, Some(&belief), &centring);
+        assert!(verdict.is_ok(), "{verdict:?}");
+        // Further out is nearer the wall: refused as uncertain.
+        let outwards = Move::translation(0.002, 0.0, 0.0);
+        let veto = supervisor
+            .check(&home, Some(&belief), &outwards)
+            .unwrap_err();
+        assert_eq!(veto.code(), "uncertain");
+        // Going deeper from the wall the grown shaft touches is refused as uncertain too: the
+        // seat's gap narrows by the step and the wall's stays closed.
+        let deeper = Move::translation(0.0, 0.0, -1.0);
+        let veto = supervisor.check(&home, Some(&belief), &deeper).unwrap_err();
+        assert_eq!(veto.code(), "uncertain");
     }
 
     #[test]
