@@ -13,7 +13,7 @@
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. hierarchical, bc and td3 were made under an earlier
-# supervisor, hierarchical-cells under an earlier shift watch (decision 0041): run today, these
+# supervisor: run today, these
 # commands give them other weights (docs/learning.md). The run directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
