@@ -619,9 +619,9 @@ mod tests {
         let (supervisor, home) = setup();
         // 38 mm in, 0.02 mm off the axis (0.03 mm from the wall), the estimate unsure by 7 µm
         // sideways: the shaft grown by the chance constraint's σs touches the wall where it
-        // stands, so only a move that brings it no nearer the wall is allowed. The seat is 22 mm below; its gap, grown by
-        // the move's axial error (2 µm more after the move), narrows by micrometres and stays
-        // wide open.
+        // stands, so only a move that brings it no nearer the wall is allowed. The seat is
+        // 22 mm below; its gap, grown by the move's axial error (2 µm more after the move),
+        // narrows by micrometres and stays wide open.
         let sd = PoseSd {
             lateral_mm: 0.007,
             axial_mm: 0.005,
@@ -638,8 +638,8 @@ mod tests {
             .check(&home, Some(&belief), &outwards)
             .unwrap_err();
         assert_eq!(veto.code(), "uncertain");
-        // Going deeper from the wall the grown shaft touches is refused as uncertain too: the
-        // seat's gap narrows by the step and the wall's stays closed.
+        // Going straight deeper is refused as uncertain too: it ends as near the wall, where the
+        // grown shaft still touches it (the estimate is no surer there).
         let deeper = Move::translation(0.0, 0.0, -1.0);
         let veto = supervisor.check(&home, Some(&belief), &deeper).unwrap_err();
         assert_eq!(veto.code(), "uncertain");
