@@ -1,6 +1,7 @@
 //! Subcommands of `celld` beyond `eval` and `policy`.
 
 pub mod latency;
+pub mod progress;
 pub mod report;
 pub mod serve;
 pub mod svg;

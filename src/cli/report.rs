@@ -17,6 +17,7 @@
 //! - Fig. 7: learning curves (return and success, moving averages) of the `--curve` files
 //!   written by `celld train td3` (td3_curve.json) and `celld train flat` (td3-flat_curve.json).
 
+use super::progress::Progress;
 use super::svg;
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
@@ -27,7 +28,6 @@ use assembly_cell::policy::{self, ControllerFactory};
 use assembly_cell::sim::randomise::CellRanges;
 use assembly_cell::sim::{EnvOptions, Fault, InitialConditions, Mismatch};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use serde_json::json;
 use std::fmt::Write as _;
@@ -171,12 +171,10 @@ pub fn run(args: ReportArgs) -> Result<()> {
     // unseen cells.
     let total = learned_policies.len() * conditions.len()
         + (builtins.len() + learned_policies.len()) * (4 + extra + unseen.len());
-    let bar = ProgressBar::new(total as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{bar:30} {pos}/{len} evaluations {elapsed} (eta {eta}) {msg}",
-        )
-        .expect("valid template"),
+    let bar = Progress::new(
+        total as u64,
+        "report",
+        "{bar:30} {pos}/{len} evaluations {elapsed} (eta {eta}) {msg}",
     );
     let evaluate = |controller: &Controller,
                     cell: &CellConfig,

@@ -200,7 +200,7 @@ impl Run {
         let started = Instant::now();
         let config = self.bc_config();
         let total = config.epochs + config.orientation_epochs;
-        let bar = progress.add(bar(total as u64, "bc"));
+        let bar = bar(total as u64, "bc").within(progress);
         let mut curve = String::from("actor,epoch,loss\n");
         let mut last = BTreeMap::new();
         let varmap = pipeline::behaviour_clone(
@@ -253,7 +253,7 @@ impl Run {
             learning_rate: self.args.lstm_lr,
             seed: self.args.seed,
         };
-        let bar = progress.add(bar(config.epochs as u64, "lstm"));
+        let bar = bar(config.epochs as u64, "lstm").within(progress);
         let mut curve = String::from("epoch,loss\n");
         let report = pipeline::train_lstm(
             &varmap,

@@ -21,6 +21,7 @@
 //! The stages are in `imitation.rs` (demonstrations, DAgger, BC, the selector) and `refine.rs`
 //! (TD3 and the flat baseline); this module checks the settings and keeps the run directory.
 
+use crate::cli::progress::Progress;
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::files::write_atomically;
@@ -38,7 +39,6 @@ use assembly_cell::sim::EnvOptions;
 use assembly_cell::sim::randomise::CellRanges;
 use candle_nn::VarMap;
 use clap::{Args, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -629,13 +629,8 @@ impl Run {
     }
 }
 
-fn bar(len: u64, stage: &str) -> ProgressBar {
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template(&format!(
-            "{stage:>4} {{bar:30}} {{pos}}/{{len}} {{elapsed}} (eta {{eta}}) {{msg}}"
-        ))
-        .expect("valid template"),
-    );
-    bar
+fn bar(len: u64, stage: &str) -> Progress {
+    let template =
+        format!("{stage:>4} {{bar:30}} {{pos}}/{{len}} {{elapsed}} (eta {{eta}}) {{msg}}");
+    Progress::new(len, stage, &template)
 }

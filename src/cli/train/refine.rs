@@ -112,7 +112,6 @@ impl Run {
                     checkpoint.display()
                 ),
             };
-            bar.inc(1);
             let done = refinement.episode();
             if config.eval_every > 0 && done % config.eval_every == 0 {
                 let v = refinement.validate()?;
@@ -127,6 +126,7 @@ impl Run {
                     record.return_, record.steps
                 ));
             }
+            bar.inc(1);
             if done % self.args.checkpoint_every == 0 || done == config.episodes {
                 let (tensors, progress) = refinement.checkpoint()?;
                 save_checkpoint(&tensors, &progress, &checkpoint, &progress_path)?;
@@ -244,7 +244,6 @@ impl Run {
         bar.set_position(training.episode() as u64);
         let checkpoint_every = self.args.checkpoint_every;
         let result = training.run(&mut |training, record, validation| {
-            bar.inc(1);
             let done = training.episode();
             if let Some(v) = validation {
                 bar.set_message(format!(
@@ -257,6 +256,7 @@ impl Run {
                     record.return_, record.steps
                 ));
             }
+            bar.inc(1);
             if done % checkpoint_every == 0 || done == config.episodes {
                 let (tensors, progress) = training.checkpoint();
                 save_checkpoint(&tensors, &progress, &checkpoint, &progress_path)
