@@ -17,6 +17,9 @@
 //! their episodes summed). 10 kept robots, as `celld eval`. For a controller that is not a
 //! learned policy `deployed` and `none` are the same.
 
+mod common;
+use common::arg;
+
 use assembly_cell::collision::supervisor::VetoReason;
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
@@ -24,13 +27,6 @@ use assembly_cell::policy::learned::{FullStepAfterUncertainty, LearnedPolicy};
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{EnvOptions, Observation};
 use std::collections::BTreeMap;
-
-fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
-    std::env::args()
-        .nth(index)
-        .and_then(|a| a.parse().ok())
-        .unwrap_or(default)
-}
 
 /// How the move down after a refusal as uncertain is made.
 #[derive(Debug, Clone, Copy)]
@@ -105,19 +101,13 @@ impl Controller for AfterARefusal {
 }
 
 fn main() -> anyhow::Result<()> {
-    let controller: String = arg(1, "hierarchical".to_string());
-    let mode_text: String = arg(2, "deployed".to_string());
-    let noise_scale: f64 = arg(3, 2.0);
-    let episodes: usize = arg(4, 4000);
-    let seeds_text: String = arg(5, "30".to_string());
+    let controller: String = arg(1, "hierarchical".to_string())?;
+    let mode_text: String = arg(2, "deployed".to_string())?;
+    let noise_scale: f64 = arg(3, 2.0)?;
+    let episodes: usize = arg(4, 4000)?;
+    let seeds_text: String = arg(5, "30".to_string())?;
     let mode = Mode::parse(&mode_text)?;
-    let seeds = seeds_text
-        .split(',')
-        .map(|s| {
-            s.parse::<u64>()
-                .map_err(|_| anyhow::anyhow!("seed {s:?} is not a whole number"))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    let seeds = common::seeds(&seeds_text)?;
     let cell = CellConfig::reference();
     let make_inner: policy::ControllerFactory = match policy::bundled_policy(&controller) {
         Some(bytes) if !matches!(mode, Mode::Deployed) => {

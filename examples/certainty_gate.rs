@@ -11,26 +11,27 @@
 //! - `hold`: as `entrance`, but the move keeps its depth however near the entrance the tip is;
 //! - `steps`: in the bore, a move down is shortened by 0.7 at a time, down to 0.5 mm, while the
 //!   σ after it would be above 0.013 mm, as `expert` does;
-//! - `both`: `entrance` and `steps`; `both-hold`: `hold` and `steps`.
+//! - `both`: `entrance` and `steps`; `both-hold`: `hold` and `steps`;
+//! - `without-standoff`: a bundled learned policy without the rule that keeps the tip at the
+//!   standoff while the σ is above the cell's clearance (`policy::learned::standoff`, decision
+//!   0043); for another controller the same as `none`.
 //!
-//! `cargo run --release --example certainty_gate -- CONTROLLER MODE [NOISE [EPISODES [SEEDS]]]`
-//! (built-in controllers; defaults 4, 4000, 10; SEEDS comma-separated). One JSON line per seed:
+//! `cargo run --release --example certainty_gate -- CONTROLLER MODE [NOISE [EPISODES [SEEDS
+//! [FAULT]]]]` (built-in controllers; defaults 4, 4000, 10, none; SEEDS comma-separated; FAULT a
+//! fault's code, as `celld eval --fault`). One JSON line per seed:
 //! successes, average steps of the successes and the failures by reason. 10 kept robots, as
 //! `celld eval`, on the reference cell.
+
+mod common;
+use common::arg;
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
 use assembly_cell::policy::expert::{ExpertTuning, tip_in_bore};
+use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, Controller, Decision};
-use assembly_cell::sim::{EnvOptions, Observation};
+use assembly_cell::sim::{EnvOptions, Fault, Observation};
 use serde_json::json;
-
-fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
-    std::env::args()
-        .nth(index)
-        .and_then(|a| a.parse().ok())
-        .unwrap_or(default)
-}
 
 /// How a move into the bore is held while the estimate is unsure sideways.
 #[derive(Clone, Copy)]
@@ -89,11 +90,12 @@ impl Controller for Gated {
 }
 
 fn main() -> anyhow::Result<()> {
-    let controller: String = arg(1, "hierarchical-cells".to_string());
-    let mode: String = arg(2, "none".to_string());
-    let noise_scale: f64 = arg(3, 4.0);
-    let episodes: usize = arg(4, 4000);
-    let seeds: String = arg(5, "10".to_string());
+    let controller: String = arg(1, "hierarchical-cells".to_string())?;
+    let mode: String = arg(2, "none".to_string())?;
+    let noise_scale: f64 = arg(3, 4.0)?;
+    let episodes: usize = arg(4, 4000)?;
+    let seeds: String = arg(5, "10".to_string())?;
+    let fault: Option<Fault> = std::env::args().nth(6).map(|c| c.parse()).transpose()?;
     let (at_the_entrance, in_the_bore) = match mode.as_str() {
         "none" => (None, false),
         "entrance" => (Some(Entrance::NearlyHold), false),
@@ -101,15 +103,28 @@ fn main() -> anyhow::Result<()> {
         "steps" => (None, true),
         "both" => (Some(Entrance::NearlyHold), true),
         "both-hold" => (Some(Entrance::Hold), true),
+        "without-standoff" => (None, false),
         other => {
-            anyhow::bail!("unknown mode {other:?}: none, entrance, hold, steps, both or both-hold")
+            anyhow::bail!(
+                "unknown mode {other:?}: none, entrance, hold, steps, both, both-hold or \
+                 without-standoff"
+            )
         }
     };
     let cell = CellConfig::reference();
-    let inner = policy::builtin_factory(&controller, &cell)?;
+    let inner: policy::ControllerFactory = match policy::bundled_policy(&controller) {
+        Some(bytes) if mode == "without-standoff" => {
+            let bare = LearnedPolicy::from_bytes(bytes)?
+                .with_name(controller.as_str())
+                .without_standoff_while_unsure();
+            Box::new(move || Box::new(bare.clone()))
+        }
+        _ => policy::builtin_factory(&controller, &cell)?,
+    };
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,
+        fault,
         ..EnvOptions::from_cell(&cell)
     };
     let make = || {
@@ -121,15 +136,13 @@ fn main() -> anyhow::Result<()> {
             tuning: ExpertTuning::default(),
         }) as Box<dyn Controller>
     };
-    for seed in seeds.split(',') {
-        let seed: u64 = seed
-            .parse()
-            .map_err(|_| anyhow::anyhow!("seed {seed:?} is not a whole number"))?;
+    for seed in common::seeds(&seeds)? {
         let (summary, _) = evaluate(&cell, options, episodes, seed, &make, &|_| {});
         let line = json!({
             "controller": controller,
             "mode": mode,
             "noise_scale": noise_scale,
+            "fault": fault.map(|f| f.code()),
             "seed": seed,
             "episodes": episodes,
             "successes": summary.successes,

@@ -5,13 +5,16 @@
 //! estimate's insertion and sideways σ (mm) as the controller saw them; the move asked (mm);
 //! the supervisor's refusal; and the step's `detected` field (docs/estimation.md §5).
 //!
-//! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS]`
-//! (SEEDS comma-separated; STEPS default 40).
+//! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
+//! [FAULT]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's code, as `celld eval
+//! --fault`).
+
+mod common;
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
 use assembly_cell::policy::{self, Controller, Decision};
-use assembly_cell::sim::{AssemblyEnv, EnvOptions, Observation, StepResult};
+use assembly_cell::sim::{AssemblyEnv, EnvOptions, Fault, Observation, StepResult};
 use rayon::prelude::*;
 
 const EPISODES: usize = 4000;
@@ -44,16 +47,11 @@ fn line(
 fn traces(
     cell: &CellConfig,
     make: &policy::ControllerFactory,
-    noise_scale: f64,
+    options: EnvOptions,
     wanted: &str,
     seed: u64,
     keep: usize,
 ) -> Vec<(usize, Vec<String>)> {
-    let options = EnvOptions {
-        noise_scale,
-        kept_robots: 10,
-        ..EnvOptions::from_cell(cell)
-    };
     let depth_mm = cell.bore.depth_mm;
     robot_blocks(options, EPISODES, seed)
         .into_par_iter()
@@ -83,7 +81,7 @@ fn traces(
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS]";
+    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT]]";
     let (Some(name), Some(noise), Some(wanted), Some(seeds)) =
         (args.get(1), args.get(2), args.get(3), args.get(4))
     else {
@@ -92,22 +90,28 @@ fn main() -> anyhow::Result<()> {
     let noise_scale: f64 = noise
         .parse()
         .map_err(|_| anyhow::anyhow!("NOISE: {noise}"))?;
-    let seeds = seeds
-        .split(',')
-        .map(|s| s.parse::<u64>())
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|_| anyhow::anyhow!("SEEDS must be comma-separated integers: {seeds}"))?;
+    let seeds = common::seeds(seeds)?;
     let keep: usize = match args.get(5) {
         Some(steps) => steps
             .parse()
             .map_err(|_| anyhow::anyhow!("STEPS: {steps}"))?,
         None => 40,
     };
+    let fault: Option<Fault> = args.get(6).map(|code| code.parse()).transpose()?;
     let cell = CellConfig::reference();
+    let options = EnvOptions {
+        noise_scale,
+        kept_robots: 10,
+        fault,
+        ..EnvOptions::from_cell(&cell)
+    };
     let make = policy::builtin_factory(name, &cell)?;
     for seed in seeds {
-        for (index, lines) in traces(&cell, &make, noise_scale, wanted, seed, keep) {
-            println!("== {name}, noise ×{noise_scale}, seed {seed}, episode {index}: {wanted}");
+        for (index, lines) in traces(&cell, &make, options, wanted, seed, keep) {
+            let fault = fault.map_or(String::new(), |f| format!(", fault {f}"));
+            println!(
+                "== {name}, noise ×{noise_scale}{fault}, seed {seed}, episode {index}: {wanted}"
+            );
             for line in lines {
                 println!("{line}");
             }

@@ -7,6 +7,9 @@
 //! `cargo run --release --example shift_watch -- CONTROLLER [NOISE] [EPISODES] [SEED]`
 //! (defaults: noise 1, 400 still episodes of 300 frames; 4000 episodes of a controller, seed 1).
 
+mod common;
+use common::arg;
+
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
@@ -20,13 +23,6 @@ struct Seen {
     suspected: bool,
     confirmed: bool,
     succeeded: bool,
-}
-
-fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
-    std::env::args()
-        .nth(index)
-        .and_then(|a| a.parse().ok())
-        .unwrap_or(default)
 }
 
 fn note(seen: &mut Seen, detected: Option<&str>) {
@@ -93,15 +89,15 @@ fn run(
 }
 
 fn main() -> anyhow::Result<()> {
-    let what: String = arg(1, "still".to_string());
-    let noise_scale: f64 = arg(2, 1.0);
+    let what: String = arg(1, "still".to_string())?;
+    let noise_scale: f64 = arg(2, 1.0)?;
     let cell = CellConfig::reference();
     let seen = if what == "still" {
-        let (episodes, frames) = (arg(3, 400u64), arg(4, 300usize));
+        let (episodes, frames) = (arg(3, 400u64)?, arg(4, 300usize)?);
         println!("noise ×{noise_scale}, {episodes} episodes holding still for {frames} frames:");
         still(&cell, noise_scale, episodes, frames)
     } else {
-        let (episodes, seed) = (arg(3, 4000usize), arg(4, 1u64));
+        let (episodes, seed) = (arg(3, 4000usize)?, arg(4, 1u64)?);
         let make = policy::builtin_factory(&what, &cell)?;
         println!("{what}, noise ×{noise_scale}, {episodes} episodes, seed {seed}:");
         run(&cell, &make, noise_scale, episodes, seed)

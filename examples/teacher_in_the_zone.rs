@@ -19,18 +19,14 @@
 //! The demonstrator runs beside the policy on the same observations, with its own state (its
 //! holds at the standoff), reset with the same seed. 10 kept robots, as `celld eval`.
 
+mod common;
+use common::arg;
+
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;
 use assembly_cell::policy::eval::evaluate;
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{EnvOptions, Observation};
-
-fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
-    std::env::args()
-        .nth(index)
-        .and_then(|a| a.parse().ok())
-        .unwrap_or(default)
-}
 
 /// The move made: the policy's, with the part `mode` names taken from the demonstrator's.
 fn mixed(mode: &str, policy: Move, demonstrator: Move) -> anyhow::Result<Move> {
@@ -95,14 +91,14 @@ impl Controller for InTheZone {
 }
 
 fn main() -> anyhow::Result<()> {
-    let learned: String = arg(1, "hierarchical-cells".to_string());
-    let teacher: String = arg(2, "expert-careful".to_string());
-    let mode: String = arg(3, "none".to_string());
-    let from_mm: f64 = arg(4, 0.2);
-    let to_mm: f64 = arg(5, f64::INFINITY);
-    let noise_scale: f64 = arg(6, 4.0);
-    let episodes: usize = arg(7, 4000);
-    let seed: u64 = arg(8, 2);
+    let learned: String = arg(1, "hierarchical-cells".to_string())?;
+    let teacher: String = arg(2, "expert-careful".to_string())?;
+    let mode: String = arg(3, "none".to_string())?;
+    let from_mm: f64 = arg(4, 0.2)?;
+    let to_mm: f64 = arg(5, f64::INFINITY)?;
+    let noise_scale: f64 = arg(6, 4.0)?;
+    let episodes: usize = arg(7, 4000)?;
+    let seed: u64 = arg(8, 2)?;
     mixed(&mode, Move::default(), Move::default())?;
     let cell = CellConfig::reference();
     let make_policy = policy::builtin_factory(&learned, &cell)?;

@@ -11,6 +11,9 @@
 //! sideways σ, keeping the steering against the learned drift: the controller waits for the
 //! estimate rather than centring on its noise. 10 kept robots, as `celld eval`.
 
+mod common;
+use common::arg;
+
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
 use assembly_cell::policy::{self, Controller, Decision, steered_against_drift};
@@ -52,20 +55,13 @@ impl Controller for Deadband {
     }
 }
 
-fn arg<T: std::str::FromStr>(index: usize, default: T) -> T {
-    std::env::args()
-        .nth(index)
-        .and_then(|a| a.parse().ok())
-        .unwrap_or(default)
-}
-
 fn main() -> anyhow::Result<()> {
-    let controller: String = arg(1, "expert".to_string());
-    let noise_scale: f64 = arg(2, 1.0);
-    let episodes: usize = arg(3, 1000);
-    let seed: u64 = arg(4, 1);
-    let deadband: f64 = arg(5, 0.0);
-    let from_mm: f64 = arg(6, 0.2);
+    let controller: String = arg(1, "expert".to_string())?;
+    let noise_scale: f64 = arg(2, 1.0)?;
+    let episodes: usize = arg(3, 1000)?;
+    let seed: u64 = arg(4, 1)?;
+    let deadband: f64 = arg(5, 0.0)?;
+    let from_mm: f64 = arg(6, 0.2)?;
     let cell = CellConfig::reference();
     let depth_mm = cell.bore.depth_mm;
     let make: policy::ControllerFactory = if controller.ends_with(".safetensors") {

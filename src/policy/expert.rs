@@ -14,6 +14,10 @@ use nalgebra::{Point3, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// Height of the tip above the bore's entrance (mm) where the demonstrators finish the
+/// sideways alignment before going in ([`ExpertTuning::standoff_mm`]'s default).
+pub const STANDOFF_MM: f64 = 1.0;
+
 /// Tuning of the expert; the defaults are what the tests and the bundled results use.
 #[derive(Debug, Clone, Copy)]
 pub struct ExpertTuning {
@@ -84,7 +88,7 @@ impl Default for ExpertTuning {
             tilt_tolerance_inside_deg: 0.05,
             roll_tolerance_deg: 0.025,
             lateral_tolerance_mm: 0.012,
-            standoff_mm: 1.0,
+            standoff_mm: STANDOFF_MM,
             prestandoff_mm: 20.0,
             lateral_certainty_mm: 0.009,
             insertion_certainty_mm: 0.013,

@@ -15,7 +15,9 @@
 //! demonstrators make it instead: their exact centring, not steered
 //! ([`super::hierarchical::descends_as_the_demonstrators`], decision 0034). Right after a move
 //! refused as uncertain, a move down the bore asks the full step ([`FullStepAfterUncertainty`],
-//! decision 0040).
+//! decision 0040). While the state filter is unsure sideways by more than the cell's
+//! clearance, a move down stops at the demonstrators' standoff above the entrance
+//! ([`no_nearer_than_the_standoff_mm`], decision 0043).
 
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
@@ -29,6 +31,9 @@ use crate::sim::Observation;
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
 use std::path::Path;
+
+mod standoff;
+pub use standoff::no_nearer_than_the_standoff_mm;
 
 /// A checked policy file of either kind.
 #[derive(Debug, Clone, PartialEq)]
@@ -97,6 +102,8 @@ pub struct LearnedPolicy {
     network: LearnedNetwork,
     /// None where switched off, to measure the policy without it.
     after_uncertainty: Option<FullStepAfterUncertainty>,
+    /// [`no_nearer_than_the_standoff_mm`] applies (false to measure the policy without it).
+    standoff_while_unsure: bool,
 }
 
 impl LearnedPolicy {
@@ -105,6 +112,7 @@ impl LearnedPolicy {
         Self {
             network,
             after_uncertainty: Some(FullStepAfterUncertainty::default()),
+            standoff_while_unsure: true,
         }
     }
 
@@ -112,6 +120,14 @@ impl LearnedPolicy {
     /// as the network asks them (to measure what the rule is worth).
     pub fn without_full_step_after_uncertainty(mut self) -> Self {
         self.after_uncertainty = None;
+        self
+    }
+
+    /// The policy without [`no_nearer_than_the_standoff_mm`]: its moves down to the entrance
+    /// as the network asks them, however unsure the estimate (to measure what the rule is
+    /// worth).
+    pub fn without_standoff_while_unsure(mut self) -> Self {
+        self.standoff_while_unsure = false;
         self
     }
 
@@ -205,6 +221,9 @@ impl Controller for LearnedPolicy {
             && rule.step(observation, wanted_mm.z, step_limit_mm)
         {
             command_mm.z = -step_limit_mm;
+        }
+        if self.standoff_while_unsure {
+            command_mm.z = no_nearer_than_the_standoff_mm(observation, command_mm.z);
         }
         decision.action.translation_mm = clamp_components(command_mm, step_limit_mm);
         decision
@@ -508,6 +527,41 @@ mod tests {
         assert!(!full(-50.0, Some(uncertain()), -2.0));
         assert!(!full(-50.0, None, -2.0), "a move made");
         assert!(full(-50.0, Some(uncertain()), -2.0));
+    }
+
+    /// The bundled careful policy 0.01 mm off the axis 2 mm above the entrance, with a camera
+    /// so noisy that the estimate's sideways σ is above the cell's 0.05 mm of clearance: its
+    /// move down stops 1 mm above the entrance, its sideways part and turn as the network
+    /// asks; switched off, the move is the network's.
+    #[test]
+    fn unsure_a_learned_policy_comes_no_nearer_than_the_standoff() {
+        use crate::config::cell::CellConfig;
+        use crate::sim::{AssemblyEnv, EnvOptions};
+        let cell = CellConfig::reference();
+        let options = EnvOptions {
+            noise_scale: 40.0,
+            ..EnvOptions::from_cell(&cell)
+        };
+        let mut observation = AssemblyEnv::new(&cell, options).reset(4).unwrap();
+        observation.state[6..9].copy_from_slice(&[0.01, 0.0, -62.0]);
+        observation.state[9..12].fill(0.0);
+        let sd_mm = observation.estimate.lateral_sd_mm();
+        assert!(sd_mm > observation.cell.radial_clearance_mm, "σ {sd_mm} mm");
+        let bare = bundled_hierarchical("hierarchical-cells");
+        let own = LearnedPolicy::hierarchical(bare.clone())
+            .without_standoff_while_unsure()
+            .act(&observation);
+        let held = LearnedPolicy::hierarchical(bare).act(&observation);
+        assert!(own.action.translation_mm.z < -1.0, "{own:?}");
+        assert!(
+            (held.action.translation_mm.z + 1.0).abs() < 1e-9,
+            "{held:?}"
+        );
+        assert_eq!(
+            held.action.translation_mm.xy(),
+            own.action.translation_mm.xy()
+        );
+        assert_eq!(held.action.rotation_deg, own.action.rotation_deg);
     }
 
     /// The bundled careful policy 10 mm into the bore: right after a refusal as uncertain its

@@ -1,0 +1,29 @@
+//! What the measuring examples share: reading their positional arguments.
+
+// Each example uses what it needs of this module.
+#![allow(dead_code)]
+
+/// Positional argument `index` (1 is the first), or `default` when it is not given; an error
+/// naming it when it is given but does not parse.
+pub fn arg<T: std::str::FromStr>(index: usize, default: T) -> anyhow::Result<T> {
+    match std::env::args().nth(index) {
+        None => Ok(default),
+        Some(text) => text.parse().map_err(|_| {
+            anyhow::anyhow!(
+                "argument {index}, {text:?}, is not a {}",
+                std::any::type_name::<T>()
+            )
+        }),
+    }
+}
+
+/// Comma-separated evaluation seeds, such as `10,11,12`.
+pub fn seeds(text: &str) -> anyhow::Result<Vec<u64>> {
+    text.split(',')
+        .map(|s| {
+            s.trim()
+                .parse()
+                .map_err(|_| anyhow::anyhow!("seed {s:?} is not a whole number"))
+        })
+        .collect()
+}

@@ -1,0 +1,115 @@
+//! While the state filter is unsure sideways by more than the cell's radial clearance, a
+//! learned policy's move down stops at the demonstrators' standoff above the bore's entrance
+//! (decision 0043).
+//!
+//! With the camera four times as noisy as its data sheet and knocked early in the episode, the
+//! frames since the knock pull the estimate off by more than its covariance says, and the
+//! shift watch only suspects it: the covariance of Segment II is widened and the sideways σ
+//! grows to 0.03–0.18 mm, where a centred shaft has 0.05 mm of clearance. `expert` holds at
+//! the standoff until the σ is 0.009 mm and never comes nearer; the learned policies, which do
+//! not see the σ, went on down in the shares the supervisor let through and touched the
+//! entrance's edge in 6–120 of 4000 such episodes where `expert` did once. Without a knock the
+//! σ at the standoff is 0.024–0.039 mm at four times the noise and under 0.02 mm at twice it,
+//! so the rule waits only where going in would be a gamble on the clearance.
+
+use crate::policy::expert::{STANDOFF_MM, tip_in_bore};
+use crate::policy::hierarchical::insertion_mm;
+use crate::sim::Observation;
+
+/// The move along the bore's axis (Δz, mm in {M}, negative is deeper) that `asked_z_mm`
+/// becomes: with the tip above the entrance and the sideways σ above the cell's radial
+/// clearance, no deeper than leaves the tip [`STANDOFF_MM`] above the entrance, and from
+/// nearer than that no deeper at all. Otherwise, and for moves up, as asked.
+pub fn no_nearer_than_the_standoff_mm(observation: &Observation, asked_z_mm: f64) -> f64 {
+    let inserted_mm = insertion_mm(observation);
+    let unsure = observation.estimate.lateral_sd_mm() > observation.cell.radial_clearance_mm;
+    if !unsure || asked_z_mm.is_nan() || asked_z_mm >= 0.0 || tip_in_bore(inserted_mm) {
+        return asked_z_mm;
+    }
+    asked_z_mm.max((inserted_mm + STANDOFF_MM).min(0.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::cell::CellConfig;
+    use crate::sim::{AssemblyEnv, EnvOptions};
+
+    /// The reference cell (60 mm deep), the tip `height_mm` above the entrance, the radial
+    /// clearance set to `clearance_over_sd` times the estimate's sideways σ.
+    fn at(height_mm: f64, clearance_over_sd: f64) -> Observation {
+        let cell = CellConfig::reference();
+        let mut observation = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell))
+            .reset(4)
+            .unwrap();
+        observation.state[8] = -cell.bore.depth_mm - height_mm;
+        observation.cell.radial_clearance_mm =
+            observation.estimate.lateral_sd_mm() * clearance_over_sd;
+        observation
+    }
+
+    /// By hand: unsure, from 4 mm above a 5 mm move down goes 3 mm (to 1 mm above); from
+    /// 0.6 mm above, none; from 1.5 mm above, 0.5 mm of a 0.3 mm move is all of it. Sure, or
+    /// in the bore, or moving up: as asked.
+    #[test]
+    fn unsure_a_move_down_stops_at_the_standoff() {
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(4.0, 0.5), -5.0),
+            -3.0
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(0.6, 0.5), -5.0),
+            0.0
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(1.5, 0.5), -0.3),
+            -0.3
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(1.5, 0.5), -2.0),
+            -0.5
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(0.6, 0.5), 0.4),
+            0.4
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(4.0, 2.0), -5.0),
+            -5.0
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(0.6, 2.0), -5.0),
+            -5.0
+        ));
+        // 0.1 mm above the entrance counts as in the bore, as the demonstrators decide.
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(0.1, 0.5), -5.0),
+            -5.0
+        ));
+        assert!(close(
+            no_nearer_than_the_standoff_mm(&at(-10.0, 0.5), -5.0),
+            -5.0
+        ));
+    }
+
+    /// Whatever the height and the move, unsure: the tip ends no nearer the entrance than the
+    /// standoff or where it was, and never moves the other way than asked.
+    #[test]
+    fn unsure_the_tip_never_ends_nearer_than_the_standoff_or_than_it_was() {
+        for height_tenths in 3..=100 {
+            let height_mm = f64::from(height_tenths) / 10.0;
+            let observation = at(height_mm, 0.5);
+            for asked_tenths in -50..=50 {
+                let asked_mm = f64::from(asked_tenths) / 10.0;
+                let made_mm = no_nearer_than_the_standoff_mm(&observation, asked_mm);
+                let height_after_mm = height_mm + made_mm;
+                assert!(
+                    height_after_mm >= STANDOFF_MM.min(height_mm) - 1e-9,
+                    "from {height_mm} asked {asked_mm}: {made_mm}"
+                );
+                assert!(made_mm * asked_mm >= 0.0 && made_mm.abs() <= asked_mm.abs());
+            }
+        }
+    }
+}
