@@ -14,7 +14,8 @@
 //! - `both`: `entrance` and `steps`; `both-hold`: `hold` and `steps`;
 //! - `without-standoff`: a bundled learned policy without the rule that keeps the tip at the
 //!   standoff while the σ is above the cell's clearance
-//!   (`policy::learned::no_nearer_than_the_standoff_mm`, decision 0043); for another controller the same as `none`.
+//!   (`policy::learned::no_nearer_than_the_standoff_mm`, decision 0043); for another
+//!   controller the same as `none`.
 //!
 //! `cargo run --release --example certainty_gate -- CONTROLLER MODE [NOISE [EPISODES [SEEDS
 //! [FAULT]]]]` (built-in controllers; defaults 4, 4000, 10, none; SEEDS comma-separated; FAULT a
