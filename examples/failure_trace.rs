@@ -1,13 +1,13 @@
-//! The last steps of every episode that ended one way: runs a controller on the reference cell
-//! as `celld eval` does (4000 episodes a seed, 10 kept robots) and, for each episode whose
+//! The last steps of every episode that ended one way: runs a controller on a cell (the
+//! reference cell unless CELL names a cell file) as `celld eval` does (4000 episodes a seed, 10 kept robots) and, for each episode whose
 //! outcome is OUTCOME (`success` or a failure code such as `uncertain` or `step_limit`),
 //! prints its last STEPS steps: the true insertion (mm), sideways error (mm) and tilt (deg); the
 //! estimate's insertion and sideways σ (mm) as the controller saw them; the move asked (mm);
 //! the supervisor's refusal; and the step's `detected` field (docs/estimation.md §5).
 //!
 //! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
-//! [FAULT]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's code, as `celld eval
-//! --fault`).
+//! [FAULT [CELL]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's code, as `celld
+//! eval --fault`, or `none`).
 
 mod common;
 
@@ -16,6 +16,7 @@ use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watche
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{AssemblyEnv, EnvOptions, Fault, Observation, StepResult};
 use rayon::prelude::*;
+use std::path::Path;
 
 const EPISODES: usize = 4000;
 
@@ -81,7 +82,7 @@ fn traces(
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT]]";
+    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT [CELL]]]";
     let (Some(name), Some(noise), Some(wanted), Some(seeds)) =
         (args.get(1), args.get(2), args.get(3), args.get(4))
     else {
@@ -97,8 +98,14 @@ fn main() -> anyhow::Result<()> {
             .map_err(|_| anyhow::anyhow!("STEPS: {steps}"))?,
         None => 40,
     };
-    let fault: Option<Fault> = args.get(6).map(|code| code.parse()).transpose()?;
-    let cell = CellConfig::reference();
+    let fault: Option<Fault> = match args.get(6).map(String::as_str) {
+        None | Some("none") => None,
+        Some(code) => Some(code.parse()?),
+    };
+    let cell = match args.get(7) {
+        Some(path) => CellConfig::load(Path::new(path))?,
+        None => CellConfig::reference(),
+    };
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,
@@ -110,7 +117,9 @@ fn main() -> anyhow::Result<()> {
         for (index, lines) in traces(&cell, &make, options, wanted, seed, keep) {
             let fault = fault.map_or(String::new(), |f| format!(", fault {f}"));
             println!(
-                "== {name}, noise ×{noise_scale}{fault}, seed {seed}, episode {index}: {wanted}"
+                "== {name} on {}, noise ×{noise_scale}{fault}, seed {seed}, episode {index}: \
+                 {wanted}",
+                cell.name
             );
             for line in lines {
                 println!("{line}");

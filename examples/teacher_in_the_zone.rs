@@ -3,7 +3,7 @@
 //! by what the demonstrator would do on the same observation. The success rate that comes back
 //! says how much that part of the policy's behaviour there costs; at four times the camera's
 //! noise it splits the learned policies' gap to their demonstrators by zone and by part of the
-//! move (docs/learning.md).
+//! move (docs/experiments/2026-11-29-a1746d1-where-the-policies-lose-at-four-times-the-noise.md).
 //!
 //! `cargo run --release --example teacher_in_the_zone -- POLICY DEMONSTRATOR MODE [FROM [TO
 //! [NOISE [EPISODES [SEED]]]]]` (built-in controllers; defaults 0.2, ∞, 4, 4000, 2). MODE:

@@ -17,7 +17,8 @@
 # commands give them other weights (docs/learning.md). The run directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
-# It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies has each run's time).
+# It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies, and the
+# records it links, have the runs' times).
 # Run it from anywhere inside the repository:  scripts/bundled-policies.sh
 source "$(dirname "$0")/common.sh"
 RUNS=runs/bundled
@@ -61,14 +62,16 @@ step hierarchical-swift-cells "$CELLD" train policy --out "$RUNS/swift-across-ce
 cp "$RUNS/swift-across-cells/policy.safetensors" policies/swift-cells.safetensors
 
 # hierarchical-swift was made by the two runs below before the demonstrators corrected the tilt
-# to what each cell takes; run today they make another policy (docs/learning.md)
+# to what each cell takes; run today they make another policy
+# (docs/experiments/2026-11-27-515b128-the-tilt-the-cell-takes.md)
 # hierarchical-swift 1: behaviour cloning on 800 demonstrations of expert-swift (no holds,
 # steps up to the 5 mm limit), the sideways errors in the bore weighted 30
 step hierarchical-swift-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --demonstrator expert-swift \
     --bc-bore-lateral-weight 30 --td3-episodes 1
 
 # hierarchical-swift 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
-# (seed 2027: the better of the two seeds tried for this round; docs/learning.md has both)
+# (seed 2027: the better of the two seeds tried for this round;
+# docs/experiments/2026-11-26-0087bca-a-fast-policy-and-kept-robots.md has both)
 step hierarchical-swift-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --demonstrator expert-swift \
     --bc-bore-lateral-weight 30 --dagger-policy "$RUNS/S30/policy.safetensors" \
     --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
@@ -79,7 +82,8 @@ cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
 # from the twin, and near the entrance and in the bore it may move 0.6 from its start (0.2
 # fewer steps than the default 0.3 on average over five TD3 seeds, decision 0032); the best
 # of the validations every 50 episodes is kept (seed 2030: of the five seeds tried under decision
-# 0035, 2027-2031, the one whose kept validation took the fewest steps; docs/learning.md has all five)
+# 0035, 2027-2031, the one whose kept validation took the fewest steps, as again under decision 0038;
+# docs/experiments/2026-12-02-3f53f0e-centring-in-the-bore-beyond-the-bound.md has all five)
 mkdir -p "$RUNS/S30r1-td3"
 cp policies/swift-bc.safetensors "$RUNS/S30r1-td3/lstm.safetensors"
 step hierarchical-swift-3 env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/S30r1-td3" \

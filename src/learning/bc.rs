@@ -226,7 +226,7 @@ pub struct LossWeights {
 
 /// The orientation label floor of the recipe for any cell (`celld train policy`, and the
 /// service's training `for_any_cell`): it lifted the cross-cell policy on the cells it was not
-/// trained on (docs/learning.md § Across cells).
+/// trained on (docs/learning.md § Why the defaults are what they are).
 pub const ACROSS_CELLS_ORIENTATION_LABEL_FLOOR: f64 = 0.2;
 
 /// Weights each sample's squared error by 1 / max(|label|∞, `floor`)², over the mean of that

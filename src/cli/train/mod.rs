@@ -267,7 +267,7 @@ pub struct TrainArgs {
 }
 
 /// Expert episodes `celld train` records (and each DAgger round drives) by default. The HTTP
-/// API records its own default number (see docs/learning.md).
+/// API records its own default number (docs/service.md).
 const DEMONSTRATIONS: usize = 800;
 
 const DEMOS: &str = "demos.jsonl";
