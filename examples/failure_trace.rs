@@ -1,9 +1,10 @@
 //! The last steps of every episode that ended one way: runs a controller on a cell (the
-//! reference cell unless CELL names a cell file) as `celld eval` does (4000 episodes a seed, 10 kept robots) and, for each episode whose
-//! outcome is OUTCOME (`success` or a failure code such as `uncertain` or `step_limit`),
-//! prints its last STEPS steps: the true insertion (mm), sideways error (mm) and tilt (deg); the
-//! estimate's insertion and sideways σ (mm) as the controller saw them; the move asked (mm);
-//! the supervisor's refusal; and the step's `detected` field (docs/estimation.md §5).
+//! reference cell unless CELL names a cell file) as `celld eval` does (4000 episodes a seed,
+//! 10 kept robots) and, for each episode whose outcome is OUTCOME (`success` or a failure code
+//! such as `uncertain` or `step_limit`), prints its last STEPS steps: the true insertion (mm),
+//! sideways error (mm) and tilt (deg); the estimate's insertion and sideways σ (mm) as the
+//! controller saw them; the move asked (mm); the supervisor's refusal; and the step's
+//! `detected` field (docs/estimation.md §5).
 //!
 //! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
 //! [FAULT [CELL]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's code, as `celld
