@@ -93,12 +93,7 @@ fn main() -> anyhow::Result<()> {
         .parse()
         .map_err(|_| anyhow::anyhow!("NOISE: {noise}"))?;
     let seeds = common::seeds(seeds)?;
-    let keep: usize = match args.get(5) {
-        Some(steps) => steps
-            .parse()
-            .map_err(|_| anyhow::anyhow!("STEPS: {steps}"))?,
-        None => 40,
-    };
+    let keep: usize = common::arg(5, 40)?;
     let fault: Option<Fault> = match args.get(6).map(String::as_str) {
         None | Some("none") => None,
         Some(code) => Some(code.parse()?),

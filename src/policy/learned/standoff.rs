@@ -55,44 +55,27 @@ mod tests {
     /// 0.5 mm. Sure, in the bore, or moving up: as asked.
     #[test]
     fn unsure_a_move_down_stops_at_the_standoff() {
-        let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(4.0, 0.5), -5.0),
-            -3.0
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(0.6, 0.5), -5.0),
-            0.0
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(1.5, 0.5), -0.3),
-            -0.3
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(1.5, 0.5), -2.0),
-            -0.5
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(0.6, 0.5), 0.4),
-            0.4
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(4.0, 2.0), -5.0),
-            -5.0
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(0.6, 2.0), -5.0),
-            -5.0
-        ));
-        // 0.1 mm above the entrance counts as in the bore, as the demonstrators decide.
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(0.1, 0.5), -5.0),
-            -5.0
-        ));
-        assert!(close(
-            no_nearer_than_the_standoff_mm(&at(-10.0, 0.5), -5.0),
-            -5.0
-        ));
+        // (height above the entrance mm, clearance over σ, asked Δz mm, made Δz mm)
+        let cases = [
+            (4.0, 0.5, -5.0, -3.0),
+            (0.6, 0.5, -5.0, 0.0),
+            (1.5, 0.5, -0.3, -0.3),
+            (1.5, 0.5, -2.0, -0.5),
+            (0.6, 0.5, 0.4, 0.4),
+            (4.0, 2.0, -5.0, -5.0),
+            (0.6, 2.0, -5.0, -5.0),
+            // 0.1 mm above the entrance counts as in the bore, as the demonstrators decide.
+            (0.1, 0.5, -5.0, -5.0),
+            (-10.0, 0.5, -5.0, -5.0),
+        ];
+        for (height_mm, clearance_over_sd, asked_mm, made_mm) in cases {
+            let got_mm =
+                no_nearer_than_the_standoff_mm(&at(height_mm, clearance_over_sd), asked_mm);
+            assert!(
+                (got_mm - made_mm).abs() < 1e-9,
+                "from {height_mm} mm, clearance {clearance_over_sd} σ, asked {asked_mm}: {got_mm}"
+            );
+        }
     }
 
     /// Whatever the height and the move, unsure: the tip ends no nearer the entrance than the
