@@ -2,13 +2,14 @@
 //! reference cell unless CELL names a cell file) as `celld eval` does (4000 episodes a seed,
 //! 10 kept robots) and, for each episode whose outcome is OUTCOME (`success` or a failure code
 //! such as `uncertain` or `step_limit`), prints its last STEPS steps: the true insertion (mm),
-//! sideways error (mm) and tilt (deg); the estimate's insertion and sideways σ (mm) as the
+//! sideways error (mm) and tilt (deg); the estimate's insertion, sideways offset and its σ (mm) as the
 //! controller saw them; the move asked (mm); the supervisor's refusal; and the step's
 //! `detected` field (docs/estimation.md §5).
 //!
 //! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
-//! [FAULT [CELL]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's code, as `celld
-//! eval --fault`, or `none`).
+//! [FAULT [CELL [CALIBRATION]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's
+//! code, as `celld eval --fault`, or `none`; CELL a cell file or `reference`; CALIBRATION the
+//! calibration error's multiple, as `celld eval --calibration-scale`, default 1).
 
 mod common;
 
@@ -30,12 +31,13 @@ fn line(
 ) -> String {
     let (asked, truth) = (decision.action.translation_mm, result.true_errors);
     format!(
-        "{:3} in {:6.2} off {:.3} tilt {:.3} | est in {:6.2} σ {:.4} | asked ({:+.3}, {:+.3}, {:+.2}) refused {} detected {}",
+        "{:3} in {:6.2} off {:.3} tilt {:.3} | est in {:6.2} off {:.3} σ {:.4} | asked ({:+.3}, {:+.3}, {:+.2}) refused {} detected {}",
         observation.step,
         truth.depth_error_mm + depth_mm,
         truth.lateral_mm,
         truth.tilt_deg,
         observation.state[8] + depth_mm,
+        observation.state[6].hypot(observation.state[7]),
         observation.estimate.lateral_sd_mm(),
         asked.x,
         asked.y,
@@ -83,7 +85,8 @@ fn traces(
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT [CELL]]]";
+    let usage =
+        "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT [CELL [CALIBRATION]]]]";
     let (Some(name), Some(noise), Some(wanted), Some(seeds)) =
         (args.get(1), args.get(2), args.get(3), args.get(4))
     else {
@@ -98,12 +101,14 @@ fn main() -> anyhow::Result<()> {
         None | Some("none") => None,
         Some(code) => Some(code.parse()?),
     };
-    let cell = match args.get(7) {
+    let cell = match args.get(7).map(String::as_str) {
+        None | Some("reference") => CellConfig::reference(),
         Some(path) => CellConfig::load(Path::new(path))?,
-        None => CellConfig::reference(),
     };
+    let calibration_scale: f64 = common::arg(8, 1.0)?;
     let options = EnvOptions {
         noise_scale,
+        calibration_scale,
         kept_robots: 10,
         fault,
         ..EnvOptions::from_cell(&cell)
@@ -113,8 +118,8 @@ fn main() -> anyhow::Result<()> {
         for (index, lines) in traces(&cell, &make, options, wanted, seed, keep) {
             let fault = fault.map_or(String::new(), |f| format!(", fault {f}"));
             println!(
-                "== {name} on {}, noise ×{noise_scale}{fault}, seed {seed}, episode {index}: \
-                 {wanted}",
+                "== {name} on {}, noise ×{noise_scale}, calibration ×{calibration_scale}{fault}, \
+                 seed {seed}, episode {index}: {wanted}",
                 cell.name
             );
             for line in lines {

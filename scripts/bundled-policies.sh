@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Makes the six bundled policies again, byte for byte:
+# Makes the six bundled policies again:
 #   policies/default.safetensors  the hierarchical policy (controller `hierarchical`)
 #   policies/bc.safetensors       plain behaviour cloning (controller `bc`)
 #   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
@@ -13,8 +13,9 @@
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. hierarchical, bc and td3 were made under an earlier
-# supervisor: run today, these
-# commands give them other weights (docs/learning.md). The run directories go to runs/bundled/ (ignored by git);
+# supervisor, and the other three under the drift check before decision 0044 (their TD3 stages
+# run on kept robots): run today, these commands give them other weights (docs/learning.md
+# § The bundled policies). The run directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
 # It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies, and the

@@ -58,6 +58,11 @@ impl DriftKnowledge {
         Matrix6::from_fn(|i, j| self.covariance[i][j])
     }
 
+    /// The drift's rms over its six components (per mm).
+    pub fn rms_per_mm(&self) -> f64 {
+        (self.per_mm_vector().norm_squared() / 6.0).sqrt()
+    }
+
     /// σ of each component of `per_mm`.
     pub fn sd_per_mm(&self) -> [f64; 6] {
         std::array::from_fn(|i| self.covariance[i][i].max(0.0).sqrt())

@@ -450,9 +450,10 @@ pub struct Ingest {
     drift_memory: Option<DriftKnowledge>,
     /// No camera fault was confirmed in this episode, so what it learned may be kept.
     episode_trusted: bool,
-    /// While an episode runs from the remembered drift: the same filter started from the prior
-    /// for a robot never seen, fed the same frames, so that a remembered drift that has become
-    /// wrong shows as the two disagreeing.
+    /// While an episode runs from the remembered drift: the same filter started from a prior
+    /// for a robot never seen, as wide as the remembered drift calls for
+    /// (`FusionTuning::checking_a_memory`), fed the same frames, so that a remembered drift
+    /// that has become wrong shows as the two disagreeing.
     unremembering: Option<StateFilter>,
     /// The remembered drift was found wrong at this frame (named once, at the frame).
     robot_changed: bool,
@@ -499,7 +500,7 @@ impl Ingest {
         if !self.remember_drift {
             return None;
         }
-        // The filter that started from the prior for an unseen robot.
+        // The filter that started from a prior (its own) for an unseen robot.
         let alone = self.unremembering.as_ref().unwrap_or(&self.filter);
         if !self.episode_trusted || alone.m_f().is_none() {
             return self.drift_memory;
@@ -508,12 +509,11 @@ impl Ingest {
         if !episode.is_usable() {
             return self.drift_memory;
         }
-        let tuning = self.filter.tuning();
         Some(match self.drift_memory {
             Some(memory) => {
                 memory
-                    .carried(tuning.drift_change_sd)
-                    .updated_with(&episode, tuning.drift_prior_sd)
+                    .carried(self.filter.tuning().drift_change_sd)
+                    .updated_with(&episode, alone.tuning().drift_prior_sd)
                     .knowledge
             }
             None => episode,
@@ -572,9 +572,11 @@ impl Ingest {
         self.unremembering = None;
         // Only a remembering ingest has a memory (`learned_drift`).
         if let Some(memory) = self.drift_memory {
-            self.unremembering = Some(self.filter);
-            let change_sd = self.filter.tuning().drift_change_sd;
-            self.filter.reset_from(&memory.carried(change_sd));
+            let tuning = *self.filter.tuning();
+            let check = tuning.checking_a_memory(&memory);
+            self.unremembering = Some(StateFilter::new(check));
+            self.filter
+                .reset_from(&memory.carried(tuning.drift_change_sd));
         }
         self.episode_trusted = true;
         self.robot_changed = false;
