@@ -2,9 +2,9 @@
 //! reference cell unless CELL names a cell file) as `celld eval` does (4000 episodes a seed,
 //! 10 kept robots) and, for each episode whose outcome is OUTCOME (`success` or a failure code
 //! such as `uncertain` or `step_limit`), prints its last STEPS steps: the true insertion (mm),
-//! sideways error (mm) and tilt (deg); the estimate's insertion, sideways offset and its σ (mm) as the
-//! controller saw them; the move asked (mm); the supervisor's refusal; and the step's
-//! `detected` field (docs/estimation.md §5).
+//! sideways error (mm) and tilt (deg); the estimate's insertion, sideways offset and its σ
+//! (mm) as the controller saw them; the move asked (mm); the supervisor's refusal; and the
+//! step's `detected` field (docs/estimation.md §5).
 //!
 //! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
 //! [FAULT [CELL [CALIBRATION]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's
