@@ -32,9 +32,14 @@ fn episode(env: &mut AssemblyEnv, controller: &mut dyn Controller, seed: u64) ->
     (changed, report.outcome)
 }
 
-fn print(counts: &BTreeMap<(bool, String), usize>) {
+/// Prints how many episodes ended each way, split by whether `robot_changed` was named.
+fn print_tally(episodes: impl IntoIterator<Item = (bool, String)>) {
+    let mut counts: BTreeMap<(bool, String), usize> = BTreeMap::new();
+    for key in episodes {
+        *counts.entry(key).or_default() += 1;
+    }
     for ((changed, outcome), n) in counts {
-        let named = if *changed {
+        let named = if changed {
             "robot_changed"
         } else {
             "not named"
@@ -45,22 +50,22 @@ fn print(counts: &BTreeMap<(bool, String), usize>) {
 
 fn kept(cell: &CellConfig, options: EnvOptions, name: &str, seeds: &[u64]) -> anyhow::Result<()> {
     let make = policy::builtin_factory(name, cell)?;
-    let mut counts = BTreeMap::new();
+    let mut episodes: Vec<(bool, String)> = Vec::new();
     for &seed in seeds {
-        let episodes: Vec<(bool, String)> = robot_blocks(options, EPISODES, seed)
-            .into_par_iter()
-            .flat_map_iter(|(kept, block)| {
-                let mut env = AssemblyEnv::new(cell, kept);
-                let mut controller = make();
-                block
-                    .into_iter()
-                    .map(|index| episode(&mut env, controller.as_mut(), episode_seed(seed, index)))
-                    .collect::<Vec<_>>()
-            })
-            .collect();
-        for key in episodes {
-            *counts.entry(key).or_default() += 1;
-        }
+        episodes.par_extend(
+            robot_blocks(options, EPISODES, seed)
+                .into_par_iter()
+                .flat_map_iter(|(kept, block)| {
+                    let mut env = AssemblyEnv::new(cell, kept);
+                    let mut controller = make();
+                    block
+                        .into_iter()
+                        .map(|index| {
+                            episode(&mut env, controller.as_mut(), episode_seed(seed, index))
+                        })
+                        .collect::<Vec<_>>()
+                }),
+        );
     }
     println!(
         "{name}, noise ×{}, calibration ×{}, seeds {seeds:?} ({} episodes):",
@@ -68,7 +73,7 @@ fn kept(cell: &CellConfig, options: EnvOptions, name: &str, seeds: &[u64]) -> an
         options.calibration_scale,
         EPISODES * seeds.len()
     );
-    print(&counts);
+    print_tally(episodes);
     Ok(())
 }
 
@@ -91,15 +96,11 @@ fn swapped(cell: &CellConfig, options: EnvOptions, pairs: u64) -> anyhow::Result
             episode(&mut env, controller.as_mut(), episode_seed(pair, 10))
         })
         .collect();
-    let mut counts = BTreeMap::new();
-    for key in firsts {
-        *counts.entry(key).or_default() += 1;
-    }
     println!(
         "the first episode after an unannounced swap, {pairs} pairs, noise ×{}, calibration ×{}:",
         options.noise_scale, options.calibration_scale
     );
-    print(&counts);
+    print_tally(firsts);
     Ok(())
 }
 
