@@ -7,9 +7,10 @@
 //! step's `detected` field (docs/estimation.md §5).
 //!
 //! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
-//! [FAULT [CELL [CALIBRATION]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's
+//! [FAULT [CELL [CALIBRATION [ROBOTS]]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's
 //! code, as `celld eval --fault`, or `none`; CELL a cell file or `reference`; CALIBRATION the
-//! calibration error's multiple, as `celld eval --calibration-scale`, default 1).
+//! calibration error's multiple, as `celld eval --calibration-scale`, default 1; ROBOTS the
+//! kept robots, as `celld eval --robots`, default 10, 0 for a new robot every episode).
 
 mod common;
 
@@ -85,8 +86,7 @@ fn traces(
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let usage =
-        "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT [CELL [CALIBRATION]]]]";
+    let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT [CELL [CALIBRATION [ROBOTS]]]]]";
     let (Some(name), Some(noise), Some(wanted), Some(seeds)) =
         (args.get(1), args.get(2), args.get(3), args.get(4))
     else {
@@ -106,10 +106,11 @@ fn main() -> anyhow::Result<()> {
         Some(path) => CellConfig::load(Path::new(path))?,
     };
     let calibration_scale: f64 = common::arg(8, 1.0)?;
+    let kept_robots: u32 = common::arg(9, 10)?;
     let options = EnvOptions {
         noise_scale,
         calibration_scale,
-        kept_robots: 10,
+        kept_robots,
         fault,
         ..EnvOptions::from_cell(&cell)
     };

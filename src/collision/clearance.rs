@@ -78,6 +78,14 @@ impl PartGeometry {
         -(f_m * Point3::new(0.0, 0.0, -self.shaft_length_mm)).z
     }
 
+    /// How far the tip's centre is off the bore's axis (mm) with the shaft at `f_m`.
+    pub fn tip_off_axis_mm(&self, f_m: &Pose) -> f64 {
+        (f_m * Point3::new(0.0, 0.0, -self.shaft_length_mm))
+            .coords
+            .xy()
+            .norm()
+    }
+
     /// Depth of the bore bottom below the entrance, h = depth + relief (mm).
     fn bottom_depth_mm(&self) -> f64 {
         self.bore_depth_mm + self.axial_relief_mm

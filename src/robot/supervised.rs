@@ -128,10 +128,24 @@ impl<'s, R: Robot> Supervised<'s, R> {
         })
     }
 
-    /// The clearance (mm) where `step` leaves Segment I, by the estimate (drift included).
+    /// The room (mm) `step` leaves Segment I, by the estimate (drift included): its clearance;
+    /// above the bore, where no part of the shaft is level with the wall and the clearance is
+    /// the gap below the tip whichever way it moves sideways, the room the tip's rim would have
+    /// at the entrance, so that sideways parts are told apart by how near the axis they bring
+    /// the tip. Told apart by the gap below it, a robot far off its calibration that had
+    /// learned how the robot bends sideways moves along the axis chose the part that took the
+    /// tip off the axis, as often as not, and `da-dmp` held above the entrance until the step
+    /// limit.
     fn clearance_after(&self, step: &Move) -> f64 {
         self.belief.map_or(f64::NEG_INFINITY, |belief| {
-            clearance(self.supervisor.parts(), &belief.m_f_after(step).inverse()).min_mm()
+            let parts = self.supervisor.parts();
+            let f_m = belief.m_f_after(step).inverse();
+            let along = clearance(parts, &f_m);
+            if along.wall_mm.is_finite() {
+                along.min_mm()
+            } else {
+                parts.bore_radius_mm - parts.shaft_radius_mm - parts.tip_off_axis_mm(&f_m)
+            }
         })
     }
 
@@ -351,6 +365,33 @@ mod tests {
                 "{asked:?} gave {executed:?}, ending {ends_mm} mm off the axis"
             );
         }
+    }
+
+    #[test]
+    fn above_the_entrance_the_sideways_part_that_centres_the_tip_is_made() {
+        let supervisor = Supervisor::new(&CellConfig::reference());
+        // The tip 0.07 mm above the entrance and 0.04 mm off the axis, σ 0.004 mm sideways:
+        // going in now would start 0.01 mm from the wall, too near for the bound, at every
+        // share of the move. A 4 mm move deeper carries Segment I 0.04 mm towards −x, so the
+        // move's sideways part as the drift would take it goes 0.08 mm, past the axis by 0.04;
+        // as commanded it centres. Above the bore the gap below the tip is the same for both.
+        let belief = Drifting {
+            unsure: Unsure(Isometry3::translation(0.04, 0.0, 60.07).inverse(), 0.004),
+            drift_per_mm: 0.01,
+        };
+        let mut recorder = Recorder::default();
+        let mut robot = Supervised::new(&supervisor, &mut recorder);
+        robot.observe(Some(&belief));
+        assert!(!robot.tip_in_the_bore());
+        let centre_and_go_in = Move::translation(-0.04, 0.0, -4.0);
+        let made = robot
+            .execute_cautiously(&centre_and_go_in)
+            .expect("a centring above the bore is allowed");
+        let ends_mm = belief.m_f_after(&made).inverse().translation.vector.x;
+        assert!(
+            made == Move::translation(-0.04, 0.0, 0.0) && ends_mm.abs() < 1e-9,
+            "made {made:?}, ending {ends_mm} mm off the axis"
+        );
     }
 
     #[test]
