@@ -7,10 +7,11 @@
 //! step's `detected` field (docs/estimation.md §5).
 //!
 //! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
-//! [FAULT [CELL [CALIBRATION [ROBOTS]]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a fault's
-//! code, as `celld eval --fault`, or `none`; CELL a cell file or `reference`; CALIBRATION the
-//! calibration error's multiple, as `celld eval --calibration-scale`, default 1; ROBOTS the
-//! kept robots, as `celld eval --robots`, default 10, 0 for a new robot every episode).
+//! [FAULT [CELL [CALIBRATION [ROBOTS]]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a
+//! fault's code, as `celld eval --fault`, or `none`; CELL a cell file or `reference`;
+//! CALIBRATION the calibration error's multiple, as `celld eval --calibration-scale`, default
+//! 1; ROBOTS the kept robots, as `celld eval --robots`, default 10, 0 for a new robot every
+//! episode).
 
 mod common;
 

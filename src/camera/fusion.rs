@@ -119,7 +119,7 @@ pub struct StateFilter {
     drift: SVector<f64, 6>,
     /// The learned axial drift: the extra move of {M} along z per mm commanded along x and y.
     /// A robot three times as far off its calibration as the reference one bends a 5 mm
-    /// sideways move by up to 0.03 mm along the axis; unlearned, the approach's frames drifted
+    /// sideways move by up to 0.05 mm along the axis; unlearned, the approach's frames drifted
     /// from the moves as a knocked camera's would, and 0.7 % of such robots' episodes ended on
     /// a false `camera_shift` (docs/estimation.md §3).
     axial_drift: SVector<f64, 2>,

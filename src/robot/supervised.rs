@@ -128,14 +128,12 @@ impl<'s, R: Robot> Supervised<'s, R> {
         })
     }
 
-    /// The room (mm) `step` leaves Segment I, by the estimate (drift included): its clearance;
-    /// above the bore, where no part of the shaft is level with the wall and the clearance is
-    /// the gap below the tip whichever way it moves sideways, the room the tip's rim would have
-    /// at the entrance, so that sideways parts are told apart by how near the axis they bring
-    /// the tip. Told apart by the gap below it, a robot far off its calibration that had
-    /// learned how the robot bends sideways moves along the axis chose the part that took the
-    /// tip off the axis, as often as not, and `da-dmp` held above the entrance until the step
-    /// limit.
+    /// The room (mm) `step` leaves Segment I, by the estimate (drift included): its clearance,
+    /// or above the bore, where the clearance is the gap below the tip whichever way the tip
+    /// moves sideways, the room the tip's rim would have at the entrance. Sideways parts are
+    /// then told apart by how near the axis they bring the tip; by the gap below it they tied,
+    /// and once the filter learned the axial drift a micrometre of predicted height chose
+    /// between them (decision 0045).
     fn clearance_after(&self, step: &Move) -> f64 {
         self.belief.map_or(f64::NEG_INFINITY, |belief| {
             let parts = self.supervisor.parts();
