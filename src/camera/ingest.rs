@@ -105,6 +105,9 @@ struct FrameWatch {
     repeats: u32,
     /// Frames in a row each coded point of {C1} and {C2} has been missing.
     missing: [[u32; TRACKED_POINTS]; 2],
+    /// The coded points seen in this episode: only one of them can go missing. Counting ids a
+    /// fixture does not have named `occlusion` at the eighth frame of every episode.
+    seen_before: [[bool; TRACKED_POINTS]; 2],
 }
 
 impl FrameWatch {
@@ -134,9 +137,12 @@ impl FrameWatch {
             }
         }
         let mut occluded = false;
-        for (missing, seen) in self.missing.iter_mut().zip(seen) {
-            for (count, seen) in missing.iter_mut().zip(seen) {
-                *count = if seen { 0 } else { *count + 1 };
+        for ((missing, seen_before), seen) in
+            self.missing.iter_mut().zip(&mut self.seen_before).zip(seen)
+        {
+            for ((count, before), seen) in missing.iter_mut().zip(seen_before).zip(seen) {
+                *before |= seen;
+                *count = if seen || !*before { 0 } else { *count + 1 };
                 occluded |= *count == OCCLUSION_FRAMES;
             }
         }
@@ -736,6 +742,58 @@ mod tests {
     /// `shift` at the frames in `shifted`, and grossly off at the frames in `gross`.
     fn watch(shift: &Pose, shifted: Range<usize>, gross: &[usize], frames: usize) -> Option<usize> {
         watch_seeded(shift, shifted, gross, frames, 4)
+    }
+
+    /// Frames numbered from 1 with the coded points `ids` of each fixture, the points themselves
+    /// anywhere (the watch reads which points are there, not where).
+    fn frames_with(ids: impl Fn(u64) -> Vec<u16>, count: u64) -> Vec<CameraFrame> {
+        (1..=count)
+            .map(|sequence| CameraFrame {
+                points: [crate::camera::Fixture::C1, crate::camera::Fixture::C2]
+                    .into_iter()
+                    .flat_map(|fixture| {
+                        ids(sequence)
+                            .into_iter()
+                            .map(move |id| crate::camera::CodedPoint {
+                                fixture,
+                                id,
+                                position_mm: nalgebra::Point3::new(
+                                    f64::from(id),
+                                    sequence as f64,
+                                    0.0,
+                                ),
+                            })
+                    })
+                    .collect(),
+                sequence,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn only_a_point_seen_and_then_lost_is_an_occlusion() {
+        let noticed = |frames: &[CameraFrame]| {
+            let mut watch = FrameWatch::default();
+            frames
+                .iter()
+                .position(|frame| watch.screen(frame) == Ok(Some(Detected::Occlusion)))
+        };
+        // Six points a fixture, ids 0–5, in every frame: the ids it does not have are not
+        // missing.
+        assert_eq!(noticed(&frames_with(|_| (0..6).collect(), 40)), None);
+        // Point 3 seen in the first 10 frames, then lost: named at its eighth frame missing.
+        let lost = frames_with(|k| (0..6).filter(|&id| id != 3 || k <= 10).collect(), 40);
+        assert_eq!(noticed(&lost), Some(10 + OCCLUSION_FRAMES as usize - 1));
+        // Lost for seven frames and back: a dropped point or two, not an occlusion.
+        let back = frames_with(
+            |k| {
+                (0..6)
+                    .filter(|&id| id != 3 || !(11..18).contains(&k))
+                    .collect()
+            },
+            40,
+        );
+        assert_eq!(noticed(&back), None);
     }
 
     /// No frame shifted.
