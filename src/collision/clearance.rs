@@ -72,18 +72,21 @@ impl PartGeometry {
         }
     }
 
+    /// The centre of the tip in {F} with the shaft at `f_m` ({M} in {F}): the tip is the
+    /// engaged length below {M}'s origin at the shoulder.
+    fn tip_centre(&self, f_m: &Pose) -> Point3<f64> {
+        f_m * Point3::new(0.0, 0.0, -self.shaft_length_mm)
+    }
+
     /// How far the tip is below the bore's entrance (mm; negative above it) with the shaft at
-    /// `f_m` ({M} in {F}): the tip is the engaged length below {M}'s origin at the shoulder.
+    /// `f_m`.
     pub fn tip_depth_mm(&self, f_m: &Pose) -> f64 {
-        -(f_m * Point3::new(0.0, 0.0, -self.shaft_length_mm)).z
+        -self.tip_centre(f_m).z
     }
 
     /// How far the tip's centre is off the bore's axis (mm) with the shaft at `f_m`.
     pub fn tip_off_axis_mm(&self, f_m: &Pose) -> f64 {
-        (f_m * Point3::new(0.0, 0.0, -self.shaft_length_mm))
-            .coords
-            .xy()
-            .norm()
+        self.tip_centre(f_m).coords.xy().norm()
     }
 
     /// Depth of the bore bottom below the entrance, h = depth + relief (mm).

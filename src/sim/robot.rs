@@ -347,8 +347,8 @@ mod tests {
                 let legs = robot.nominal.leg_lengths_mm(&target);
                 robot.execute(&target, &legs, &mut rng).unwrap();
                 let error = robot.true_platform().translation.vector - before - commanded;
-                for (row, squares) in squares.iter_mut().enumerate() {
-                    squares[axis] += (error[row] / 5.0).powi(2);
+                for (row, row_squares) in squares.iter_mut().enumerate() {
+                    row_squares[axis] += (error[row] / 5.0).powi(2);
                 }
             }
         }
