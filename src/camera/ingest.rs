@@ -887,6 +887,7 @@ mod tests {
             Vector3::new(5.5e-4, -5.5e-4, 5.5e-4).map(f64::to_degrees),
         );
         let truth = pose_from_mm_deg(Vector3::new(0.0, -2000.0, 100.0), Vector3::zeros());
+        let covariance = frame_covariance();
         for seed in 0..20 {
             for odd in 0..3 {
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
@@ -897,7 +898,7 @@ mod tests {
                         // About the fixture's own origin, as the frame's errors are.
                         seen *= outlier;
                     }
-                    let verdict = still.take(&seen, &frame_covariance(), 1.0);
+                    let verdict = still.take(&seen, &covariance, 1.0);
                     assert_ne!(verdict, StaticFrame::Shifted, "seed {seed}, outlier {odd}");
                 }
             }
