@@ -138,8 +138,8 @@ impl ExpertTuning {
             insertion_gate: InsertionGate::Holds {
                 holds: 3,
                 max_step_mm: 5.0,
-                careful_depth_mm: 35.0,
-                careful_step_mm: 2.0,
+                careful_depth_mm: CAREFUL_DEPTH_MM,
+                careful_step_mm: CAREFUL_STEP_MM,
             },
             ..ExpertTuning::state_only()
         }
@@ -164,6 +164,13 @@ impl ExpertTuning {
         }
     }
 }
+
+/// How far into the bore (mm past the entrance) `expert-careful` keeps its insertion steps to
+/// [`CAREFUL_STEP_MM`].
+pub const CAREFUL_DEPTH_MM: f64 = 35.0;
+
+/// `expert-careful`'s longest insertion step (mm) over the first [`CAREFUL_DEPTH_MM`].
+pub const CAREFUL_STEP_MM: f64 = 2.0;
 
 /// Whether the tip counts as in the bore, `insertion_mm` past the entrance (negative above
 /// it): from 0.2 mm above the entrance on, as the demonstrators decide.

@@ -285,7 +285,8 @@ pub const DESCENT_AS_DEMONSTRATED_FROM_MM: f64 = 0.2;
 /// [`DESCENT_AS_DEMONSTRATED_FROM_MM`] past the entrance, with a camera noisier than
 /// [`NOISY_CAMERA_SCALE`]. A learned policy then makes it as its demonstrators do: sideways,
 /// exactly their centring move ([`demonstrators_centring_mm`]), not steered against the
-/// learned drift (`LearnedPolicy`). At four times the camera's noise that ends fewer episodes
+/// learned drift, and over the first 35 mm no longer than `expert-careful`'s step
+/// (`LearnedPolicy`; decision 0047). At four times the camera's noise that ends fewer episodes
 /// on the step limit; on a quieter camera the steering is what lets the long steps of a fast
 /// policy through whole (decision 0034).
 pub fn descends_as_the_demonstrators(observation: &Observation, decision: &Decision) -> bool {
