@@ -45,21 +45,21 @@ step hierarchical-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30f
     --init-policy "$RUNS/W30r1/policy.safetensors" --dagger-policy "$RUNS/W30r1/policy.safetensors"
 cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
 
-# hierarchical-cells: `celld train policy` with its defaults, one command: behaviour cloning
-# on 1600 demonstrations of expert-careful, each on a cell of its own drawn over the ranges the
+# hierarchical-cells: `celld train policy` on expert-careful's demonstrations (the default
+# until decision 0048), one command: behaviour cloning on 1600 demonstrations, each on a cell of its own drawn over the ranges the
 # product is specified for, the policy reading cell-scaled inputs (a version 2 file), the
 # sideways errors in the bore weighted 30, the orientation errors counted relative to their
 # labels down to 0.2, the TD3 stage one episode (round-0, and no DAgger round by default);
 # then the polishing round from it, the position actor's errors relative to their labels down
 # to 0.3, 6 epochs at 0.002, then 500 TD3 episodes that also refine the selector's step size on
 # 10 kept robots (polish)
-step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026
+step hierarchical-cells "$CELLD" train policy --out "$RUNS/across-cells" --seed 2026 \
+    -- --demonstrator expert-careful
 cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 
-# hierarchical-swift-cells: the same one command on expert-swift's demonstrations (no holds,
-# steps up to the 5 mm limit)
-step hierarchical-swift-cells "$CELLD" train policy --out "$RUNS/swift-across-cells" --seed 2026 \
-    -- --demonstrator expert-swift
+# hierarchical-swift-cells: `celld train policy` with its defaults, the same one command on
+# expert-swift's demonstrations (no holds, steps up to the 5 mm limit)
+step hierarchical-swift-cells "$CELLD" train policy --out "$RUNS/swift-across-cells" --seed 2026
 cp "$RUNS/swift-across-cells/policy.safetensors" policies/swift-cells.safetensors
 
 # hierarchical-swift was made by the two runs below before the demonstrators corrected the tilt

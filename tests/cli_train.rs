@@ -734,7 +734,7 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_
         "--seed",
         "7",
         "--demonstrator",
-        "expert-careful",
+        "expert-swift",
         "--bc-bore-lateral-weight",
         "30",
         "--inputs",

@@ -77,7 +77,8 @@ pub struct Polish {
     pub td3_robots: u32,
 }
 
-/// The polishing pass of the bundled `hierarchical-cells`.
+/// The polishing pass of `celld train policy` (the bundled `hierarchical-swift-cells` and
+/// `hierarchical-cells`).
 pub const POLISH: Polish = Polish {
     position_label_floor: 0.3,
     bc_learning_rate: 0.002,
@@ -125,7 +126,8 @@ pub struct TrainingSettings {
     /// Train a policy for cells it was not trained on: it reads cell-scaled inputs (a
     /// version 2 file), and every recorded demonstration and TD3 episode is on a cell of its
     /// own, drawn around this one over the ranges the product is specified for (the recipe of
-    /// the bundled `hierarchical-cells`). False: the paper's absolute state, on this cell.
+    /// the bundled `hierarchical-swift-cells` and `hierarchical-cells`). False: the paper's
+    /// absolute state, on this cell.
     pub for_any_cell: bool,
     #[schema(minimum = 1, maximum = 1024)]
     #[serde(deserialize_with = "crate::integer::integer")]

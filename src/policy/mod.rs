@@ -87,7 +87,7 @@ pub const BUILTIN_CONTROLLERS: [&str; 7] = [
 /// (BC + LSTM on `expert-swift`, a DAgger round, then TD3 on the selector's step size: the
 /// fast policy, a third fewer steps than `hierarchical`), and `hierarchical-swift-cells`
 /// (the recipe of `hierarchical-cells` on `expert-swift`'s demonstrations: fast on every
-/// cell). See the README.
+/// cell, and what `celld train policy` makes by default). See the README.
 pub const LEARNED_CONTROLLERS: [&str; 6] = [
     "hierarchical",
     "bc",

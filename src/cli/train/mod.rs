@@ -60,7 +60,7 @@ pub enum TrainCommand {
     /// The flat TD3 baseline: one 6-DoF actor from fresh weights, no BC, no hierarchy.
     Flat(TrainArgs),
     /// The recommended policy in one command: `all` on a cell of its own for every episode,
-    /// then DAgger rounds; with the defaults it makes the bundled `hierarchical-cells`.
+    /// then DAgger rounds; with the defaults it makes the bundled `hierarchical-swift-cells`.
     Policy(policy::PolicyArgs),
 }
 

@@ -2,8 +2,9 @@
 //! demonstrator's episodes, then `--dagger-rounds` (default none) more times, each with the last
 //! round's policy driving DAgger episodes that teach the actors only, then a polishing round
 //! that fine-tunes the last policy with small moves weighed as closely as large ones. With the
-//! defaults it makes `policies/across-cells.safetensors` (controller `hierarchical-cells`) byte
-//! for byte.
+//! defaults it learns from `expert-swift` and makes the recipe of
+//! `policies/swift-cells.safetensors` (controller `hierarchical-swift-cells`, decision 0048);
+//! `-- --demonstrator expert-careful` makes that of `hierarchical-cells`.
 //!
 //! The recipe is written as `train all` flags ([`RECIPE`], [`DAGGER_ROUND`]) and parsed into the
 //! same settings, so each round is exactly the `train all` command that `run.json` and the docs
@@ -16,7 +17,7 @@ use assembly_cell::learning::run::POLISH;
 use clap::{Args, Parser};
 use std::path::{Path, PathBuf};
 
-/// Every round's `train all` flags: the careful demonstrator, sideways errors in the bore
+/// Every round's `train all` flags: the swift demonstrator (decision 0048), sideways errors in the bore
 /// weighted 30 in the BC loss, cell-scaled inputs (the tilt in each cell's own unit), a cell of
 /// its own for every episode, the
 /// orientation actor's errors relative to its labels down to 0.2, one TD3 episode (TD3 on the
@@ -25,7 +26,7 @@ use std::path::{Path, PathBuf};
 /// states).
 const RECIPE: &[&str] = &[
     "--demonstrator",
-    "expert-careful",
+    "expert-swift",
     "--bc-bore-lateral-weight",
     "30",
     "--inputs",
