@@ -219,7 +219,7 @@ fn a_run_with_a_dagger_round_and_the_polish_learns_what_celld_train_policy_learn
     let admin = server.admin.clone();
     let mut recipe = tiny(1);
     for (key, value) in [
-        ("demonstrator", json!("expert-careful")),
+        ("demonstrator", json!("expert-swift")),
         ("bc_bore_lateral_weight", json!(30.0)),
         ("for_any_cell", json!(true)),
         ("dagger_rounds", json!(1)),
