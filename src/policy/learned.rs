@@ -494,9 +494,14 @@ mod tests {
             let mut observation =
                 observed_with_drift([0.02, -0.01, inserted_mm - 60.0], Vector6::zeros(), 1e-4);
             observation.estimate.set_noise_scale(noise_scale);
-            let asked = bare.clone().act(&observation).action.translation_mm.z;
-            let made = LearnedPolicy::hierarchical(bare.clone()).act(&observation);
-            (asked, made.action.translation_mm.z)
+            // A fresh selector opens with the orientation actor (no move, the shaft level);
+            // its second decision is the position actor's.
+            let mut network = bare.clone();
+            let mut policy = LearnedPolicy::hierarchical(bare.clone());
+            network.act(&observation);
+            policy.act(&observation);
+            let asked = network.act(&observation).action.translation_mm.z;
+            (asked, policy.act(&observation).action.translation_mm.z)
         };
         let (asked, made) = act(10.0, 4.0);
         assert!(asked < -2.5, "the fast policy asks {asked} mm 10 mm in");
