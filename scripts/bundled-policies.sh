@@ -16,7 +16,8 @@
 # command writes the committed file byte for byte (decision 0049). hierarchical, bc and td3 were
 # made under an earlier supervisor, and hierarchical-cells and hierarchical-swift under the
 # drift check before decision 0044 (their TD3 stages run on kept robots): run today, these
-# commands give them other weights (docs/learning.md § The bundled policies). The run directories go to runs/bundled/ (ignored by git);
+# commands give them other weights (docs/learning.md § The bundled policies). The run
+# directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
 # It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies, and the
