@@ -12,10 +12,10 @@
 #                                 (controller `hierarchical-swift-cells`)
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
-# RAYON_NUM_THREADS=1 did so then too. hierarchical-swift-cells is today's code's: its one
-# command writes the committed file byte for byte (decision 0049). hierarchical, bc and td3 were
-# made under an earlier supervisor, and hierarchical-cells and hierarchical-swift under the
-# drift check before decision 0044 (their TD3 stages run on kept robots): run today, these
+# RAYON_NUM_THREADS=1 did so then too. hierarchical-swift-cells, hierarchical-cells and
+# hierarchical-swift (its last step, from the kept swift-bc) are today's code's: their commands
+# write the committed files byte for byte (decisions 0049 and 0050). hierarchical, bc, td3 and
+# swift-bc were made under an earlier supervisor or earlier demonstrators: run today, their
 # commands give them other weights (docs/learning.md § The bundled policies). The run
 # directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.

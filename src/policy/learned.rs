@@ -442,7 +442,8 @@ mod tests {
     /// 10 mm into the bore and 0.02 mm off the axis, on a robot whose drift the cell has
     /// learned: with the camera at its data sheet's noise the policy's move down is steered
     /// against the drift; at four times, it is the demonstrators' move, their exact centring
-    /// and not steered (`descends_as_the_demonstrators`).
+    /// and not steered (`descends_as_the_demonstrators`), no longer than `expert-careful`'s
+    /// 2 mm step this near the entrance (`no_longer_than_the_careful_step_mm`).
     #[test]
     fn under_a_noisy_camera_a_move_down_the_bore_is_the_demonstrators() {
         use crate::policy::Actor;
@@ -479,7 +480,7 @@ mod tests {
             "{centring}"
         );
         assert_eq!(noisy.action.translation_mm.xy(), centring);
-        assert_eq!(noisy.action.translation_mm.z, dz);
+        assert_eq!(noisy.action.translation_mm.z, dz.max(-2.0));
     }
 
     /// The fast policy learnt from `expert-swift`, 0.02 mm off the axis: at four times the
