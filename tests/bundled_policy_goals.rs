@@ -11,14 +11,12 @@
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::builtin_factory;
-use assembly_cell::policy::eval::{EvalSummary, evaluate};
+use assembly_cell::policy::eval::{DEFAULT_KEPT_ROBOTS, EvalSummary, evaluate};
 use assembly_cell::sim::EnvOptions;
 use std::path::Path;
 
 const EPISODES: usize = 400;
 const SEED: u64 = 2;
-/// As `celld eval`'s default: the episodes shared among ten robots the cell keeps.
-const KEPT_ROBOTS: u32 = 10;
 
 const DEEP_TIGHT_CELLS: [&str; 3] = [
     "cells/phi100-deep.toml",
@@ -27,8 +25,9 @@ const DEEP_TIGHT_CELLS: [&str; 3] = [
 ];
 
 fn evaluated(controller: &str, cell: &CellConfig) -> EvalSummary {
+    // As `celld eval` by default: the episodes shared among the robots the cell keeps.
     let options = EnvOptions {
-        kept_robots: KEPT_ROBOTS,
+        kept_robots: DEFAULT_KEPT_ROBOTS,
         ..EnvOptions::from_cell(cell)
     };
     let make = builtin_factory(controller, cell).unwrap();
