@@ -12,11 +12,8 @@
 #                                 (controller `hierarchical-swift-cells`)
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
-# RAYON_NUM_THREADS=1 did so then too. hierarchical-swift-cells, hierarchical-cells and
-# hierarchical-swift (its last step, from the kept swift-bc) are today's code's: their commands
-# write the committed files byte for byte (decisions 0049 and 0050). hierarchical, bc, td3 and
-# swift-bc were made under an earlier supervisor or earlier demonstrators: run today, their
-# commands give them other weights (docs/learning.md § The bundled policies). The run
+# RAYON_NUM_THREADS=1 did so then too. Every committed file is today's code's: these commands
+# write each byte for byte (decisions 0049, 0050 and 0051). The run
 # directories go to runs/bundled/ (ignored by git);
 # a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
 #
@@ -64,9 +61,6 @@ cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 step hierarchical-swift-cells "$CELLD" train policy --out "$RUNS/swift-across-cells" --seed 2026
 cp "$RUNS/swift-across-cells/policy.safetensors" policies/swift-cells.safetensors
 
-# hierarchical-swift was made by the two runs below before the demonstrators corrected the tilt
-# to what each cell takes; run today they make another policy
-# (docs/experiments/2026-11-27-515b128-the-tilt-the-cell-takes.md)
 # hierarchical-swift 1: behaviour cloning on 800 demonstrations of expert-swift (no holds,
 # steps up to the 5 mm limit), the sideways errors in the bore weighted 30
 step hierarchical-swift-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --demonstrator expert-swift \
@@ -80,8 +74,7 @@ step hierarchical-swift-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --d
     --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
 cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
 
-# hierarchical-swift 3: TD3 with the step-size agent from that policy (policies/swift-bc is the
-# file the two runs above made on their day): the selector's step size on the approach learns
+# hierarchical-swift 3: TD3 with the step-size agent from that policy: the selector's step size on the approach learns
 # from the twin, and near the entrance and in the bore it may move 0.6 from its start (0.2
 # fewer steps than the default 0.3 on average over five TD3 seeds, decision 0032); the best
 # of the validations every 50 episodes is kept (seed 2030: of the five seeds tried under decision
