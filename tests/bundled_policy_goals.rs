@@ -1,8 +1,8 @@
 //! The bundled policies hold their goals: the cross-cell policies on the deep, tight cells
 //! they were not trained on (success within 0.01 of `expert`'s on the same episodes, and no
 //! episode driven out of the workspace), and every hierarchical policy on the reference cell
-//! (no more failures than `expert`, the fast ones in at most 40 steps). A bundled file stays as it was while the code around it changes:
-//! under decisions 0044–0046 the careful cross-cell file of decision 0043 came to hit the step
+//! (no more failures than `expert`, the fast ones in at most 40 steps). A bundled file stays
+//! as it was while the code around it changes: under decisions 0044–0046 the careful cross-cell file of decision 0043 came to hit the step
 //! limit in 3.5 % of episodes on phi100-deep, and nothing showed it until its recipe was run
 //! again (decision 0050). On these 400 episodes that file succeeds 0.965 against `expert`'s
 //! 0.9925 on phi100-deep, and 0.9825 against 1.0 on c120-tight-deep-small-robot.
