@@ -14,7 +14,8 @@
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. Every committed file is today's code's: these commands
 # write each byte for byte (decisions 0049, 0050 and 0051). The run directories go to
-# runs/bundled/ (ignored by git); a stage refuses to overwrite an earlier run's output, so delete runs/bundled to start over.
+# runs/bundled/ (ignored by git); a stage refuses to overwrite an earlier run's output, so
+# delete runs/bundled to start over.
 #
 # It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies, and the
 # records it links, have the runs' times).
@@ -74,8 +75,9 @@ step hierarchical-swift-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --d
 cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
 
 # hierarchical-swift 3: TD3 with the step-size agent from that policy: the selector's step
-# size on the approach learns from the twin, and near the entrance and in the bore it may move 0.6 from its start (0.2
-# fewer steps than the default 0.3 on average over five TD3 seeds, decision 0032); the best
+# size on the approach learns from the twin, and near the entrance and in the bore it may
+# move 0.6 from its start (0.2 fewer steps than the default 0.3 on average over five TD3
+# seeds, decision 0032); the best
 # of the validations every 50 episodes is kept (seed 2030: from the swift-bc of its day, of the
 # five seeds tried under decision 0035, 2027-2031, the one whose kept validation took the
 # fewest steps, as again under decision 0038;

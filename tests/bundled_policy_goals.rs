@@ -2,10 +2,11 @@
 //! they were not trained on (success within 0.01 of `expert`'s on the same episodes, and no
 //! episode driven out of the workspace), and every hierarchical policy on the reference cell
 //! (no more failures than `expert`, the fast ones in at most 40 steps). A bundled file stays
-//! as it was while the code around it changes: under decisions 0044–0046 the careful cross-cell file of decision 0043 came to hit the step
-//! limit in 3.5 % of episodes on phi100-deep, and nothing showed it until its recipe was run
-//! again (decision 0050). On these 400 episodes that file succeeds 0.965 against `expert`'s
-//! 0.9925 on phi100-deep, and 0.9825 against 1.0 on c120-tight-deep-small-robot.
+//! as it was while the code around it changes: under decisions 0044–0046 the careful
+//! cross-cell file of decision 0043 came to hit the step limit in 3.5 % of episodes on
+//! phi100-deep, and nothing showed it until its recipe was run again (decision 0050). On
+//! these 400 episodes that file succeeds 0.965 against `expert`'s 0.9925 on phi100-deep, and
+//! 0.9825 against 1.0 on c120-tight-deep-small-robot.
 //!
 //! The 4000-episode figures of docs/learning.md: `celld eval --controller NAME --cell FILE
 //! --episodes 4000 --seed 2`, and on the reference cell `--seed 21` to `24`.
@@ -28,10 +29,6 @@ const DEEP_TIGHT_CELLS: [&str; 3] = [
     "cells/corners/c250-tight-deep.toml",
 ];
 
-fn cell(file: &str) -> CellConfig {
-    CellConfig::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(file)).unwrap()
-}
-
 fn evaluated(controller: &str, cell: &CellConfig, seed: u64) -> EvalSummary {
     // As `celld eval` by default: the episodes shared among the robots the cell keeps.
     let options = EnvOptions {
@@ -47,7 +44,7 @@ fn evaluated(controller: &str, cell: &CellConfig, seed: u64) -> EvalSummary {
 #[test]
 fn the_cross_cell_policies_are_within_a_hundredth_of_expert_on_deep_tight_cells() {
     for file in DEEP_TIGHT_CELLS {
-        let cell = cell(file);
+        let cell = CellConfig::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join(file)).unwrap();
         let expert = evaluated("expert", &cell, SEED);
         for policy in ["hierarchical-cells", "hierarchical-swift-cells"] {
             let learned = evaluated(policy, &cell, SEED);
@@ -73,7 +70,7 @@ fn the_cross_cell_policies_are_within_a_hundredth_of_expert_on_deep_tight_cells(
 
 #[test]
 fn on_the_reference_cell_the_hierarchical_policies_fail_no_more_than_expert() {
-    let cell = cell("cells/phi170.toml");
+    let cell = CellConfig::reference();
     let expert = evaluated("expert", &cell, REFERENCE_SEED);
     for (policy, most_steps) in [
         ("hierarchical", None),
