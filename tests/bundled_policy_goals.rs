@@ -1,7 +1,9 @@
 //! The bundled policies hold their goals: the cross-cell policies on the deep, tight cells
 //! they were not trained on (success within 0.01 of `expert`'s on the same episodes, and no
 //! episode driven out of the workspace), and every hierarchical policy on the reference cell
-//! (no more failures than `expert`, the fast ones in at most 40 steps). A bundled file stays
+//! (no more failures than `expert`, the fast ones in at most 40 steps) and under a camera two
+//! and four times as noisy as its data sheet (the issue's floors, 0.99 and 0.62, and the
+//! measured lead over `expert` at four times held, not lost). A bundled file stays
 //! as it was while the code around it changes: under decisions 0044–0046 the careful
 //! cross-cell file of decision 0043 came to hit the step limit in 3.5 % of episodes on
 //! phi100-deep, and nothing showed it until its recipe was run again (decision 0050). On
@@ -9,7 +11,8 @@
 //! 0.9825 against 1.0 on c120-tight-deep-small-robot.
 //!
 //! The 4000-episode figures of docs/learning.md: `celld eval --controller NAME --cell FILE
-//! --episodes 4000 --seed 2`, and on the reference cell `--seed 21` to `24`.
+//! --episodes 4000 --seed 2`, on the reference cell `--seed 21` to `24`, and under the noisy
+//! camera `--noise-scale 2|4` over the seeds its tables name.
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::builtin_factory;
@@ -23,6 +26,12 @@ const SEED: u64 = 2;
 /// reference-cell figures are measured on.
 const REFERENCE_SEED: u64 = 21;
 
+/// The noisy camera's evaluation: the first of the seeds of docs/learning.md's table at four
+/// times the noise, on more episodes than the other checks, as a lead there is a few
+/// thousandths.
+const NOISY_SEED: u64 = 10;
+const NOISY_EPISODES: usize = 2000;
+
 const DEEP_TIGHT_CELLS: [&str; 3] = [
     "cells/phi100-deep.toml",
     "cells/corners/c120-tight-deep-small-robot.toml",
@@ -30,14 +39,26 @@ const DEEP_TIGHT_CELLS: [&str; 3] = [
 ];
 
 fn evaluated(controller: &str, cell: &CellConfig, seed: u64) -> EvalSummary {
-    // As `celld eval` by default: the episodes shared among the robots the cell keeps.
+    evaluated_under_noise(controller, cell, 1.0, EPISODES, seed)
+}
+
+/// As `celld eval --noise-scale NOISE_SCALE` by default: the episodes shared among the
+/// robots the cell keeps.
+fn evaluated_under_noise(
+    controller: &str,
+    cell: &CellConfig,
+    noise_scale: f64,
+    episodes: usize,
+    seed: u64,
+) -> EvalSummary {
     let options = EnvOptions {
         kept_robots: DEFAULT_KEPT_ROBOTS,
+        noise_scale,
         ..EnvOptions::from_cell(cell)
     };
     let make = builtin_factory(controller, cell).unwrap();
-    let (summary, reports) = evaluate(cell, options, EPISODES, seed, &make, &|_| {});
-    assert_eq!(reports.len(), EPISODES);
+    let (summary, reports) = evaluate(cell, options, episodes, seed, &make, &|_| {});
+    assert_eq!(reports.len(), episodes);
     summary
 }
 
@@ -100,6 +121,60 @@ fn on_the_reference_cell_the_hierarchical_policies_fail_no_more_than_expert() {
                 steps <= most_steps,
                 "{policy}: {steps} steps, more than {most_steps}"
             );
+        }
+    }
+}
+
+/// The issue's floors under a noisy camera, and the lead over `expert` at four times the noise
+/// that docs/learning.md measures (4000 episodes over six or more seeds) kept on this seed's
+/// 2000: no fewer successes than `expert`, in fewer steps. `hierarchical-cells` is level there
+/// (−0.0016, −0.0085 to +0.0053), so it is held within 0.01. At twice the noise a lead is a few
+/// failures in 128,000 episodes; here every policy must be at 0.99 and no worse than `expert`.
+#[test]
+fn under_a_camera_two_and_four_times_as_noisy_the_hierarchical_policies_hold_their_goals() {
+    let cell = CellConfig::reference();
+    for (noise_scale, floor) in [(2.0, 0.99), (4.0, 0.62)] {
+        let expert =
+            evaluated_under_noise("expert", &cell, noise_scale, NOISY_EPISODES, NOISY_SEED);
+        let expert_steps = expert.avg_steps.unwrap();
+        for (policy, measured_lead) in [
+            ("hierarchical", true),
+            ("hierarchical-cells", false),
+            ("hierarchical-swift", true),
+            ("hierarchical-swift-cells", true),
+        ] {
+            let learned =
+                evaluated_under_noise(policy, &cell, noise_scale, NOISY_EPISODES, NOISY_SEED);
+            let steps = learned.avg_steps.unwrap();
+            println!(
+                "noise x{noise_scale}: {policy} {} in {steps:.2} steps ({:?}), expert {} in \
+                 {expert_steps:.2} ({:?})",
+                learned.successes, learned.failures, expert.successes, expert.failures
+            );
+            assert!(
+                learned.success_rate >= floor,
+                "{policy} at noise x{noise_scale}: {} below {floor} ({:?})",
+                learned.success_rate,
+                learned.failures
+            );
+            let fewest = if noise_scale > 2.0 && !measured_lead {
+                expert.success_rate - 0.01
+            } else {
+                expert.success_rate
+            };
+            assert!(
+                learned.success_rate >= fewest,
+                "{policy} at noise x{noise_scale}: {} against expert's {} ({:?})",
+                learned.success_rate,
+                expert.success_rate,
+                learned.failures
+            );
+            if noise_scale > 2.0 {
+                assert!(
+                    steps < expert_steps,
+                    "{policy} at noise x{noise_scale}: {steps} steps, expert {expert_steps}"
+                );
+            }
         }
     }
 }
