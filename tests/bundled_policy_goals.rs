@@ -2,7 +2,7 @@
 //! they were not trained on (success within 0.01 of `expert`'s on the same episodes, and no
 //! episode driven out of the workspace), and every hierarchical policy on the reference cell
 //! (no more failures than `expert`, the fast ones in at most 40 steps) and under a camera two
-//! and four times as noisy as its data sheet (the floors, 0.99 and 0.62, and the
+//! and four times as noisy as its data sheet (the goals' floors, 0.99 and 0.62, and the
 //! measured lead over `expert` at four times held, not lost). A bundled file stays
 //! as it was while the code around it changes: under decisions 0044–0046 the careful
 //! cross-cell file of decision 0043 came to hit the step limit in 3.5 % of episodes on
@@ -125,7 +125,7 @@ fn on_the_reference_cell_the_hierarchical_policies_fail_no_more_than_expert() {
     }
 }
 
-/// The floors under a noisy camera, and the lead over `expert` at four times the noise
+/// The goals' floors under a noisy camera, and the lead over `expert` at four times the noise
 /// that docs/learning.md measures (4000 episodes over six or more seeds) kept on this seed's
 /// 2000: no fewer successes than `expert`, in fewer steps. `hierarchical-cells` is level there
 /// (−0.0016, −0.0085 to +0.0053), so it is held within 0.01. At twice the noise a lead is a few
