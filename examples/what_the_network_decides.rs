@@ -5,12 +5,13 @@
 //! full step after an uncertain refusal and the standoff while unsure (`LearnedPolicy`).
 //!
 //! `cargo run --release --example what_the_network_decides -- CONTROLLER [NOISE] [EPISODES]
-//! [SEED]` (a bundled hierarchical policy or a hierarchical policy file; defaults 1, 1000, 1;
-//! the reference cell, 10 kept robots, as `celld eval`). Per zone (the tip more than 5 mm
-//! above the entrance, within 5 mm of it, in the bore), over every step with a fresh frame of
-//! every episode: the position and orientation moves made, and the share of them that the
-//! rules changed by more than a tenth of the network's own move (sideways, along the axis, a
-//! turn), beside the mean size of the network's move and of the one made.
+//! [SEED]` (a bundled hierarchical policy, by default `hierarchical-swift-cells`, or a
+//! hierarchical policy file; defaults 1, 1000, 1; the reference cell, 10 kept robots, as
+//! `celld eval`). Per zone (the tip more than 5 mm above the entrance, within 5 mm of it, in
+//! the bore), over every step with a fresh frame of every episode: the position and
+//! orientation moves made, and the share of them that the rules changed by more than a tenth
+//! of the network's own move (sideways, along the axis, a turn), beside the mean size of the
+//! network's move and of the one made.
 
 mod common;
 use common::arg;
