@@ -2,8 +2,8 @@
 //! they were not trained on (success within 0.01 of `expert`'s on the same episodes, and no
 //! episode driven out of the workspace), and every hierarchical policy on the reference cell
 //! (no more failures than `expert`, the fast ones in at most 40 steps) and under a camera two
-//! and four times as noisy as its data sheet (the goals' floors, 0.99 and 0.62, and the
-//! measured lead over `expert` at four times held, not lost). A bundled file stays
+//! and four times as noisy as its data sheet (the goals' floors, 0.99 and 0.62, and no step
+//! back from `expert` that 2000 episodes can see). A bundled file stays
 //! as it was while the code around it changes: under decisions 0044–0046 the careful
 //! cross-cell file of decision 0043 came to hit the step limit in 3.5 % of episodes on
 //! phi100-deep, and nothing showed it until its recipe was run again (decision 0050). On
@@ -27,8 +27,7 @@ const SEED: u64 = 2;
 const REFERENCE_SEED: u64 = 21;
 
 /// The noisy camera's evaluation: the first of the seeds of docs/learning.md's table at four
-/// times the noise, on more episodes than the other checks, as a lead there is a few
-/// thousandths.
+/// times the noise, on more episodes than the other checks.
 const NOISY_SEED: u64 = 10;
 const NOISY_EPISODES: usize = 2000;
 
@@ -125,23 +124,24 @@ fn on_the_reference_cell_the_hierarchical_policies_fail_no_more_than_expert() {
     }
 }
 
-/// The goals' floors under a noisy camera, and the lead over `expert` at four times the noise
-/// that docs/learning.md measures (4000 episodes over six or more seeds) kept on this seed's
-/// 2000: no fewer successes than `expert`, in fewer steps. `hierarchical-cells` is level there
-/// (−0.0016, −0.0085 to +0.0053), so it is held within 0.01. At twice the noise a lead is a few
-/// failures in 128,000 episodes; here every policy must be at 0.99 and no worse than `expert`.
+/// The goals' floors under a noisy camera, and no step back from `expert` that this seed's 2000
+/// episodes can see. The leads docs/learning.md measures are a few thousandths at four times
+/// the noise (over 24,000 to 72,000 episodes) and level at twice; on 2000 episodes one seed's
+/// paired difference moves by about 0.005 at four times, so a policy is held within 0.01 of
+/// `expert` there and to fewer steps (10–20 fewer today), and at twice within 0.001, two
+/// episodes, where `expert` fails about one in 16,000.
 #[test]
 fn under_a_camera_two_and_four_times_as_noisy_the_hierarchical_policies_hold_their_goals() {
     let cell = CellConfig::reference();
-    for (noise_scale, floor) in [(2.0, 0.99), (4.0, 0.62)] {
+    for (noise_scale, floor, most_behind) in [(2.0, 0.99, 0.001), (4.0, 0.62, 0.01)] {
         let expert =
             evaluated_under_noise("expert", &cell, noise_scale, NOISY_EPISODES, NOISY_SEED);
         let expert_steps = expert.avg_steps.unwrap();
-        for (policy, measured_lead) in [
-            ("hierarchical", true),
-            ("hierarchical-cells", false),
-            ("hierarchical-swift", true),
-            ("hierarchical-swift-cells", true),
+        for policy in [
+            "hierarchical",
+            "hierarchical-cells",
+            "hierarchical-swift",
+            "hierarchical-swift-cells",
         ] {
             let learned =
                 evaluated_under_noise(policy, &cell, noise_scale, NOISY_EPISODES, NOISY_SEED);
@@ -157,13 +157,8 @@ fn under_a_camera_two_and_four_times_as_noisy_the_hierarchical_policies_hold_the
                 learned.success_rate,
                 learned.failures
             );
-            let fewest = if noise_scale > 2.0 && !measured_lead {
-                expert.success_rate - 0.01
-            } else {
-                expert.success_rate
-            };
             assert!(
-                learned.success_rate >= fewest,
+                learned.success_rate >= expert.success_rate - most_behind,
                 "{policy} at noise x{noise_scale}: {} against expert's {} ({:?})",
                 learned.success_rate,
                 expert.success_rate,
