@@ -14,7 +14,7 @@
 //! network's move and of the one made.
 
 mod common;
-use common::arg;
+use common::{arg, zone};
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{
@@ -45,19 +45,12 @@ fn changed<const D: usize>(net: SVector<f64, D>, made: SVector<f64, D>) -> bool 
 struct Watched {
     deployed: LearnedPolicy,
     bare: HierarchicalPolicy,
-    depth_mm: f64,
     tallies: Tallies,
 }
 
 impl Watched {
     fn tally(&mut self, observation: &Observation, net: &PolicyOutput, made: &Decision) {
-        let inserted_mm = observation.state[8] + self.depth_mm;
-        let zone = match inserted_mm {
-            i if i > 0.2 => "bore",
-            i if i > -5.0 => "entrance",
-            _ => "far",
-        };
-        let t = self.tallies.entry(zone).or_default();
+        let t = self.tallies.entry(zone(observation)).or_default();
         let mut count = |key, value: f64| *t.entry(key).or_default() += value;
         count("steps", 1.0);
         // The step size passes through the rules untouched: a different one means the copy
@@ -144,7 +137,6 @@ fn main() -> anyhow::Result<()> {
             let mut watched = Watched {
                 deployed: LearnedPolicy::hierarchical(bare.clone()),
                 bare: bare.clone(),
-                depth_mm: cell.bore.depth_mm,
                 tallies: BTreeMap::new(),
             };
             let mut successes = 0;

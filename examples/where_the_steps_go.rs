@@ -12,7 +12,7 @@
 //! estimate rather than centring on its noise. 10 kept robots, as `celld eval`.
 
 mod common;
-use common::arg;
+use common::{arg, zone};
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
@@ -97,12 +97,7 @@ fn main() -> anyhow::Result<()> {
                     index,
                     episode_seed(seed, index),
                     &mut |observation, decision, result| {
-                        let inserted_mm = observation.state[8] + depth_mm;
-                        let zone = match inserted_mm {
-                            i if i > 0.2 => "bore",
-                            i if i > -5.0 => "entrance",
-                            _ => "far",
-                        };
+                        let zone = zone(observation);
                         let action = &decision.action;
                         let kind = match (action.translation_mm.norm(), action.rotation_deg.norm())
                         {

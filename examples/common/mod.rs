@@ -1,4 +1,5 @@
-//! What the measuring examples share: reading their positional arguments.
+//! What the measuring examples share: reading their positional arguments, and the zones they
+//! count steps in.
 
 // Each example uses what it needs of this module.
 #![allow(dead_code)]
@@ -26,4 +27,14 @@ pub fn seeds(text: &str) -> anyhow::Result<Vec<u64>> {
                 .map_err(|_| anyhow::anyhow!("seed {s:?} is not a whole number"))
         })
         .collect()
+}
+
+/// Where the tip is by the estimate, as the examples count steps: `far` more than 5 mm above
+/// the bore's entrance, `entrance` within 5 mm of it, `bore` more than 0.2 mm in.
+pub fn zone(observation: &assembly_cell::sim::Observation) -> &'static str {
+    match observation.state[8] + observation.cell.bore_depth_mm {
+        inserted_mm if inserted_mm > 0.2 => "bore",
+        inserted_mm if inserted_mm > -5.0 => "entrance",
+        _ => "far",
+    }
 }
