@@ -84,7 +84,7 @@ impl Controller for AfterARefusal {
             self.refused = false;
         }
         // Where the deployed rule applies (0.2 mm in to 6 mm short of the seat here).
-        let inserted_mm = observation.state[8] + self.depth_mm;
+        let inserted_mm = observation.insertion_mm();
         let in_the_bore =
             FullStepAfterUncertainty::applies_at(inserted_mm, self.depth_mm, self.step_limit_mm);
         let z = &mut decision.action.translation_mm.z;

@@ -48,7 +48,6 @@ struct Gated {
     inner: Box<dyn Controller>,
     at_the_entrance: Option<Entrance>,
     in_the_bore: bool,
-    shaft_length_mm: f64,
     tuning: ExpertTuning,
 }
 
@@ -68,8 +67,7 @@ impl Controller for Gated {
             return decision;
         }
         let estimate = &observation.estimate;
-        // How far the tip is past the entrance (negative above it).
-        let insertion_mm = observation.state[8] + self.shaft_length_mm;
+        let insertion_mm = observation.insertion_mm();
         let entering = !tip_in_bore(insertion_mm) && tip_in_bore(insertion_mm - dz);
         let unsure = estimate.lateral_sd_mm() > self.tuning.lateral_certainty_mm;
         if let (true, true, Some(entrance)) = (entering, unsure, self.at_the_entrance) {
@@ -133,7 +131,6 @@ fn main() -> anyhow::Result<()> {
             inner: inner(),
             at_the_entrance,
             in_the_bore,
-            shaft_length_mm: cell.shaft.engaged_length_mm,
             tuning: ExpertTuning::default(),
         }) as Box<dyn Controller>
     };

@@ -38,7 +38,7 @@ fn line(
         truth.depth_error_mm + depth_mm,
         truth.lateral_mm,
         truth.tilt_deg,
-        observation.state[8] + depth_mm,
+        observation.insertion_mm(),
         observation.state[6].hypot(observation.state[7]),
         observation.estimate.lateral_sd_mm(),
         asked.x,

@@ -64,7 +64,6 @@ struct InTheZone {
     /// The zone: more than `from_mm` and at most `to_mm` past the entrance.
     from_mm: f64,
     to_mm: f64,
-    depth_mm: f64,
 }
 
 impl Controller for InTheZone {
@@ -80,7 +79,7 @@ impl Controller for InTheZone {
     fn act(&mut self, observation: &Observation) -> Decision {
         let policy_move = self.acting.act(observation).action;
         let teacher_move = self.shadow.act(observation).action;
-        let inserted_mm = observation.state[8] + self.depth_mm;
+        let inserted_mm = observation.insertion_mm();
         let made = if inserted_mm > self.from_mm && inserted_mm <= self.to_mm {
             mixed(&self.mode, policy_move, teacher_move).expect("checked in main")
         } else {
@@ -115,7 +114,6 @@ fn main() -> anyhow::Result<()> {
             mode: mode.clone(),
             from_mm,
             to_mm,
-            depth_mm: cell.bore.depth_mm,
         }) as Box<dyn Controller>
     };
     let (summary, _) = evaluate(&cell, options, episodes, seed, &make, &|_| {});

@@ -27,7 +27,6 @@ struct Deadband {
     inner: Box<dyn Controller>,
     sigmas: f64,
     from_mm: f64,
-    depth_mm: f64,
 }
 
 impl Controller for Deadband {
@@ -41,7 +40,7 @@ impl Controller for Deadband {
 
     fn act(&mut self, observation: &Observation) -> Decision {
         let mut decision = self.inner.act(observation);
-        let inserted_mm = observation.state[8] + self.depth_mm;
+        let inserted_mm = observation.insertion_mm();
         let drift = observation.estimate.drift();
         let step = &mut decision.action.translation_mm;
         // The command before the steering against the drift (to first order in the drift).
@@ -63,7 +62,6 @@ fn main() -> anyhow::Result<()> {
     let deadband: f64 = arg(5, 0.0)?;
     let from_mm: f64 = arg(6, 0.2)?;
     let cell = CellConfig::reference();
-    let depth_mm = cell.bore.depth_mm;
     let make: policy::ControllerFactory = if controller.ends_with(".safetensors") {
         let learned = policy::learned::LearnedPolicy::from_path(&controller)?;
         Box::new(move || Box::new(learned.clone()) as Box<dyn Controller>)
@@ -85,7 +83,6 @@ fn main() -> anyhow::Result<()> {
                     inner: controller,
                     sigmas: deadband,
                     from_mm,
-                    depth_mm,
                 });
             }
             let mut successes = Vec::new();

@@ -32,7 +32,7 @@ pub fn seeds(text: &str) -> anyhow::Result<Vec<u64>> {
 /// Where the tip is by the estimate, as the examples count steps: `far` more than 5 mm above
 /// the bore's entrance, `entrance` within 5 mm of it, `bore` more than 0.2 mm in.
 pub fn zone(observation: &assembly_cell::sim::Observation) -> &'static str {
-    match observation.state[8] + observation.cell.bore_depth_mm {
+    match observation.insertion_mm() {
         inserted_mm if inserted_mm > 0.2 => "bore",
         inserted_mm if inserted_mm > -5.0 => "entrance",
         _ => "far",

@@ -236,7 +236,7 @@ pub fn centred_as_the_demonstrators(
     step_limit_mm: f64,
 ) -> Vector3<f64> {
     let centring = demonstrators_centring_mm(observation, step_limit_mm);
-    let approaching = insertion_mm(observation) < -approach_above_mm();
+    let approaching = observation.insertion_mm() < -approach_above_mm();
     let mut centred = translation_mm;
     for axis in 0..2 {
         let whole_mm = centring[axis].abs();
@@ -292,7 +292,7 @@ pub const DESCENT_AS_DEMONSTRATED_FROM_MM: f64 = 0.2;
 pub fn descends_as_the_demonstrators(observation: &Observation, decision: &Decision) -> bool {
     decision.actor == Some(Actor::Position)
         && decision.action.translation_mm.z < 0.0
-        && insertion_mm(observation) > DESCENT_AS_DEMONSTRATED_FROM_MM
+        && observation.insertion_mm() > DESCENT_AS_DEMONSTRATED_FROM_MM
         && observation.estimate.noise_scale() > NOISY_CAMERA_SCALE
 }
 
@@ -397,13 +397,6 @@ pub fn limit_move(observation: &Observation, actor: Actor, step: Move) -> Move {
     }
 }
 
-/// How far the tip is past the bore's entrance by the estimate (mm; negative above it): P_z
-/// counts towards the seat, and the tip is the bore's depth below {M}'s origin at the
-/// shoulder.
-pub(crate) fn insertion_mm(observation: &Observation) -> f64 {
-    observation.state[8] + observation.cell.bore_depth_mm
-}
-
 /// `step` with the translation that keeps the middle of the shaft's engaged length in place
 /// once the tip is in the bore, so that a turn pivots there rather than about {M}'s origin at
 /// the shoulder.
@@ -414,7 +407,7 @@ pub(crate) fn insertion_mm(observation: &Observation) -> f64 {
 /// turn for the wall margin 20 times in a row, ending the episode, and on a Φ100 bore 100 mm
 /// deep such turns ended 13 of 4000 episodes (decision 0025).
 pub fn pivot_in_bore(observation: &Observation, step: Move) -> Move {
-    let insertion_mm = insertion_mm(observation);
+    let insertion_mm = observation.insertion_mm();
     if !tip_in_bore(insertion_mm) {
         return step;
     }
@@ -456,7 +449,7 @@ const TOLERANCE_FACTOR_TO_MOVE_WITH_ABOVE_THE_BORE: f64 = 1.5;
 /// the supervisor refused the moves down until more episodes ran out of steps (decision
 /// 0033).
 pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
-    let inside = tip_in_bore(insertion_mm(observation));
+    let inside = tip_in_bore(observation.insertion_mm());
     let factor = if inside {
         1.0
     } else {
@@ -479,7 +472,7 @@ pub fn actor_with_work(selected: Actor, observation: &Observation) -> Actor {
 fn has_turn_to_make(observation: &Observation, factor: f64) -> bool {
     let s = &observation.state;
     let demonstrators = ExpertTuning::default();
-    let inside = tip_in_bore(insertion_mm(observation));
+    let inside = tip_in_bore(observation.insertion_mm());
     let tilt_tolerance =
         demonstrators.tilt_tolerance_deg_on(observation.cell.clearance_tilt_deg(), inside);
     s[9].hypot(s[10]) > factor * tilt_tolerance

@@ -24,7 +24,7 @@ use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
 use super::hierarchical::{
     DESCENT_AS_DEMONSTRATED_FROM_MM, HierarchicalPolicy, centres_after_a_refusal,
-    demonstrators_centring_mm, descends_as_the_demonstrators, insertion_mm,
+    demonstrators_centring_mm, descends_as_the_demonstrators,
 };
 use super::{Controller, Decision, clamp_components, steered_against_drift};
 use crate::collision::supervisor::VetoReason;
@@ -280,7 +280,7 @@ impl FullStepAfterUncertainty {
             && !self.refused_near_the_wall
             && asked_z_mm < 0.0
             && Self::applies_at(
-                insertion_mm(observation),
+                observation.insertion_mm(),
                 observation.cell.bore_depth_mm,
                 step_limit_mm,
             )

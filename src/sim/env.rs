@@ -127,6 +127,15 @@ pub struct Observation {
     pub cell: CellShape,
 }
 
+impl Observation {
+    /// How far the tip is past the bore's entrance by the estimate (mm; negative above it):
+    /// P_z counts towards the seat, and the tip is the bore's depth below {M}'s origin at the
+    /// shoulder.
+    pub fn insertion_mm(&self) -> f64 {
+        self.state[8] + self.cell.bore_depth_mm
+    }
+}
+
 /// True pose errors of Segment I against the goal (only the twin knows them).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
 pub struct PoseErrors {

@@ -20,7 +20,6 @@
 //! they were (docs/learning.md).
 
 use crate::learning::td3::{Td3, Td3Config};
-use crate::policy::hierarchical::insertion_mm;
 use crate::sim::Observation;
 use candle_core::{Tensor, Var};
 use candle_nn::VarMap;
@@ -84,7 +83,7 @@ pub const COARSE_ABOVE_ENTRANCE_MM: f64 = 5.0;
 /// Whether the state is coarse: the tip more than [`COARSE_ABOVE_ENTRANCE_MM`] above the
 /// entrance, as the estimate sees it.
 pub fn is_coarse(observation: &Observation) -> bool {
-    -insertion_mm(observation) > COARSE_ABOVE_ENTRANCE_MM
+    -observation.insertion_mm() > COARSE_ABOVE_ENTRANCE_MM
 }
 
 /// u for a step scale s: 2·s − 1.

@@ -12,7 +12,6 @@
 //! at the data sheet's noise and at twice it the fast policies move as they did.
 
 use crate::policy::expert::{CAREFUL_DEPTH_MM, CAREFUL_STEP_MM};
-use crate::policy::hierarchical::insertion_mm;
 use crate::sim::Observation;
 
 /// The move along the bore's axis (Δz, mm in {M}, negative is deeper) that `asked_z_mm`
@@ -20,7 +19,7 @@ use crate::sim::Observation;
 /// [`CAREFUL_STEP_MM`]. Deeper in, and for moves up, as asked. The caller decides where the
 /// rule applies (a position move down the bore under a noisy camera).
 pub fn no_longer_than_the_careful_step_mm(observation: &Observation, asked_z_mm: f64) -> f64 {
-    if insertion_mm(observation) < CAREFUL_DEPTH_MM {
+    if observation.insertion_mm() < CAREFUL_DEPTH_MM {
         asked_z_mm.max(-CAREFUL_STEP_MM)
     } else {
         asked_z_mm

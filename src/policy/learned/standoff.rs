@@ -15,7 +15,6 @@
 //! times (docs/decisions/0043).
 
 use crate::policy::expert::{STANDOFF_MM, tip_in_bore};
-use crate::policy::hierarchical::insertion_mm;
 use crate::sim::Observation;
 
 /// The move along the bore's axis (Δz, mm in {M}, negative is deeper) that `asked_z_mm`
@@ -23,7 +22,7 @@ use crate::sim::Observation;
 /// clearance, no deeper than leaves the tip [`STANDOFF_MM`] above the entrance, and from
 /// nearer than that no deeper at all. Otherwise, and for moves up, as asked.
 pub fn no_nearer_than_the_standoff_mm(observation: &Observation, asked_z_mm: f64) -> f64 {
-    let inserted_mm = insertion_mm(observation);
+    let inserted_mm = observation.insertion_mm();
     let unsure = observation.estimate.lateral_sd_mm() > observation.cell.radial_clearance_mm;
     if !unsure || asked_z_mm.is_nan() || asked_z_mm >= 0.0 || tip_in_bore(inserted_mm) {
         return asked_z_mm;
