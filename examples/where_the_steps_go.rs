@@ -16,7 +16,7 @@ use common::{arg, zone};
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
-use assembly_cell::policy::{self, Controller, Decision, steered_against_drift};
+use assembly_cell::policy::{Controller, Decision, steered_against_drift};
 use assembly_cell::sim::{AssemblyEnv, EnvOptions, Observation};
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -62,12 +62,7 @@ fn main() -> anyhow::Result<()> {
     let deadband: f64 = arg(5, 0.0)?;
     let from_mm: f64 = arg(6, 0.2)?;
     let cell = CellConfig::reference();
-    let make: policy::ControllerFactory = if controller.ends_with(".safetensors") {
-        let learned = policy::learned::LearnedPolicy::from_path(&controller)?;
-        Box::new(move || Box::new(learned.clone()) as Box<dyn Controller>)
-    } else {
-        policy::builtin_factory(&controller, &cell)?
-    };
+    let make = common::controller_factory(&controller, &cell)?;
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,

@@ -18,15 +18,38 @@ pub fn arg<T: std::str::FromStr>(index: usize, default: T) -> anyhow::Result<T> 
     }
 }
 
-/// Comma-separated evaluation seeds, such as `10,11,12`.
+/// Comma-separated evaluation seeds, each a seed or an inclusive range: `10,11,12` or
+/// `10-12`.
 pub fn seeds(text: &str) -> anyhow::Result<Vec<u64>> {
-    text.split(',')
-        .map(|s| {
-            s.trim()
-                .parse()
-                .map_err(|_| anyhow::anyhow!("seed {s:?} is not a whole number"))
-        })
-        .collect()
+    let seed = |s: &str| {
+        s.trim()
+            .parse::<u64>()
+            .map_err(|_| anyhow::anyhow!("seed {s:?} is not a whole number"))
+    };
+    let mut seeds = Vec::new();
+    for part in text.split(',') {
+        match part.split_once('-') {
+            Some((first, last)) => seeds.extend(seed(first)?..=seed(last)?),
+            None => seeds.push(seed(part)?),
+        }
+    }
+    Ok(seeds)
+}
+
+/// A built-in controller by name, or a policy file (`.safetensors`).
+pub fn controller_factory(
+    name: &str,
+    cell: &assembly_cell::config::cell::CellConfig,
+) -> anyhow::Result<assembly_cell::policy::ControllerFactory> {
+    use assembly_cell::policy::{self, Controller};
+    if name.ends_with(".safetensors") {
+        let learned = policy::learned::LearnedPolicy::from_path(name)?;
+        Ok(Box::new(move || {
+            Box::new(learned.clone()) as Box<dyn Controller>
+        }))
+    } else {
+        Ok(policy::builtin_factory(name, cell)?)
+    }
 }
 
 /// Where the tip is by the estimate, as the examples count steps: `far` more than 5 mm above

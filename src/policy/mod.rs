@@ -12,6 +12,7 @@ pub mod hierarchical;
 pub mod inputs;
 pub mod learned;
 pub mod mlp;
+pub mod paired;
 pub mod record;
 pub mod run;
 pub mod spiral;
