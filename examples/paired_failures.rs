@@ -101,7 +101,7 @@ fn main() -> anyhow::Result<()> {
             tally.both
         );
         println!(
-            "  alone: {reference_name} {} {:?}, {name} {} {:?}; p = {:.4} (McNemar, exact)",
+            "  alone: {reference_name} {} {:?}, {name} {} {:?}; p = {:.2e} (McNemar, exact)",
             f.reference_only,
             tally.reference_only,
             f.candidate_only,
