@@ -36,8 +36,8 @@ impl Tally {
         reference: &[EpisodeReport],
         candidate: &[EpisodeReport],
     ) -> anyhow::Result<()> {
-        self.failures = self.failures + PairedFailures::of(reference, candidate)?;
         for (r, c) in paired_episodes(reference, candidate)? {
+            self.failures.count(r, c);
             let count =
                 |map: &mut BTreeMap<String, usize>, key: String| *map.entry(key).or_default() += 1;
             match (r.succeeded(), c.succeeded()) {

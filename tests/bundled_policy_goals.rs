@@ -126,10 +126,10 @@ fn on_the_reference_cell_the_hierarchical_policies_fail_no_more_than_expert() {
 
 /// The goals' floors under a noisy camera, and no step back from `expert` that this seed's 2000
 /// episodes can see. The leads docs/learning.md measures are a few thousandths at four times
-/// the noise (over 24,000 to 72,000 episodes) and level at twice; on 2000 episodes one seed's
+/// the noise (over 24,000 to 72,000 episodes) and none at twice; on 2000 episodes one seed's
 /// paired difference moves by about 0.005 at four times, so a policy is held within 0.01 of
 /// `expert` there and to fewer steps (10–20 fewer today), and at twice within 0.001, two
-/// episodes, where `expert` fails about one in 16,000.
+/// episodes, where `expert` fails about one in 20,000.
 #[test]
 fn under_a_camera_two_and_four_times_as_noisy_the_hierarchical_policies_hold_their_goals() {
     let cell = CellConfig::reference();

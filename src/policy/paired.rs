@@ -70,15 +70,20 @@ impl PairedFailures {
     ) -> Result<PairedFailures, NotPaired> {
         let mut paired = PairedFailures::default();
         for (r, c) in paired_episodes(reference, candidate)? {
-            paired.episodes += 1;
-            match (r.succeeded(), c.succeeded()) {
-                (false, false) => paired.both += 1,
-                (false, true) => paired.reference_only += 1,
-                (true, false) => paired.candidate_only += 1,
-                (true, true) => {}
-            }
+            paired.count(r, c);
         }
         Ok(paired)
+    }
+
+    /// Counts one more episode, as the reference and the candidate ended it.
+    pub fn count(&mut self, reference: &EpisodeReport, candidate: &EpisodeReport) {
+        self.episodes += 1;
+        match (reference.succeeded(), candidate.succeeded()) {
+            (false, false) => self.both += 1,
+            (false, true) => self.reference_only += 1,
+            (true, false) => self.candidate_only += 1,
+            (true, true) => {}
+        }
     }
 
     /// Two-sided p-value of McNemar's exact test: how likely counts of episodes failed by one
@@ -94,20 +99,6 @@ impl PairedFailures {
         (0..=self.reference_only)
             .take_while(|&own| sign_test_p(self.reference_only, own) < alpha)
             .last()
-    }
-}
-
-/// Two pairings together (more seeds).
-impl std::ops::Add for PairedFailures {
-    type Output = PairedFailures;
-
-    fn add(self, other: PairedFailures) -> PairedFailures {
-        PairedFailures {
-            episodes: self.episodes + other.episodes,
-            both: self.both + other.both,
-            reference_only: self.reference_only + other.reference_only,
-            candidate_only: self.candidate_only + other.candidate_only,
-        }
     }
 }
 
@@ -199,7 +190,12 @@ mod tests {
                 candidate_only: 1,
             }
         );
-        assert_eq!((paired + paired).both, 4);
+        let mut twice = paired;
+        for (r, c) in paired_episodes(&reference, &candidate).unwrap() {
+            twice.count(r, c);
+        }
+        assert_eq!(twice.both, 4);
+        assert_eq!(twice.episodes, 10);
     }
 
     #[test]
