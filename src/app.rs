@@ -119,7 +119,8 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             };
             Box::new(
                 DriverBackend::connect(&cell, drivers, cpu)
-                    .context("connecting the cell's drivers ([robot] and [camera] settings)")?,
+                    .context("connecting the cell's drivers ([robot] and [camera] settings)")?
+                    .observed_by(Arc::new(metrics.clone())),
             )
         }
     };
@@ -255,10 +256,21 @@ fn event_sink(
                     })),
                 )
             }
-            CellEvent::EStop { latched } => (
-                "cell",
-                serde_json::to_string(&json!({"estop_latched": latched})),
-            ),
+            CellEvent::Latches {
+                estop_latched,
+                driver_latch,
+            } => {
+                metrics
+                    .driver_latched
+                    .set(i64::from(driver_latch.is_some()));
+                (
+                    "cell",
+                    serde_json::to_string(&json!({
+                        "estop_latched": estop_latched,
+                        "driver_latch": driver_latch,
+                    })),
+                )
+            }
         };
         if telemetry.receiver_count() > 0
             && let Ok(data) = data

@@ -1,5 +1,6 @@
 //! The service's Prometheus metrics (`GET /metrics`): jobs by outcome, control-step latency,
-//! supervisor vetoes by reason, queue length, telemetry subscribers and their lag.
+//! supervisor vetoes by reason, queue length, telemetry subscribers and their lag, and the
+//! drivers' figures (controller round trips, camera frame age, reconnections, the latch).
 
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
@@ -22,6 +23,12 @@ pub struct ReasonLabel {
     pub reason: String,
 }
 
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct DriverLabel {
+    /// `robot` or `camera`.
+    pub driver: String,
+}
+
 /// Every metric, cheap to clone (each is an `Arc` of atomics inside).
 #[derive(Clone)]
 pub struct Metrics {
@@ -35,6 +42,14 @@ pub struct Metrics {
     pub telemetry_subscribers: Gauge,
     /// Telemetry events a slow subscriber skipped.
     pub telemetry_lagged: Counter,
+    /// One command's round trip to the hexapod controller, s.
+    pub controller_round_trip_seconds: Histogram,
+    /// A camera frame's age when the cell took it (its timestamp to the cell's clock), s.
+    pub camera_frame_age_seconds: Histogram,
+    /// Connections the drivers made again after losing one, by driver.
+    pub driver_reconnects: Family<DriverLabel, Counter>,
+    /// 1 while the robot driver is latched (it moves nothing until an operator reset).
+    pub driver_latched: Gauge,
 }
 
 impl Default for Metrics {
@@ -73,8 +88,38 @@ impl Default for Metrics {
             "Telemetry events skipped by subscribers that fell behind",
             telemetry_lagged.clone(),
         );
+        // 10 µs .. ~5 s.
+        let controller_round_trip_seconds = Histogram::new(exponential_buckets(1e-5, 2.0, 20));
+        registry.register(
+            "controller_round_trip_seconds",
+            "One command's round trip to the hexapod controller",
+            controller_round_trip_seconds.clone(),
+        );
+        // 1 ms .. ~16 s.
+        let camera_frame_age_seconds = Histogram::new(exponential_buckets(1e-3, 2.0, 15));
+        registry.register(
+            "camera_frame_age_seconds",
+            "A camera frame's age when the cell took it",
+            camera_frame_age_seconds.clone(),
+        );
+        let driver_reconnects = Family::<DriverLabel, Counter>::default();
+        registry.register(
+            "driver_reconnects",
+            "Connections the drivers made again after losing one",
+            driver_reconnects.clone(),
+        );
+        let driver_latched = Gauge::default();
+        registry.register(
+            "driver_latched",
+            "1 while the robot driver is latched until an operator reset",
+            driver_latched.clone(),
+        );
         Metrics {
             registry: Arc::new(registry),
+            controller_round_trip_seconds,
+            camera_frame_age_seconds,
+            driver_reconnects,
+            driver_latched,
             jobs,
             step_seconds,
             vetoes,
@@ -107,6 +152,24 @@ impl Metrics {
         self.vetoes
             .get_or_create(&ReasonLabel {
                 reason: reason.to_string(),
+            })
+            .inc();
+    }
+}
+
+impl crate::drivers::DriverObserver for Metrics {
+    fn controller_round_trip(&self, seconds: f64) {
+        self.controller_round_trip_seconds.observe(seconds);
+    }
+
+    fn camera_frame_age(&self, seconds: f64) {
+        self.camera_frame_age_seconds.observe(seconds);
+    }
+
+    fn reconnected(&self, driver: &'static str) {
+        self.driver_reconnects
+            .get_or_create(&DriverLabel {
+                driver: driver.to_string(),
             })
             .inc();
     }

@@ -9,6 +9,7 @@ import {
 export async function render(page) {
   const plots = new StepPlots('live');
   const estopState = h('div', { id: 'estop-state', class: 'estop-state', text: '…' });
+  const driverState = h('div', { id: 'driver-state', class: 'estop-state', text: '…' });
   const cellFacts = h('div', { id: 'cell-facts' });
   const jobLine = h('div', { id: 'live-job', class: 'big', text: 'No job yet' });
   const jobFacts = h('div', { id: 'live-job-facts' });
@@ -19,7 +20,7 @@ export async function render(page) {
   page.main.append(
     h('h1', { text: 'Live cell' }),
     h('div', { class: 'grid' },
-      h('section', { class: 'card' }, h('h2', { text: 'Cell' }), estopState, cellFacts),
+      h('section', { class: 'card' }, h('h2', { text: 'Cell' }), estopState, driverState, cellFacts),
       h('section', { class: 'card' }, h('h2', { text: 'Current job' }), jobLine, jobFacts),
       controls),
     h('div', { style: 'height:1rem' }),
@@ -61,18 +62,25 @@ export async function render(page) {
     estopState.textContent = cell.estop_latched ? 'E-STOP LATCHED: reset to run jobs' : 'E-stop clear';
     estopState.className = `estop-state ${cell.estop_latched ? 'latched' : 'clear'}`;
     estopState.dataset.latched = cell.estop_latched;
+    const latch = cell.driver_latch;
+    driverState.textContent = latch
+      ? `ROBOT DRIVER LATCHED (${latch.code}) since ${new Date(latch.since_unix_ms).toLocaleString()}: ${latch.reason}. Reset once the hardware is ready.`
+      : 'Robot driver ready';
+    driverState.className = `estop-state ${latch ? 'latched' : 'clear'}`;
+    driverState.dataset.latched = Boolean(latch);
+    const latched = cell.estop_latched || Boolean(latch);
     const pose = cell.last_pose;
     cellFacts.replaceChildren(facts([
       ['cell', cell.cell],
       ['backend', cell.backend],
       ['running', cell.current_job ?? 'none'],
       ['queue', cell.queue.length ? cell.queue.join(', ') : 'empty'],
-      ['accepting jobs', cell.accepting_jobs ? 'yes' : 'no (shutting down)'],
+      ['accepting jobs', cell.accepting_jobs ? 'yes' : `no (${latched ? 'latched' : 'shutting down'})`],
       ['last pose error', pose ? `(${pose.position_mm.map((v) => fmt(v, 3)).join(', ')}) mm, (${pose.orientation_deg.map((v) => fmt(v, 3)).join(', ')}) deg` : '–'],
     ]));
-    page.main.querySelectorAll('[data-needs-clear]').forEach((b) => { b.disabled = cell.estop_latched; });
+    page.main.querySelectorAll('[data-needs-clear]').forEach((b) => { b.disabled = latched; });
     const reset = page.main.querySelector('#reset');
-    if (reset) reset.disabled = !cell.estop_latched;
+    if (reset) reset.disabled = !latched;
     const cancel = page.main.querySelector('#cancel-job');
     if (cancel) cancel.disabled = cell.current_job === null && cell.queue.length === 0;
     return cell;
@@ -135,7 +143,7 @@ export async function render(page) {
       h('div', { class: 'row' },
         h('button', { id: 'estop', class: 'estop', type: 'button', onclick: estop, text: 'E-STOP' }),
         h('button', { id: 'cancel-job', class: 'danger', type: 'button', onclick: cancel, text: 'Cancel job' }),
-        h('button', { id: 'reset', class: 'secondary', type: 'button', onclick: reset, text: 'Reset e-stop' })));
+        h('button', { id: 'reset', class: 'secondary', type: 'button', onclick: reset, text: 'Reset' })));
   }
 
   async function startJob(event) {
@@ -188,10 +196,10 @@ export async function render(page) {
   }
 
   async function reset() {
-    if (!confirm('Reset the e-stop? This clears the latch and starts no motion. Is the cell safe to run?')) return;
+    if (!confirm('Reset the cell? This clears the e-stop and the robot driver\'s latch after checking the hardware, and starts no motion. Is the cell safe to run?')) return;
     try {
       await api('/api/cell/reset', { method: 'POST' });
-      showBanner('E-stop reset: the cell takes jobs again. Nothing was started.', 'info');
+      showBanner('Cell reset: the cell takes jobs again. Nothing was started.', 'info');
     } catch (error) {
       showError(error, 'Reset');
     }

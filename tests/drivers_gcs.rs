@@ -181,6 +181,7 @@ fn serve(
             "ONT?" => Some(flags(1)),
             "SPI?" if matches!(reply, Reply::OffPivot) => Some("R=0 \nS=0 \nT=10\n".into()),
             "SPI?" => Some("R=0 \nS=0 \nT=0\n".into()),
+            "VLS?" => Some(format!("{SCRIPTED_VELOCITY_MM_S}\n")),
             "ERR?" => Some(format!("{}\n", std::mem::take(&mut error))),
             "POS?" => Some(position.lock().unwrap().clone()),
             "MOV" if matches!(reply, Reply::Normal) => {
@@ -213,9 +214,12 @@ fn quick() -> GcsSettings {
         answer_timeout_ms: 500,
         on_target_deadline_ms: 50,
         poll_interval_ms: 1,
-        velocity_mm_s: None,
+        ..GcsSettings::default()
     }
 }
+
+/// The scripted controller's platform velocity (`VLS?`), mm/s.
+const SCRIPTED_VELOCITY_MM_S: f64 = 20.0;
 
 /// Half a millimetre down Segment I's axis from home: well inside the workspace.
 fn step() -> Move {
@@ -243,14 +247,22 @@ fn a_connection_dropped_mid_move_latches_until_an_operator_reset() {
         matches!(&error, GcsError::Dropped { command, .. } if command == "ONT?"),
         "{error:?}"
     );
-    assert_eq!(robot.latched(), Some(&error));
-    // Holding reconnects and stops the platform; it still moves nothing.
+    assert_eq!(robot.latched().map(|latch| &latch.error), Some(&error));
+    // Holding reconnects: STP before anything else, then the position. The scripted
+    // controller carried out the MOV before it dropped the connection, so the platform is not
+    // where the cell last put it: the latch names that now.
+    let before_hold = controller.log().len();
     robot.hold();
-    assert_eq!(controller.log().last().map(String::as_str), Some("ERR?"));
-    assert!(controller.log().iter().any(|c| c == "STP"));
+    assert_eq!(controller.log()[before_hold..], ["STP", "ERR?", "POS?"]);
+    match robot.latched().map(|latch| &latch.error) {
+        Some(GcsError::PositionMismatch { distance_mm, .. }) => {
+            assert!((distance_mm - 0.5).abs() < 1e-9, "{distance_mm}")
+        }
+        other => panic!("{other:?}"),
+    }
     let refused = drive_fault(robot.execute(&step()));
     assert!(
-        matches!(&refused, GcsError::AwaitingReset { cause } if cause.contains("ONT?")),
+        matches!(&refused, GcsError::AwaitingReset { cause } if cause.contains("0.5000 mm")),
         "{refused:?}"
     );
     let moves = controller
@@ -259,7 +271,8 @@ fn a_connection_dropped_mid_move_latches_until_an_operator_reset() {
         .filter(|c| c.starts_with("MOV"))
         .count();
     assert_eq!(moves, 1, "no MOV after the drop");
-    // The operator's reset checks the controller again; then the robot moves.
+    // The operator's reset, with the latch's reason shown, checks the controller again and
+    // takes the platform where it is; then the robot moves.
     robot.reset().unwrap();
     assert_eq!(robot.latched(), None);
     robot.execute(&step()).unwrap();
@@ -324,10 +337,22 @@ fn a_platform_that_never_arrives_is_stopped_at_the_deadline() {
     });
     let mut robot = connect(&controller);
     let error = drive_fault(robot.execute(&step()));
-    assert_eq!(error, GcsError::Deadline { deadline_ms: 50 });
+    // The margin and the move's own time: 0.5 mm at the controller's velocity, × 1.5.
+    let move_ms = (0.5 / SCRIPTED_VELOCITY_MM_S * 1.5 * 1e3).ceil() as u64;
+    assert_eq!(
+        error,
+        GcsError::Deadline {
+            deadline_ms: 50 + move_ms
+        }
+    );
     let log = controller.log();
-    let stop = log.iter().position(|c| c == "STP").expect("STP sent");
-    assert!(log[..stop].iter().any(|c| c.starts_with("MOV")));
+    // Connecting stops the controller first; the deadline's STP follows the MOV.
+    assert_eq!(log.first().map(String::as_str), Some("STP"));
+    let moved = log
+        .iter()
+        .position(|c| c.starts_with("MOV"))
+        .expect("MOV sent");
+    assert!(log[moved..].iter().any(|c| c == "STP"), "{log:?}");
     assert_eq!(robot.latched(), None);
 }
 

@@ -81,26 +81,70 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
         "{named:?}"
     );
 
-    // The service keeps serving; a job cannot start until an operator resets the cell.
-    let (status, _) = server.get("/api/cell", Some(&server.admin));
-    assert_eq!(status, 200);
-    let refused = server.create_job(&operator, json!({"controller": "expert", "seed": 4}));
-    let refused = server.wait_final(id(&refused));
-    assert_eq!(refused["status"], "failed");
-    let reason = refused["failure_reason"].as_str().unwrap();
-    assert!(reason.contains("operator reset"), "{reason}");
+    // The service keeps serving and says what is latched, why and since when; a new job is
+    // refused with the reason instead of accepted and failed.
+    let cell = server.poll(
+        "/api/cell",
+        "the driver latch",
+        Duration::from_secs(10),
+        |cell| !cell["driver_latch"].is_null(),
+    );
+    assert_eq!(cell["accepting_jobs"], false, "{cell}");
+    let latch = &cell["driver_latch"];
+    assert!(
+        matches!(
+            latch["code"].as_str(),
+            Some("controller_dropped" | "controller_timeout")
+        ),
+        "{latch}"
+    );
+    assert!(latch["since_unix_ms"].as_u64().unwrap() > 0, "{latch}");
+    let (status, refused) = server.post(
+        "/api/jobs",
+        Some(&operator),
+        Some(json!({"controller": "expert", "seed": 4})),
+    );
+    assert_eq!(status, 409, "{refused}");
+    let message = refused["error"]["message"].as_str().unwrap();
+    assert!(message.contains("latched"), "{message}");
 
-    // The controller is back; still nothing moves until the reset.
+    // A reset while the controller is still down says so and keeps the latch.
+    let (status, answer) = server.post("/api/cell/reset", Some(&operator), None);
+    assert_eq!(status, 503, "{answer}");
+    let message = answer["error"]["message"].as_str().unwrap();
+    assert!(message.contains("cannot connect"), "{message}");
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert!(!cell["driver_latch"].is_null(), "{cell}");
+
+    // The controller is back, its platform at another episode's start: the reset finds the
+    // platform away from where the cell left it and says so first; a second reset takes it.
     let _twin = TwinServer::start_on(gcs_port, igtl_port, &[]);
-    let waiting = server.create_job(&operator, json!({"controller": "expert", "seed": 5}));
-    let waiting = server.wait_final(id(&waiting));
-    assert_eq!(waiting["status"], "failed", "{waiting}");
-    assert_eq!(waiting["steps"], 0);
-    let (status, _) = server.post("/api/cell/reset", Some(&operator), None);
-    assert_eq!(status, 200);
+    let (status, answer) = server.post("/api/cell/reset", Some(&operator), None);
+    assert_eq!(status, 503, "{answer}");
+    let message = answer["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("from where the cell last put it"),
+        "{message}"
+    );
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert_eq!(cell["driver_latch"]["code"], "position_mismatch", "{cell}");
+    let (status, cell) = server.post("/api/cell/reset", Some(&operator), None);
+    assert_eq!(status, 200, "{cell}");
+    assert!(cell["driver_latch"].is_null(), "{cell}");
+    assert_eq!(cell["accepting_jobs"], true, "{cell}");
     let job = server.create_job(&operator, json!({"controller": "expert", "seed": 6}));
     let done = server.wait_final(id(&job));
     assert_eq!(done["status"], "succeeded", "{done}");
+
+    // A controller that goes away between jobs shows as latched without a job to find it.
+    drop(_twin);
+    let cell = server.poll(
+        "/api/cell",
+        "the idle latch",
+        Duration::from_secs(10),
+        |cell| !cell["driver_latch"].is_null(),
+    );
+    assert_eq!(cell["driver_latch"]["code"], "controller_dropped", "{cell}");
 }
 
 /// Polls until the job has stored `count` steps.

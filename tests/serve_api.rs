@@ -431,11 +431,11 @@ fn telemetry_streams_a_running_jobs_steps() {
             .starts_with("text/event-stream")
     );
     let mut lines = std::io::BufReader::new(stream.into_body().into_reader()).lines();
-    // First, at once, the latch as it is.
+    // First, at once, the latches as they are.
     assert_eq!(lines.next().unwrap().unwrap(), "event: cell");
     assert_eq!(
         lines.next().unwrap().unwrap(),
-        "data: {\"estop_latched\":false}"
+        "data: {\"driver_latch\":null,\"estop_latched\":false}"
     );
 
     let job = server.create_job(&operator, json!({"controller": "expert", "seed": 12}));

@@ -12,6 +12,18 @@ use crate::geometry::{CellFrames, Move};
 use crate::sim::env::{first_usable_estimate, ingest_for};
 use crate::sim::{AssemblyEnv, EnvError, EnvOptions, InitialConditions, Observation, StepResult};
 
+/// What a driver latched on: it moves nothing until an operator reset (`GET /api/cell`'s
+/// `driver_latch`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, utoipa::ToSchema)]
+pub struct DriverLatch {
+    /// A short stable name: `controller_dropped`, `controller_timeout`, `position_mismatch`.
+    pub code: String,
+    /// What happened, with its numbers.
+    pub reason: String,
+    /// When the driver latched, ms since the Unix epoch.
+    pub since_unix_ms: u64,
+}
+
 /// Stops the robot from any thread (see [`CellBackend::emergency_stop`]).
 pub type EmergencyStop = std::sync::Arc<dyn Fn() + Send + Sync>;
 
@@ -60,6 +72,14 @@ pub trait CellBackend: Send {
     fn reset(&mut self) -> Result<(), BackendError> {
         Ok(())
     }
+    /// Why the backend's hardware driver holds until an operator reset, if it does. The twin
+    /// never latches.
+    fn latch(&self) -> Option<DriverLatch> {
+        None
+    }
+    /// Called between jobs, a few times a second: a driver notices hardware that went away
+    /// while it had nothing to ask of it, without sending anything.
+    fn watch(&mut self) {}
 }
 
 /// The digital twin as a cell backend, its camera's shots ingested on their own thread.

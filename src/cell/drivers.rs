@@ -11,12 +11,14 @@
 //! garbage gives a frame with no points (the supervisor then vetoes every move, and the job
 //! ends `stale_camera`), named the same way (`camera_silent`, `camera_garbage`, …).
 
+use super::backend::DriverLatch;
 use super::backend::{BackendError, CellBackend, EmergencyStop};
 use super::ingestion::Ingestion;
 use crate::camera::ingest::{Estimate, Ingest, Shot};
 use crate::camera::{CameraFrame, StateFilter};
 use crate::collision::supervisor::{Supervisor, VetoReason};
 use crate::config::cell::CellConfig;
+use crate::drivers::DriverObserver;
 use crate::drivers::gcs::{GcsError, GcsRobot, GcsSettings};
 use crate::drivers::igtl::camera::{CameraSettings, IgtlCamera};
 use crate::geometry::{Belief, CellFrames, Move};
@@ -28,6 +30,8 @@ use crate::sim::reward::{Ending, RewardTracker};
 use crate::sim::{
     EnvError, FailureReason, InitialConditions, Observation, Outcome, PoseErrors, StepResult,
 };
+use std::sync::Arc;
+use std::time::UNIX_EPOCH;
 
 /// Where the drivers find the hardware, and how long they wait for it.
 #[derive(Debug, Clone, PartialEq)]
@@ -73,6 +77,7 @@ pub struct DriverBackend {
     episode: Option<Episode>,
     /// Reset after an e-stop or a fault since the last episode (see `reset`).
     robot_suspect: bool,
+    observer: Arc<dyn DriverObserver>,
 }
 
 impl DriverBackend {
@@ -102,7 +107,15 @@ impl DriverBackend {
             awaiting_estimate: false,
             episode: None,
             robot_suspect: false,
+            observer: Arc::new(crate::drivers::Unobserved),
         })
+    }
+
+    /// Reports the drivers' figures (round trips, frame ages, reconnections) to `observer`.
+    pub fn observed_by(mut self, observer: Arc<dyn DriverObserver>) -> Self {
+        self.robot.observe_with(observer.clone());
+        self.observer = observer;
+        self
     }
 
     pub fn robot(&self) -> &GcsRobot {
@@ -121,6 +134,7 @@ impl DriverBackend {
                 Ok(camera) => {
                     self.sequence_base = self.last_sequence;
                     self.camera = Some(camera);
+                    self.observer.reconnected("camera");
                 }
                 Err(error) => {
                     tracing::warn!(%error, "camera");
@@ -181,9 +195,9 @@ impl CellBackend for DriverBackend {
             self.ingestion.receive()?;
         }
         self.episode = None;
-        if let Some(error) = self.robot.latched() {
+        if let Some(latch) = self.robot.latched() {
             return Err(GcsError::AwaitingReset {
-                cause: error.to_string(),
+                cause: latch.error.to_string(),
             }
             .into());
         }
@@ -293,6 +307,7 @@ impl CellBackend for DriverBackend {
         }
         let estimate = self.ingestion.receive()?;
         let legs_mm = self.robot.encoders_mm();
+        let move_time_s = self.robot.last_move_time_s();
         let Some(episode) = self.episode.as_mut() else {
             return Err(EnvError::OutOfOrder("settle before the episode's start").into());
         };
@@ -306,6 +321,7 @@ impl CellBackend for DriverBackend {
             pending,
             &estimate,
             legs_mm,
+            move_time_s,
         ))
     }
 
@@ -329,6 +345,21 @@ impl CellBackend for DriverBackend {
         self.robot_suspect = true;
         Ok(self.robot.reset()?)
     }
+
+    fn latch(&self) -> Option<DriverLatch> {
+        self.robot.latched().map(|latch| DriverLatch {
+            code: latch.error.code().to_string(),
+            reason: latch.error.to_string(),
+            since_unix_ms: latch
+                .since
+                .duration_since(UNIX_EPOCH)
+                .map_or(0, |since| since.as_millis() as u64),
+        })
+    }
+
+    fn watch(&mut self) {
+        self.robot.watch();
+    }
 }
 
 /// Takes in a step's estimate and judges it as the twin does, on the estimate.
@@ -339,6 +370,7 @@ fn judge_step(
     pending: PendingMove,
     estimate: &Estimate,
     legs_mm: [f64; 6],
+    move_time_s: f64,
 ) -> StepResult {
     let observation = &mut episode.observation;
     observation.state = estimate.state;
@@ -390,5 +422,6 @@ fn judge_step(
         outcome,
         // A real cell has no truth: the errors of its estimate.
         true_errors: errors,
+        move_time_s,
     }
 }

@@ -127,7 +127,8 @@ impl JobEnd {
 /// The control loop's own stop rules (docs/design.md §8).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SafetyLimits {
-    /// Longest a step's decision, supervision and execution may take, s.
+    /// Longest a step's decision, supervision and execution may take beyond its move's own
+    /// time at the robot's speeds, s.
     pub deadline_s: f64,
     /// Steps in a row without a fresh camera frame before the job stops.
     pub max_stale_steps: u32,
@@ -358,7 +359,7 @@ impl JobRun {
                 Some(self.end(JobStatus::Failed, Some(reason.code())))
             }
             None if !state_finite => Some(self.end(JobStatus::Failed, Some("nan_state"))),
-            None if compute_s > self.limits.deadline_s => {
+            None if compute_s > self.limits.deadline_s + result.move_time_s => {
                 Some(self.end(JobStatus::Failed, Some("missed_deadline")))
             }
             None if self.stale_steps > self.limits.max_stale_steps => {

@@ -12,7 +12,7 @@ pub mod ingestion;
 pub mod job;
 pub mod task;
 
-pub use backend::{BackendError, CellBackend, TwinBackend};
+pub use backend::{BackendError, CellBackend, DriverLatch, TwinBackend};
 pub use drivers::{DriverBackend, DriverSettings};
 pub use job::{
     ControllerSource, JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord, StepUncertainty,

@@ -5,7 +5,7 @@
 //! runtime's workers. Commands come in on a channel; every event (job started, step, job ended,
 //! e-stop) goes to one sink, in order; the cell's status is published on a watch channel.
 
-use super::backend::{CellBackend, EmergencyStop};
+use super::backend::{CellBackend, DriverLatch, EmergencyStop};
 /// Kept at this path for the HTTP handlers that run background work behind the control thread.
 pub use super::cpu::lower_priority;
 use super::job::{JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord};
@@ -28,9 +28,10 @@ pub enum CellCommand {
     EStop {
         reply: oneshot::Sender<()>,
     },
-    /// Clears the latch; starts nothing.
+    /// Clears the latches (the e-stop's, the driver's); starts nothing. Answers why not when
+    /// the backend's hardware is not ready again: both latches then stay.
     Reset {
-        reply: oneshot::Sender<()>,
+        reply: oneshot::Sender<Result<(), String>>,
     },
     /// Holds the robot, closes the running and queued jobs as interrupted, and ends the thread.
     Shutdown {
@@ -42,10 +43,19 @@ pub enum CellCommand {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum CellEvent {
-    JobStarted { job_id: i64 },
+    JobStarted {
+        job_id: i64,
+    },
     Step(Box<StepRecord>),
-    JobEnded { job_id: i64, end: JobEnd },
-    EStop { latched: bool },
+    JobEnded {
+        job_id: i64,
+        end: JobEnd,
+    },
+    /// The e-stop was pressed or reset, or the driver latched: both latches as they are now.
+    Latches {
+        estop_latched: bool,
+        driver_latch: Option<DriverLatch>,
+    },
 }
 
 /// The relative pose the cell last estimated: P (mm) and O (deg) of docs/design.md §5.
@@ -60,6 +70,8 @@ pub struct LastPose {
 pub struct CellStatus {
     pub backend: String,
     pub estop_latched: bool,
+    /// Why the hardware driver moves nothing until an operator reset (none: it is ready).
+    pub driver_latch: Option<DriverLatch>,
     pub current_job: Option<i64>,
     pub queue: Vec<i64>,
     pub last_pose: Option<LastPose>,
@@ -135,6 +147,7 @@ pub fn spawn(
     let status = CellStatus {
         backend: backend.name().to_string(),
         estop_latched: settings.estop_latched,
+        driver_latch: backend.latch(),
         current_job: None,
         queue: Vec::new(),
         last_pose: None,
@@ -172,6 +185,9 @@ pub fn spawn(
     )
 }
 
+/// How often an idle control thread lets the backend watch its hardware.
+const IDLE_WATCH: Duration = Duration::from_millis(50);
+
 struct ControlLoop {
     cell: CellConfig,
     backend: Box<dyn CellBackend>,
@@ -202,9 +218,13 @@ impl ControlLoop {
                     Err(mpsc::RecvTimeoutError::Disconnected) => return self.shutdown(None),
                 }
             } else {
-                match inbox.recv() {
+                match inbox.recv_timeout(IDLE_WATCH) {
                     Ok(command) => Some(command),
-                    Err(_) => return self.shutdown(None),
+                    Err(mpsc::RecvTimeoutError::Timeout) => {
+                        self.backend.watch();
+                        None
+                    }
+                    Err(mpsc::RecvTimeoutError::Disconnected) => return self.shutdown(None),
                 }
             };
             if let Some(command) = command {
@@ -266,7 +286,7 @@ impl ControlLoop {
             CellCommand::EStop { reply } => {
                 self.backend.hold();
                 self.status.send_modify(|s| s.estop_latched = true);
-                (self.sink)(CellEvent::EStop { latched: true });
+                self.send_latches();
                 if self.running.is_some() {
                     self.finish(JobStatus::Failed, Some("estop"));
                 }
@@ -276,12 +296,14 @@ impl ControlLoop {
                 let _ = reply.send(());
             }
             CellCommand::Reset { reply } => {
-                if let Err(error) = self.backend.reset() {
-                    tracing::warn!(%error, "reset: the backend is not ready; jobs fail until it is");
+                let result = self.backend.reset().map_err(|error| error.to_string());
+                match &result {
+                    Ok(()) => self.status.send_modify(|s| s.estop_latched = false),
+                    Err(error) => tracing::warn!(%error, "reset: the hardware is not ready"),
                 }
-                self.status.send_modify(|s| s.estop_latched = false);
-                (self.sink)(CellEvent::EStop { latched: false });
-                let _ = reply.send(());
+                self.publish();
+                self.send_latches();
+                let _ = reply.send(result);
             }
             CellCommand::Shutdown { .. } => unreachable!("handled by the loop"),
         }
@@ -362,7 +384,30 @@ impl ControlLoop {
         }
     }
 
+    fn send_latches(&mut self) {
+        let status = self.status.borrow();
+        let event = CellEvent::Latches {
+            estop_latched: status.estop_latched,
+            driver_latch: status.driver_latch.clone(),
+        };
+        drop(status);
+        (self.sink)(event);
+    }
+
     fn publish(&mut self) {
+        let driver_latch = self.backend.latch();
+        if driver_latch != self.status.borrow().driver_latch {
+            if let Some(latch) = &driver_latch {
+                tracing::warn!(
+                    code = latch.code,
+                    reason = latch.reason,
+                    "the driver latched"
+                );
+            }
+            self.status
+                .send_modify(|status| status.driver_latch = driver_latch);
+            self.send_latches();
+        }
         let current_job = self.running.as_ref().map(|r| r.id);
         let queue: Vec<i64> = self.queue.iter().map(|s| s.id).collect();
         let last_pose = self.running.as_ref().map(|r| {

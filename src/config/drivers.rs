@@ -35,8 +35,16 @@ pub struct RobotDriverConfig {
     /// Longest wait for an answer, ms; a later one drops the connection and latches the
     /// driver until an operator reset.
     pub answer_timeout_ms: u64,
-    /// Longest wait from `MOV` until on target, ms; then `STP` and the job fails.
+    /// Longest wait for on target beyond the move's allowed time (its time at the platform's
+    /// speeds × `move_time_factor`), ms; then `STP` and the job fails.
     pub on_target_deadline_ms: u64,
+    /// A move is allowed this many times its time at the platform's speeds.
+    pub move_time_factor: f64,
+    /// Largest difference per axis between the controller's position and where the cell put
+    /// the platform before the driver latches (`position_mismatch`), mm (X Y Z).
+    pub position_tolerance_mm: f64,
+    /// The same for U V W, deg.
+    pub orientation_tolerance_deg: f64,
     /// Pause between `ONT?` polls, ms (0: back to back).
     pub poll_interval_ms: u64,
     /// The platform's velocity, set with `VLS` at connection and reset, mm/s; none leaves
@@ -57,6 +65,9 @@ impl Default for RobotDriverConfig {
             connect_timeout_ms: gcs.connect_timeout_ms,
             answer_timeout_ms: gcs.answer_timeout_ms,
             on_target_deadline_ms: gcs.on_target_deadline_ms,
+            move_time_factor: gcs.move_time_factor,
+            position_tolerance_mm: gcs.position_tolerance_mm,
+            orientation_tolerance_deg: gcs.orientation_tolerance_deg,
             poll_interval_ms: gcs.poll_interval_ms,
             velocity_mm_s: gcs.velocity_mm_s,
             rehearsal: false,
@@ -70,8 +81,11 @@ impl RobotDriverConfig {
             connect_timeout_ms: self.connect_timeout_ms,
             answer_timeout_ms: self.answer_timeout_ms,
             on_target_deadline_ms: self.on_target_deadline_ms,
+            move_time_factor: self.move_time_factor,
             poll_interval_ms: self.poll_interval_ms,
             velocity_mm_s: self.velocity_mm_s,
+            position_tolerance_mm: self.position_tolerance_mm,
+            orientation_tolerance_deg: self.orientation_tolerance_deg,
         }
     }
 
@@ -161,6 +175,24 @@ pub fn check(
                 "twin".into(),
                 "camera.driver = \"igtl\" needs robot.driver = \"gcs\": a real camera sees a real robot",
             ));
+        }
+    }
+    if !(robot.move_time_factor.is_finite() && robot.move_time_factor >= 1.0) {
+        return Some((
+            "robot.move_time_factor",
+            robot.move_time_factor.to_string(),
+            "must be a number ≥ 1: a move takes at least its time at the platform's speeds",
+        ));
+    }
+    for (key, value) in [
+        ("robot.position_tolerance_mm", robot.position_tolerance_mm),
+        (
+            "robot.orientation_tolerance_deg",
+            robot.orientation_tolerance_deg,
+        ),
+    ] {
+        if !(value.is_finite() && value > 0.0) {
+            return Some((key, value.to_string(), "must be a number > 0"));
         }
     }
     if let Some(velocity) = robot.velocity_mm_s

@@ -371,7 +371,8 @@ impl ServiceConfig {
                 self.robot.on_target_deadline_ms.to_string(),
                 &format!(
                     "with camera.frame_timeout_ms ({} ms) it must not exceed control.deadline_ms \
-                     ({} ms): raise the deadline for a hexapod whose moves take longer",
+                     ({} ms), which both add to each move's allowed time: raise the deadline \
+                     for a hexapod that settles or a camera that answers more slowly",
                     self.camera.frame_timeout_ms, self.control.deadline_ms
                 ),
             ));

@@ -11,6 +11,25 @@ pub mod latency;
 pub mod twin_server;
 
 use std::net::{TcpStream, ToSocketAddrs};
+
+/// Where the drivers report their figures (the service's metrics). The drivers see only this.
+pub trait DriverObserver: Send + Sync {
+    /// One command's round trip to the hexapod controller, from sent to answered, s.
+    fn controller_round_trip(&self, seconds: f64);
+    /// A camera frame's age when the cell took it, by the cell's clock, s.
+    fn camera_frame_age(&self, seconds: f64);
+    /// A connection made again after one was lost: `robot` or `camera`.
+    fn reconnected(&self, driver: &'static str);
+}
+
+/// Reports to no one.
+pub struct Unobserved;
+
+impl DriverObserver for Unobserved {
+    fn controller_round_trip(&self, _: f64) {}
+    fn camera_frame_age(&self, _: f64) {}
+    fn reconnected(&self, _: &'static str) {}
+}
 use std::time::Duration;
 
 /// Opens a TCP connection to `address` (`host:port`) within `timeout_ms`, with Nagle's delay

@@ -19,7 +19,8 @@ pub fn router() -> OpenApiRouter<Context> {
         .routes(routes!(reset))
 }
 
-/// The cell: its backend, e-stop latch, running and queued jobs, last estimated pose.
+/// The cell: its backend, e-stop latch, the driver's latch, running and queued jobs, last
+/// estimated pose. `accepting_jobs` is false while either is latched or the service stops.
 #[derive(Serialize, ToSchema)]
 pub struct CellView {
     #[serde(flatten)]
@@ -64,10 +65,15 @@ async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
     Ok(Json(view(&context)))
 }
 
-/// Clears the e-stop latch (operator). Starts nothing: the next motion is the next job an
-/// operator creates.
+/// Clears the e-stop latch and the robot driver's (operator): a driver reconnects if it must
+/// and checks the hardware. Starts nothing: the next motion is the next job an operator
+/// creates.
 #[utoipa::path(post, path = "/api/cell/reset", tag = "cell",
-    responses((status = 200, description = "Unlatched", body = CellView)))]
+    responses(
+        (status = 200, description = "Unlatched", body = CellView),
+        (status = 503, description = "The hardware is not ready (unreachable, not referenced, \
+            moved): both latches stay; the body says why"),
+    ))]
 async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
     let caller = auth.require(Role::Operator)?;
     workflows::cell::reset(&context, &caller.name).await?;

@@ -53,8 +53,9 @@ impl Drop for Subscription {
     }
 }
 
-/// Live events (viewer) as Server-Sent Events: `cell` (`{"estop_latched": bool}`, first the
-/// latch as it is, then on each e-stop and reset), `step` (one control step, as stored), `job`
+/// Live events (viewer) as Server-Sent Events: `cell` (`{"estop_latched": bool,
+/// "driver_latch": null or {code, reason, since_unix_ms}}`, first the latches as they are, then
+/// on each e-stop, reset and driver latch), `step` (one control step, as stored), `job`
 /// (a job started or ended), `lagged` (`{"skipped": n}`: this
 /// subscriber fell behind and skipped n events). The token may also come as `?access_token=`.
 #[utoipa::path(get, path = "/api/telemetry", tag = "telemetry",
@@ -68,13 +69,14 @@ async fn subscribe(
     auth.require(Role::Viewer)?;
     // The latch as it is now, first: a subscriber (a dashboard reconnecting, say) starts from
     // the cell's state instead of waiting for the next change.
+    let status = context.cell.status();
+    let latches = serde_json::json!({
+        "estop_latched": status.estop_latched,
+        "driver_latch": status.driver_latch,
+    });
     let now = TelemetryMessage {
         event: "cell",
-        data: format!(
-            "{{\"estop_latched\":{}}}",
-            context.cell.status().estop_latched
-        )
-        .into(),
+        data: latches.to_string().into(),
     };
     let stream = futures_util::stream::once(async { now })
         .chain(messages(

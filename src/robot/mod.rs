@@ -4,8 +4,10 @@
 //! the driver's business: [`Supervised`] wraps any `Robot` and is itself a `Robot`, so every
 //! move passes the collision supervisor before the driver sees it (docs/design.md §3 and §8).
 
+mod speeds;
 mod supervised;
 
+pub use speeds::PlatformSpeeds;
 pub use supervised::Supervised;
 
 use crate::collision::supervisor::VetoReason;

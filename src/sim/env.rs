@@ -167,6 +167,9 @@ pub struct StepResult {
     pub done: bool,
     pub outcome: Option<Outcome>,
     pub true_errors: PoseErrors,
+    /// The time the step's move was to take at the robot's speeds, s: the step's deadline
+    /// allows for it. 0 in the twin, whose moves take no time of the control loop's.
+    pub move_time_s: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -621,6 +624,7 @@ impl AssemblyEnv {
             done: outcome.is_some(),
             outcome,
             true_errors: errors,
+            move_time_s: 0.0,
         })
     }
 

@@ -140,11 +140,21 @@ pub async fn get(db: &Db, id: i64) -> Result<Option<Job>, DbError> {
     get_from(&db.reader, id).await
 }
 
+/// A job's columns; a running job's `steps` counts the steps stored so far (its row gets the
+/// total when it ends).
+const JOB_COLUMNS: &str = "id, status, controller, policy_id, seed, initial_pos_mm,
+    initial_ori_deg, demonstration, created_by, created_at, started_at, finished_at,
+    CASE WHEN status = 'running'
+         THEN (SELECT COUNT(*) FROM steps WHERE steps.job_id = jobs.id)
+         ELSE steps END AS steps,
+    failure_reason, reward, lateral_mm, depth_error_mm, tilt_deg, hole_arc_mm";
+
 async fn get_from(pool: &sqlx::SqlitePool, id: i64) -> Result<Option<Job>, DbError> {
-    let row: Option<JobRow> = sqlx::query_as("SELECT * FROM jobs WHERE id = ?")
-        .bind(id)
-        .fetch_optional(pool)
-        .await?;
+    let row: Option<JobRow> =
+        sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+            .bind(id)
+            .fetch_optional(pool)
+            .await?;
     Ok(row.map(Job::from))
 }
 
@@ -169,7 +179,7 @@ pub async fn list(db: &Db, filter: &JobFilter) -> Result<(Vec<Job>, i64), DbErro
         AND (?5 IS NULL OR created_at < ?5)";
     let status = filter.status.map(|s| s.as_str());
     let rows: Vec<JobRow> = sqlx::query_as(&format!(
-        "SELECT * FROM jobs WHERE {condition} ORDER BY id DESC LIMIT ?6 OFFSET ?7"
+        "SELECT {JOB_COLUMNS} FROM jobs WHERE {condition} ORDER BY id DESC LIMIT ?6 OFFSET ?7"
     ))
     .bind(status)
     .bind(&filter.controller)

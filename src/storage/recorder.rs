@@ -116,7 +116,13 @@ fn describe(event: &CellEvent) -> String {
         CellEvent::Step(record) => format!("step {} of job {}", record.step, record.job_id),
         CellEvent::JobStarted { job_id } => format!("start of job {job_id}"),
         CellEvent::JobEnded { job_id, .. } => format!("end of job {job_id}"),
-        CellEvent::EStop { latched } => format!("e-stop latched = {latched}"),
+        CellEvent::Latches {
+            estop_latched,
+            driver_latch,
+        } => format!(
+            "e-stop latched = {estop_latched}, driver latched = {}",
+            driver_latch.is_some()
+        ),
     }
 }
 
@@ -162,7 +168,7 @@ async fn write(
                         }
                     }
                     // The latch is stored by whoever latched it, before they answer.
-                    CellEvent::EStop { .. } => {}
+                    CellEvent::Latches { .. } => {}
                     CellEvent::Step(_) => unreachable!(),
                 }
             }

@@ -29,15 +29,27 @@ pub async fn estop(context: &Context, by: &str) -> Result<()> {
     Ok(())
 }
 
-/// Clears the e-stop latch. Starts nothing: the next motion is the next job an operator
-/// creates.
+/// Clears the e-stop latch and the driver's. Starts nothing: the next motion is the next job
+/// an operator creates. Hardware that is not ready again (unreachable, not referenced, moved)
+/// keeps both latches: [`Error::Unavailable`] with the reason.
 pub async fn reset(context: &Context, by: &str) -> Result<()> {
-    context
+    let result = context
         .cell
         .ask(|reply| CellCommand::Reset { reply })
         .await?;
+    audit::record(
+        &context.db,
+        by,
+        "cell.reset",
+        json!({"refused": result.as_ref().err()}),
+    )
+    .await?;
+    result.map_err(|reason| {
+        Error::unavailable(format!(
+            "the cell stays latched: the hardware is not ready ({reason})"
+        ))
+    })?;
     store_latch(context).await?;
-    audit::record(&context.db, by, "cell.reset", json!({})).await?;
     Ok(())
 }
 

@@ -31,13 +31,21 @@ pub struct JobRequest {
 
 /// Checks a job, stores it and queues it on the control thread.
 pub async fn create(context: &Context, request: JobRequest, by: &str) -> Result<Job> {
-    if !context.accepting_jobs() {
+    if context.shutting_down() {
         return Err(Error::unavailable("the service is shutting down"));
     }
-    if context.cell.status().estop_latched {
+    let status = context.cell.status();
+    if status.estop_latched {
         return Err(Error::conflict(
             "the e-stop is latched: reset the cell (POST /api/cell/reset) first",
         ));
+    }
+    if let Some(latch) = &status.driver_latch {
+        return Err(Error::conflict(format!(
+            "the robot driver is latched ({}: {}): reset the cell (POST /api/cell/reset) once the \
+             hardware is ready",
+            latch.code, latch.reason
+        )));
     }
     let queued = context.cell.status().queue.len();
     if queued >= MAX_QUEUED_JOBS {

@@ -53,8 +53,15 @@ pub struct Context {
 }
 
 impl Context {
+    /// Whether a new job would be taken: the service is not shutting down and neither the
+    /// e-stop nor the driver is latched.
     pub fn accepting_jobs(&self) -> bool {
-        self.accepting.load(Ordering::SeqCst)
+        let status = self.cell.status();
+        !self.shutting_down() && !status.estop_latched && status.driver_latch.is_none()
+    }
+
+    pub fn shutting_down(&self) -> bool {
+        !self.accepting.load(Ordering::SeqCst)
     }
 }
 

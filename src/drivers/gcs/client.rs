@@ -3,8 +3,10 @@
 
 use super::errors::GcsError;
 use super::protocol::answer_complete;
+use crate::drivers::{DriverObserver, Unobserved};
 use std::io::{ErrorKind, Read, Write};
 use std::net::TcpStream;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// The driver's timing, all in milliseconds.
@@ -14,14 +16,22 @@ pub struct GcsSettings {
     pub connect_timeout_ms: u64,
     /// Longest wait for the whole answer to a query, ms.
     pub answer_timeout_ms: u64,
-    /// Longest wait, from `MOV`, until every axis reports on target; then the driver stops the
-    /// platform, ms.
+    /// Longest wait for every axis to report on target beyond the move's allowed time (see
+    /// `move_time_factor`); then the driver stops the platform, ms.
     pub on_target_deadline_ms: u64,
+    /// A move is allowed this many times its time at the platform's speeds (the straight
+    /// path at constant speed; a real hexapod also ramps up and down).
+    pub move_time_factor: f64,
     /// Pause between two `ONT?` polls, ms (0: poll back to back).
     pub poll_interval_ms: u64,
     /// The platform's velocity set with `VLS` at connection and reset, mm/s (none: the
     /// controller's own).
     pub velocity_mm_s: Option<f64>,
+    /// Largest difference, per axis, between where the controller says the platform is and
+    /// where the cell last put it before the driver latches (`position_mismatch`): mm for X Y Z.
+    pub position_tolerance_mm: f64,
+    /// The same for U V W, deg.
+    pub orientation_tolerance_deg: f64,
 }
 
 impl Default for GcsSettings {
@@ -30,8 +40,11 @@ impl Default for GcsSettings {
             connect_timeout_ms: 1000,
             answer_timeout_ms: 100,
             on_target_deadline_ms: 20,
+            move_time_factor: 1.5,
             poll_interval_ms: 0,
             velocity_mm_s: None,
+            position_tolerance_mm: 0.005,
+            orientation_tolerance_deg: 0.005,
         }
     }
 }
@@ -42,6 +55,7 @@ pub struct GcsClient {
     stream: TcpStream,
     buffer: Vec<u8>,
     settings: GcsSettings,
+    observer: Arc<dyn DriverObserver>,
 }
 
 /// A second handle on a client's connection that writes `STP` at once, from any thread, even
@@ -66,12 +80,24 @@ impl GcsClient {
         };
         let stream =
             crate::drivers::connect_tcp(address, settings.connect_timeout_ms).map_err(failed)?;
+        // A controller that stops reading must not hold the control thread in a write.
+        stream
+            .set_write_timeout(Some(Duration::from_millis(
+                settings.answer_timeout_ms.max(1),
+            )))
+            .map_err(|e| failed(e.to_string()))?;
         Ok(GcsClient {
             address: address.to_string(),
             stream,
             buffer: Vec::with_capacity(256),
             settings,
+            observer: Arc::new(Unobserved),
         })
+    }
+
+    /// Reports each query's round trip to `observer`.
+    pub fn observe_with(&mut self, observer: Arc<dyn DriverObserver>) {
+        self.observer = observer;
     }
 
     pub fn address(&self) -> &str {
@@ -88,6 +114,44 @@ impl GcsClient {
             .try_clone()
             .map(|stream| Stopper { stream })
             .map_err(|e| dropped("STP", &e))
+    }
+
+    /// Gives the connection up: writes `STP` on it, so that a command sent before and not yet
+    /// carried out (a controller that stalled, a relay that holds bytes) is stopped by the
+    /// controller in the order it reads them, then closes it. Best effort: the connection
+    /// may be gone already.
+    pub fn give_up(mut self) {
+        let _ = self.send("STP");
+    }
+
+    /// A connection the controller closed or reset while nothing was asked, seen without
+    /// sending anything (a peek that does not wait); none while it is open.
+    pub fn closed_by_peer(&self) -> Option<GcsError> {
+        use std::os::fd::AsRawFd;
+        let mut byte = [0u8; 1];
+        // SAFETY: a one-byte buffer we own, on the stream's open descriptor.
+        let read = unsafe {
+            libc::recv(
+                self.stream.as_raw_fd(),
+                byte.as_mut_ptr().cast(),
+                1,
+                libc::MSG_PEEK | libc::MSG_DONTWAIT,
+            )
+        };
+        match read {
+            0 => Some(GcsError::Dropped {
+                command: "(between commands)".into(),
+                reason: "closed by the controller".into(),
+            }),
+            n if n > 0 => None,
+            _ => {
+                let error = std::io::Error::last_os_error();
+                match error.kind() {
+                    ErrorKind::WouldBlock | ErrorKind::Interrupted => None,
+                    _ => Some(dropped("(between commands)", &error)),
+                }
+            }
+        }
     }
 
     /// Writes one command line (LF added when missing); reads nothing.
@@ -123,8 +187,12 @@ impl GcsClient {
 
     /// Sends a query and reads its whole answer within the answer timeout.
     pub fn query(&mut self, command: &str) -> Result<String, GcsError> {
+        let sent = Instant::now();
         self.send(command)?;
-        self.read_answer(command)
+        let answer = self.read_answer(command)?;
+        self.observer
+            .controller_round_trip(sent.elapsed().as_secs_f64());
+        Ok(answer)
     }
 
     fn read_answer(&mut self, command: &str) -> Result<String, GcsError> {

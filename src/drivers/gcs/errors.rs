@@ -99,6 +99,19 @@ pub enum GcsError {
         "the pivot point is R={r_mm} S={s_mm} T={t_mm} mm; celld commands poses about 0 0 0: send SPI R 0 S 0 T 0 with U V W at 0"
     )]
     Pivot { r_mm: f64, s_mm: f64, t_mm: f64 },
+    /// The controller says the platform is elsewhere than the cell last put it: a move the
+    /// cell gave up on may have run, or someone moved it. The driver latches.
+    #[error(
+        "the platform is {distance_mm:.4} mm and {angle_deg:.4} deg from where the cell last put it \
+         (tolerance {tolerance_mm} mm, {tolerance_deg} deg): a move the cell gave up on may have \
+         run, or the platform was moved; check the cell, then reset"
+    )]
+    PositionMismatch {
+        distance_mm: f64,
+        angle_deg: f64,
+        tolerance_mm: f64,
+        tolerance_deg: f64,
+    },
     /// The driver lost the controller since the last operator reset: it moves nothing until
     /// the next one.
     #[error(
@@ -122,6 +135,12 @@ impl GcsError {
         matches!(self, GcsError::Dropped { .. } | GcsError::Timeout { .. })
     }
 
+    /// Whether the driver stops trusting the controller until an operator reset: the
+    /// connection is gone, or the platform is not where the cell put it.
+    pub fn latches(&self) -> bool {
+        self.is_connection_lost() || matches!(self, GcsError::PositionMismatch { .. })
+    }
+
     /// A short stable name for telemetry and hold reasons.
     pub fn code(&self) -> &'static str {
         match self {
@@ -132,6 +151,7 @@ impl GcsError {
             GcsError::Answer { .. } => "controller_answer",
             GcsError::Deadline { .. } => "on_target_deadline",
             GcsError::NotReady { .. } | GcsError::Pivot { .. } => "controller_not_ready",
+            GcsError::PositionMismatch { .. } => "position_mismatch",
             GcsError::AwaitingReset { .. } => "awaiting_reset",
         }
     }
