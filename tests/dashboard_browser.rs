@@ -1,13 +1,17 @@
 //! The dashboard in a real headless Chromium against a real `celld serve --fast` with a fresh
 //! database: sign in with the printed link, start a job from the page and watch it succeed,
 //! see its plots drawn, e-stop and reset, the policy gate's answer, what a viewer may not do,
-//! a tablet-sized window, and the message when the server goes away. Screenshots are saved
+//! a tablet-sized window, and the message when the server goes away; and, on a cell driven
+//! through the drivers, a latched robot driver shown with its reason and reset from the page.
+//! Screenshots are saved
 //! under `target/tmp/dashboard-screenshots/` for a person to look at.
 
 mod browser_support;
+mod drivers_support;
 mod serve_support;
 
 use browser_support::Browser;
+use drivers_support::TwinServer;
 use serde_json::{Value, json};
 use serve_support::Server;
 use std::path::PathBuf;
@@ -363,4 +367,80 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     });
     browser.screenshot(&shots.join("8-server-unreachable.png"));
     eprintln!("screenshots in {}", shots.display());
+}
+
+/// The robot driver's latch on the live page: what, why and since when, jobs refused, the
+/// reset offered; a reset while the controller is down shows the service's reason and keeps
+/// the latch; with the controller back, the page's reset clears it.
+#[test]
+fn a_latched_robot_driver_is_shown_and_reset_from_the_dashboard() {
+    let Some(browser) = Browser::start() else {
+        if std::env::var_os("CI").is_some() {
+            panic!("CI is set but chromedriver is not installed (.ci/run installs it)");
+        }
+        eprintln!("skipping the browser test: chromedriver is not installed");
+        return;
+    };
+    let shots = screenshots();
+    browser.set_screenshot_dir(Some(&shots));
+    let twin = TwinServer::start(&[]);
+    let (gcs, igtl) = (twin.gcs.port(), twin.igtl.port());
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(
+        dir.path(),
+        &[
+            ("CELLD_ROBOT_DRIVER", "gcs"),
+            ("CELLD_ROBOT_PORT", &gcs.to_string()),
+            ("CELLD_ROBOT_REHEARSAL", "true"),
+            ("CELLD_CAMERA_DRIVER", "igtl"),
+            ("CELLD_CAMERA_PORT", &igtl.to_string()),
+            ("CELLD_ROBOT_ANSWER_TIMEOUT_MS", "2000"),
+            ("CELLD_CAMERA_FRAME_TIMEOUT_MS", "300"),
+        ],
+    );
+    browser.set_window_size(1366, 900);
+    browser.goto(&server.signin_url.clone().expect("a sign-in link"));
+    browser.wait_until("signed in", WAIT, |b| {
+        text_of(b, "#whoami").contains("admin")
+    });
+    browser.goto(&format!("{}/#/live", server.base));
+    browser.wait_until("the driver ready", WAIT, |b| {
+        b.exists("#driver-state[data-latched=false]")
+    });
+    assert_eq!(browser.find("#reset").property("disabled"), json!(true));
+
+    // The controller goes away between jobs.
+    drop(twin);
+    browser.wait_until("the driver latched", WAIT, |b| {
+        b.exists("#driver-state[data-latched=true]")
+    });
+    let shown = text_of(&browser, "#driver-state");
+    assert!(shown.contains("controller_dropped"), "{shown}");
+    assert!(shown.contains("closed by the controller"), "{shown}");
+    assert_eq!(browser.find("#reset").property("disabled"), json!(false));
+    assert_eq!(browser.find("#start-job").property("disabled"), json!(true));
+    browser.screenshot(&shots.join("9-driver-latched.png"));
+
+    // A reset while it is still down: the page shows why, the latch stays.
+    js(&browser, "window.confirm = () => true;");
+    browser.find("#reset").click();
+    browser.wait_until("the refusal", WAIT, |b| {
+        text_of(b, "#banner-text").contains("not ready")
+    });
+    let (_, cell) = server.get("/api/cell", Some(&server.admin));
+    assert!(!cell["driver_latch"].is_null(), "{cell}");
+    assert!(browser.exists("#driver-state[data-latched=true]"));
+
+    // The controller is back, its platform where the cell left it (no job moved it): the
+    // page's reset clears the latch.
+    let _twin = TwinServer::start_on(gcs, igtl, &[]);
+    browser.find("#reset").click();
+    browser.wait_until("the driver ready again", WAIT, |b| {
+        b.exists("#driver-state[data-latched=false]")
+    });
+    assert_eq!(
+        browser.find("#start-job").property("disabled"),
+        json!(false)
+    );
+    browser.screenshot(&shots.join("10-driver-reset.png"));
 }
