@@ -10,6 +10,7 @@ pub mod cpu;
 pub mod drivers;
 pub mod ingestion;
 pub mod job;
+pub mod latch_latency;
 pub mod task;
 
 pub use backend::{BackendError, CellBackend, DriverLatch, TwinBackend};
