@@ -71,9 +71,7 @@ pub fn describe(code: i32) -> &'static str {
         UNKNOWN_PARAMETER => "unknown parameter",
         INVALID_PASSWORD => "password invalid",
         PARAMETER_PROTECTED => "protected parameter: current command level (CCL) too low",
-        COORDINATE_SYSTEM_MISSING => {
-            "a command refers to a coordinate system that does not exist"
-        }
+        COORDINATE_SYSTEM_MISSING => "a command refers to a coordinate system that does not exist",
         COORDINATE_SYSTEM_WHILE_MOVING => {
             "coordinate system cannot be defined as long as the hexapod is in motion"
         }

@@ -19,6 +19,16 @@ pub(super) fn dispatch(
     rig: &mut TwinRig,
     now_s: f64,
 ) -> Option<String> {
+    if request.mnemonic.ends_with('?') {
+        query(c, request, rig, now_s)
+    } else {
+        command(c, request, rig, now_s);
+        None
+    }
+}
+
+/// A query's answer (none after an error).
+fn query(c: &mut TwinController, request: &Request, rig: &TwinRig, now_s: f64) -> Option<String> {
     match request.mnemonic.as_str() {
         "*IDN?" => Some(format!("{IDENTITY}\n")),
         "CSV?" => Some("2.0\n".into()),
@@ -62,25 +72,30 @@ pub(super) fn dispatch(
         "SPA?" => c.parameters(request),
         "VMO?" => c.virtual_move(request, rig),
         "KEN?" => c.coordinate_systems(request),
-        "SVO" => act(c.set_servo(request, rig, now_s)),
-        "FRF" => act(c.reference(request, rig, now_s)),
-        "MOV" | "MVR" => act(c.motion(request, rig, now_s)),
-        "STP" | "HLT" => act(c.stop(rig, now_s)),
-        "VLS" => act(c.set_velocity(request)),
-        "SPI" => act(c.set_pivot(request, now_s)),
-        "CCL" => act(c.set_command_level(request)),
-        "RON" => act(c.set_reference_mode(request)),
-        "SPA" => act(c.set_parameters(request)),
-        "KEN" => act(c.enable_coordinate_system(request)),
-        "KSD" => act(c.define_coordinate_system(request, now_s)),
-        EPISODE => act(c.episode(request, rig)),
-        _ => act(c.fail(errors::UNKNOWN_COMMAND)),
+        _ => {
+            c.fail(errors::UNKNOWN_COMMAND);
+            None
+        }
     }
 }
 
-/// A command (not a query): no answer.
-fn act(_: ()) -> Option<String> {
-    None
+/// A command that answers nothing.
+fn command(c: &mut TwinController, request: &Request, rig: &mut TwinRig, now_s: f64) {
+    match request.mnemonic.as_str() {
+        "SVO" => c.set_servo(request, rig, now_s),
+        "FRF" => c.reference(request, rig, now_s),
+        "MOV" | "MVR" => c.motion(request, rig, now_s),
+        "STP" | "HLT" => c.stop(rig, now_s),
+        "VLS" => c.set_velocity(request),
+        "SPI" => c.set_pivot(request, now_s),
+        "CCL" => c.set_command_level(request),
+        "RON" => c.set_reference_mode(request),
+        "SPA" => c.set_parameters(request),
+        "KEN" => c.enable_coordinate_system(request),
+        "KSD" => c.define_coordinate_system(request, now_s),
+        EPISODE => c.episode(request, rig),
+        _ => c.fail(errors::UNKNOWN_COMMAND),
+    }
 }
 
 impl TwinController {
@@ -195,7 +210,10 @@ impl TwinController {
             };
             target[k] = value;
         }
-        Some(format!("{}\n", u8::from(rig.reaches(&self.pose_of(&target)))))
+        Some(format!(
+            "{}\n",
+            u8::from(rig.reaches(&self.pose_of(&target)))
+        ))
     }
 
     fn set_velocity(&mut self, request: &Request) {

@@ -92,7 +92,10 @@ mod tests {
         let limits = TravelLimits::of(&rig);
         let home = [0.0, 0.0, cell.robot.home_height_mm, 0.0, 0.0, 0.0];
         for k in 0..6 {
-            assert!(limits.min[k] < home[k] && home[k] < limits.max[k], "{limits:?}");
+            assert!(
+                limits.min[k] < home[k] && home[k] < limits.max[k],
+                "{limits:?}"
+            );
             for (limit, outwards) in [(limits.min[k], -1.0), (limits.max[k], 1.0)] {
                 let mut axes = home;
                 axes[k] = limit;

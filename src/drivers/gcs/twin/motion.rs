@@ -66,15 +66,16 @@ impl Motion {
         }
         let fraction = ((now_s - self.start_s) / self.duration_s).clamp(0.0, 1.0);
         let (a, b) = (axes_to_pose(&self.from), axes_to_pose(&self.to));
-        let translation = a
-            .translation
-            .vector
-            .lerp(&b.translation.vector, fraction);
+        let translation = a.translation.vector.lerp(&b.translation.vector, fraction);
         // Half a turn apart has no single shortest arc; a hexapod never tilts that far.
         let rotation = a
             .rotation
             .try_slerp(&b.rotation, fraction, 1e-12)
-            .unwrap_or(if fraction < 0.5 { a.rotation } else { b.rotation });
+            .unwrap_or(if fraction < 0.5 {
+                a.rotation
+            } else {
+                b.rotation
+            });
         pose_to_axes(&Pose::from_parts(translation.into(), rotation))
     }
 

@@ -85,7 +85,10 @@ fn a_5_mm_move_at_30_mm_s_is_on_target_after_a_sixth_of_a_second_and_not_before(
     let ont = axis_flags(&ask(&mut c, &mut rig, "ONT?", just_before).unwrap()).unwrap();
     assert_eq!(ont, [true, true, false, true, true, true]);
     // #5: Z, the third axis, is bit 2.
-    assert_eq!(char_answer(&mut c, &mut rig, MOTION_STATUS_CHAR, just_before), "4\n");
+    assert_eq!(
+        char_answer(&mut c, &mut rig, MOTION_STATUS_CHAR, just_before),
+        "4\n"
+    );
     assert!(c.is_moving(just_before));
     // Half way, POS? answers the straight line's middle; the rig has not moved yet.
     let half = position(&mut c, &mut rig, 10.0 + 1.0 / 12.0);
@@ -97,7 +100,10 @@ fn a_5_mm_move_at_30_mm_s_is_on_target_after_a_sixth_of_a_second_and_not_before(
     assert!((rig.setpoint().translation.z - (start[2] + 2.5)).abs() < 1e-9);
     let ont = axis_flags(&ask(&mut c, &mut rig, "ONT?", end).unwrap()).unwrap();
     assert_eq!(ont, [true; 6]);
-    assert_eq!(char_answer(&mut c, &mut rig, MOTION_STATUS_CHAR, end), "0\n");
+    assert_eq!(
+        char_answer(&mut c, &mut rig, MOTION_STATUS_CHAR, end),
+        "0\n"
+    );
     assert!((position(&mut c, &mut rig, end)[2] - z).abs() < 1e-9);
     assert!((rig.setpoint().translation.z - z).abs() < 1e-9);
     let log: Vec<_> = c.moves_started().collect();
@@ -135,7 +141,10 @@ fn a_stop_at_half_time_leaves_the_platform_half_way() {
         }
         assert_eq!(error(&mut c, &mut rig, 1.0), errors::STOPPED, "{stop}");
         let here = position(&mut c, &mut rig, 1.0);
-        assert!((here[2] - (start[2] + 2.5)).abs() < 1e-9, "{stop}: {here:?}");
+        assert!(
+            (here[2] - (start[2] + 2.5)).abs() < 1e-9,
+            "{stop}: {here:?}"
+        );
         let target = axis_values(&ask(&mut c, &mut rig, "MOV? Z", 1.0).unwrap(), &["Z"]);
         assert!((target.unwrap()[0] - here[2]).abs() < 1e-9);
         assert!(!c.is_moving(1.0 / 12.0));
@@ -165,7 +174,10 @@ fn instant_moves_arrive_at_once() {
     ask(&mut c, &mut rig, "MVR Z 5", 0.0);
     assert!(!c.is_moving(0.0));
     assert!((rig.setpoint().translation.z - start[2] - 5.0).abs() < 1e-9);
-    assert_eq!(char_answer(&mut c, &mut rig, MOTION_STATUS_CHAR, 0.0), "0\n");
+    assert_eq!(
+        char_answer(&mut c, &mut rig, MOTION_STATUS_CHAR, 0.0),
+        "0\n"
+    );
 }
 
 #[test]
@@ -189,7 +201,11 @@ fn an_unknown_command_leaves_error_2_and_the_next_command_is_answered() {
     let (mut c, mut rig) = ready();
     assert_eq!(ask(&mut c, &mut rig, "FOO? X", 0.0), None);
     assert_eq!(c.handle_char(3, &mut rig, 0.0), None);
-    assert!(ask(&mut c, &mut rig, "POS? X", 0.0).unwrap().starts_with("X="));
+    assert!(
+        ask(&mut c, &mut rig, "POS? X", 0.0)
+            .unwrap()
+            .starts_with("X=")
+    );
     assert_eq!(error(&mut c, &mut rig, 0.0), errors::UNKNOWN_COMMAND);
     assert_eq!(error(&mut c, &mut rig, 0.0), 0);
 }
@@ -222,7 +238,11 @@ fn every_command_in_the_help_is_known() {
             };
             ask(&mut c, &mut rig, &line, 0.0);
         }
-        assert_ne!(error(&mut c, &mut rig, 0.0), errors::UNKNOWN_COMMAND, "{name}");
+        assert_ne!(
+            error(&mut c, &mut rig, 0.0),
+            errors::UNKNOWN_COMMAND,
+            "{name}"
+        );
     }
 }
 
@@ -244,7 +264,10 @@ fn limits_parameters_and_virtual_moves_agree_with_the_reach() {
         ask(&mut c, &mut rig, "CST? Y", 0.0),
         Some(format!("Y={STAGE_TYPE}\n"))
     );
-    assert_eq!(ask(&mut c, &mut rig, "RON? U", 0.0).as_deref(), Some("U=1\n"));
+    assert_eq!(
+        ask(&mut c, &mut rig, "RON? U", 0.0).as_deref(),
+        Some("U=1\n")
+    );
     // VMO? sets the named axes in the last target: the home pose's Z limit is reachable from
     // home, a millimetre beyond is not, and nothing moves.
     let home = rig.cell().robot.home_height_mm;
@@ -267,12 +290,21 @@ fn levels_coordinate_systems_and_versions_answer_as_on_a_c887() {
     ask(&mut c, &mut rig, "SPA X 0x15 100", 0.0);
     assert_eq!(error(&mut c, &mut rig, 0.0), errors::NOT_FOR_STAGE);
     ask(&mut c, &mut rig, "CCL 0", 0.0);
-    assert_eq!(ask(&mut c, &mut rig, "KEN?", 0.0).as_deref(), Some("ZERO=ZERO\n"));
+    assert_eq!(
+        ask(&mut c, &mut rig, "KEN?", 0.0).as_deref(),
+        Some("ZERO=ZERO\n")
+    );
     ask(&mut c, &mut rig, "KEN ZERO", 0.0);
     assert_eq!(error(&mut c, &mut rig, 0.0), 0);
     let version = ask(&mut c, &mut rig, "VER?", 0.0).unwrap();
-    assert!(version.starts_with("celld: ") && version.contains(" \n"), "{version}");
-    assert_eq!(ask(&mut c, &mut rig, "SSN?", 0.0), Some(format!("{SERIAL_NUMBER}\n")));
+    assert!(
+        version.starts_with("celld: ") && version.contains(" \n"),
+        "{version}"
+    );
+    assert_eq!(
+        ask(&mut c, &mut rig, "SSN?", 0.0),
+        Some(format!("{SERIAL_NUMBER}\n"))
+    );
     let parameters = ask(&mut c, &mut rig, "HPA?", 0.0).unwrap();
     assert!(parameters.contains("0x15=\t"), "{parameters}");
 }
