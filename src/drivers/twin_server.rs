@@ -325,3 +325,54 @@ pub fn point_message(
         content: Content::Point(points),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drivers::gcs::protocol::{AXES, axis_values};
+    use crate::drivers::gcs::twin::STOP_CHAR;
+    use std::io::{BufRead, BufReader};
+
+    /// Sends `lines`; the answer, all its lines (each but the last ends with a space).
+    fn ask(reader: &mut BufReader<TcpStream>, writer: &mut TcpStream, lines: &str) -> String {
+        writer.write_all(lines.as_bytes()).unwrap();
+        let mut answer = String::new();
+        while reader.read_line(&mut answer).unwrap() > 0 && answer.ends_with(" \n") {}
+        answer
+    }
+
+    #[test]
+    fn a_timed_move_is_logged_with_its_instant_and_a_stop_leaves_the_platform_part_way() {
+        let options = TwinServerOptions {
+            instant_moves: false,
+            ..TwinServerOptions::loopback(&CellConfig::reference(), 2)
+        };
+        let server = TwinServer::start(&options).unwrap();
+        let mut writer = TcpStream::connect(server.gcs).unwrap();
+        let mut reader = BufReader::new(writer.try_clone().unwrap());
+        let start = axis_values(&ask(&mut reader, &mut writer, "POS? Z\n"), &["Z"]).unwrap()[0];
+        let before = Instant::now();
+        // 20 mm at 1 mm/s: it runs until stopped.
+        assert_eq!(ask(&mut reader, &mut writer, "VLS 1\nERR?\n"), "0\n");
+        let z = start + 20.0;
+        assert_eq!(
+            ask(&mut reader, &mut writer, &format!("MOV Z {z}\nERR?\n")),
+            "0\n"
+        );
+        let after = Instant::now();
+        let moves = server.moves_started();
+        assert_eq!(moves.len(), 1);
+        assert!(before <= moves[0].0 && moves[0].0 <= after);
+        assert_eq!(moves[0].1[2], z);
+        writer.write_all(&[STOP_CHAR]).unwrap();
+        assert_eq!(ask(&mut reader, &mut writer, "ERR?\n"), "10\n");
+        // The platform stopped part way; the rig, and a capture, are there.
+        let answer = ask(&mut reader, &mut writer, "POS?\n");
+        let stopped = axis_values(&answer, &AXES).unwrap();
+        assert!(start < stopped[2] && stopped[2] < z, "{answer}");
+        let frame = lock(&server.twin).capture();
+        assert!(!frame.points.is_empty());
+        let setpoint = lock(&server.twin).rig.setpoint();
+        assert!((setpoint.translation.z - stopped[2]).abs() < 1e-9);
+    }
+}
