@@ -21,6 +21,9 @@ use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
 use std::process::{Command, Stdio};
 
+/// PIPython's helpers (`pitools.startup`, `moveandwait`, `waitontarget`) and a user's script
+/// against the twin-server as after power-on, its moves taking time: every command PIPython
+/// sends is answered within PIPython's own timeout.
 #[test]
 fn pipython_drives_the_twin_server_as_a_pi_hexapod_controller() {
     if !python_has("pipython", "PIPython") {

@@ -14,7 +14,9 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::time::Duration;
 
 /// `celld serve` in `dir` with the GCS robot and the OpenIGTLink camera on these loopback ports,
-/// rehearsing against `celld twin-server`, at a 20 ms step period.
+/// rehearsing against `celld twin-server`, at a 20 ms step period. The twin-server runs with
+/// `--instant-moves`: the service's default on-target deadline (20 ms) is shorter than a step's
+/// move at the cell's speeds.
 fn serve_through_drivers(dir: &std::path::Path, gcs_port: u16, igtl_port: u16) -> Server {
     let (gcs, igtl) = (gcs_port.to_string(), igtl_port.to_string());
     Server::start(
@@ -39,6 +41,7 @@ fn id(job: &Value) -> i64 {
 
 #[test]
 fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_reset() {
+    // Moves take their time at the cell's speeds, as a real hexapod's do.
     let twin = TwinServer::start(&[]);
     let (gcs_port, igtl_port) = (twin.gcs.port(), twin.igtl.port());
     let dir = tempfile::tempdir().unwrap();
@@ -159,7 +162,7 @@ fn wait_steps(server: &Server, job: i64, count: usize) {
 
 #[test]
 fn camera_faults_mid_job_end_it_named_with_every_step_stored_and_the_next_job_runs() {
-    let twin = TwinServer::start(&[]);
+    let twin = TwinServer::start(&["--instant-moves"]);
     let mode = Arc::new(AtomicU8::new(PASS));
     let relay = camera_relay(twin.igtl, mode.clone());
     let dir = tempfile::tempdir().unwrap();

@@ -30,6 +30,10 @@ pub struct TwinServerArgs {
     /// Start as after power-on (servos off, not referenced) instead of ready to move.
     #[arg(long)]
     unreferenced: bool,
+    /// Moves arrive at once (ONT? 1 right after MOV) instead of taking the time the cell's
+    /// speeds (robot.speed_mm_s, robot.speed_deg_s) give them.
+    #[arg(long)]
+    instant_moves: bool,
     /// Also stream a capture to every camera client at this rate, Hz (0: capture only when
     /// asked with GET_POINT).
     #[arg(long, default_value_t = 0.0)]
@@ -54,6 +58,7 @@ pub fn run(args: TwinServerArgs) -> Result<()> {
         ready: !args.unreferenced,
         stream_hz: args.camera_stream_hz,
         igtl_version: args.igtl_version,
+        instant_moves: args.instant_moves,
     };
     let server = TwinServer::start(&options)?;
     println!(

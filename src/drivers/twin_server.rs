@@ -4,10 +4,10 @@
 //!
 //! The camera captures when asked (`GET_POINT`) and answers with one POINT message of the
 //! coded points it decoded; with a stream rate it also sends a capture at that rate to every
-//! client. Both sides share one twin, so a capture sees the platform where the last `MOV`
-//! put it.
+//! client. Both sides share one twin and one clock (seconds since the start), so a capture
+//! sees the platform where it is, mid-move too.
 
-use super::gcs::twin::{MOTION_STATUS_CHAR, READY_CHAR, STOP_CHAR, TwinController};
+use super::gcs::twin::TwinController;
 use super::igtl::codec::{Content, HEADER_BYTES, Header, Message, PointElement, Timestamp};
 use crate::camera::{CameraFrame, Fixture};
 use crate::config::cell::CellConfig;
@@ -16,7 +16,7 @@ use crate::sim::{CELL_ROBOT_SEED, InitialConditions};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::{Arc, Mutex, PoisonError};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// What `celld twin-server` is asked to be.
 #[derive(Debug, Clone)]
@@ -35,12 +35,15 @@ pub struct TwinServerOptions {
     pub stream_hz: f64,
     /// The header version of the POINT messages sent (1 or 2).
     pub igtl_version: u16,
+    /// Moves arrive at once (`ONT?` 1 right after `MOV`) instead of taking the time the
+    /// cell's speeds give them.
+    pub instant_moves: bool,
 }
 
 impl TwinServerOptions {
     /// `cell`'s twin on free loopback ports, drawing episode `seed`: ready (referenced, servos
-    /// on), answering captures on `GET_POINT` only, in header version 2. What the in-process
-    /// uses (`celld latency`, the tests) want.
+    /// on), moves arriving at once, answering captures on `GET_POINT` only, in header version
+    /// 2. What the in-process uses (`celld latency`, the tests) want.
     pub fn loopback(cell: &CellConfig, seed: u64) -> Self {
         let any = SocketAddr::from(([127, 0, 0, 1], 0));
         TwinServerOptions {
@@ -51,14 +54,30 @@ impl TwinServerOptions {
             ready: true,
             stream_hz: 0.0,
             igtl_version: 2,
+            instant_moves: true,
         }
     }
 }
 
-/// The twin both servers drive.
+/// The twin both servers drive, and their clock.
 struct Twin {
     rig: TwinRig,
     controller: TwinController,
+    start: Instant,
+}
+
+impl Twin {
+    /// Seconds since the servers started: the controller's time.
+    fn now_s(&self) -> f64 {
+        self.start.elapsed().as_secs_f64()
+    }
+
+    /// One capture of the scene with the platform where it is now.
+    fn capture(&mut self) -> CameraFrame {
+        let now_s = self.now_s();
+        self.controller.place(&mut self.rig, now_s);
+        self.rig.capture().clone()
+    }
 }
 
 type Shared = Arc<Mutex<Twin>>;
@@ -93,8 +112,13 @@ impl TwinServer {
         let mut rig = TwinRig::new(&options.cell).with_kept_robot(CELL_ROBOT_SEED);
         rig.begin_episode(options.seed, InitialConditions::from_cell(&options.cell))
             .map_err(|e| anyhow::anyhow!("the episode's initial pose is unreachable: {e}"))?;
-        let controller = TwinController::new(&rig, options.ready);
-        let twin = Arc::new(Mutex::new(Twin { rig, controller }));
+        let controller =
+            TwinController::new(&rig, options.ready).with_instant_moves(options.instant_moves);
+        let twin = Arc::new(Mutex::new(Twin {
+            rig,
+            controller,
+            start: Instant::now(),
+        }));
         let gcs = TcpListener::bind(options.gcs)
             .map_err(|e| anyhow::anyhow!("cannot listen on {} (GCS): {e}", options.gcs))?;
         let igtl = TcpListener::bind(options.igtl)
@@ -124,6 +148,16 @@ impl TwinServer {
     pub fn true_f_m(&self) -> crate::geometry::Pose {
         lock(&self.twin).rig.true_f_m()
     }
+
+    /// The moves the controller accepted (`MOV`, `MVR`), oldest first: when each arrived and
+    /// its target X Y Z (mm) U V W (deg). The last 4096 are kept.
+    pub fn moves_started(&self) -> Vec<(Instant, [f64; 6])> {
+        let twin = lock(&self.twin);
+        twin.controller
+            .moves_started()
+            .map(|&(at_s, target)| (twin.start + Duration::from_secs_f64(at_s), target))
+            .collect()
+    }
 }
 
 fn spawn(name: &str, work: impl FnOnce() + Send + 'static) {
@@ -146,6 +180,12 @@ fn accept(
     }
 }
 
+/// Whether `byte` is a single-character command (`#4`, `#5`, `#7`, `#24`, …): any control
+/// character but the line's own LF, CR and TAB. It acts at once, even within a line.
+fn single_character(byte: u8) -> bool {
+    byte < 32 && !matches!(byte, b'\n' | b'\r' | b'\t')
+}
+
 /// One GCS connection: single control characters act at once; other commands end at LF.
 fn serve_gcs(mut stream: TcpStream, twin: &Shared) {
     let mut line = Vec::with_capacity(128);
@@ -156,21 +196,28 @@ fn serve_gcs(mut stream: TcpStream, twin: &Shared) {
             Ok(n) => n,
         };
         for &byte in &chunk[..n] {
-            let answer =
-                if line.is_empty() && matches!(byte, STOP_CHAR | MOTION_STATUS_CHAR | READY_CHAR) {
-                    lock(twin).controller.handle_char(byte)
-                } else if byte == b'\n' {
-                    let text = String::from_utf8_lossy(&line).into_owned();
-                    line.clear();
-                    let mut guard = lock(twin);
-                    let Twin { rig, controller } = &mut *guard;
-                    controller
-                        .handle(text.trim_end_matches('\r'), rig)
-                        .map(String::into_bytes)
-                } else {
-                    line.push(byte);
-                    None
-                };
+            let answer = if single_character(byte) {
+                let mut guard = lock(twin);
+                let now_s = guard.now_s();
+                let Twin {
+                    rig, controller, ..
+                } = &mut *guard;
+                controller.handle_char(byte, rig, now_s)
+            } else if byte == b'\n' {
+                let text = String::from_utf8_lossy(&line).into_owned();
+                line.clear();
+                let mut guard = lock(twin);
+                let now_s = guard.now_s();
+                let Twin {
+                    rig, controller, ..
+                } = &mut *guard;
+                controller
+                    .handle(text.trim_end_matches('\r'), rig, now_s)
+                    .map(String::into_bytes)
+            } else {
+                line.push(byte);
+                None
+            };
             if let Some(answer) = answer
                 && stream.write_all(&answer).is_err()
             {
@@ -238,7 +285,7 @@ impl CameraSide {
 
     /// Captures and sends one POINT message; false once the client is gone.
     fn send_capture(&self, twin: &Shared, writer: &Mutex<TcpStream>, message_id: u32) -> bool {
-        let frame = lock(twin).rig.capture().clone();
+        let frame = lock(twin).capture();
         let message = point_message(&frame, self.version, message_id, Timestamp::now());
         writer
             .lock()
@@ -276,5 +323,56 @@ pub fn point_message(
         timestamp,
         message_id,
         content: Content::Point(points),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drivers::gcs::protocol::{AXES, axis_values};
+    use crate::drivers::gcs::twin::STOP_CHAR;
+    use std::io::{BufRead, BufReader};
+
+    /// Sends `lines`; the answer, all its lines (each but the last ends with a space).
+    fn ask(reader: &mut BufReader<TcpStream>, writer: &mut TcpStream, lines: &str) -> String {
+        writer.write_all(lines.as_bytes()).unwrap();
+        let mut answer = String::new();
+        while reader.read_line(&mut answer).unwrap() > 0 && answer.ends_with(" \n") {}
+        answer
+    }
+
+    #[test]
+    fn a_timed_move_is_logged_with_its_instant_and_a_stop_leaves_the_platform_part_way() {
+        let options = TwinServerOptions {
+            instant_moves: false,
+            ..TwinServerOptions::loopback(&CellConfig::reference(), 2)
+        };
+        let server = TwinServer::start(&options).unwrap();
+        let mut writer = TcpStream::connect(server.gcs).unwrap();
+        let mut reader = BufReader::new(writer.try_clone().unwrap());
+        let start = axis_values(&ask(&mut reader, &mut writer, "POS? Z\n"), &["Z"]).unwrap()[0];
+        let before = Instant::now();
+        // 20 mm at 1 mm/s: it runs until stopped.
+        assert_eq!(ask(&mut reader, &mut writer, "VLS 1\nERR?\n"), "0\n");
+        let z = start + 20.0;
+        assert_eq!(
+            ask(&mut reader, &mut writer, &format!("MOV Z {z}\nERR?\n")),
+            "0\n"
+        );
+        let after = Instant::now();
+        let moves = server.moves_started();
+        assert_eq!(moves.len(), 1);
+        assert!(before <= moves[0].0 && moves[0].0 <= after);
+        assert_eq!(moves[0].1[2], z);
+        writer.write_all(&[STOP_CHAR]).unwrap();
+        assert_eq!(ask(&mut reader, &mut writer, "ERR?\n"), "10\n");
+        // The platform stopped part way; the rig, and a capture, are there.
+        let answer = ask(&mut reader, &mut writer, "POS?\n");
+        let stopped = axis_values(&answer, &AXES).unwrap();
+        assert!(start < stopped[2] && stopped[2] < z, "{answer}");
+        let frame = lock(&server.twin).capture();
+        assert!(!frame.points.is_empty());
+        let setpoint = lock(&server.twin).rig.setpoint();
+        assert!((setpoint.translation.z - stopped[2]).abs() < 1e-9);
     }
 }

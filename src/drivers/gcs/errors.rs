@@ -26,10 +26,24 @@ pub const PARAMETER_OUT_OF_RANGE: i32 = 17;
 pub const WRONG_PARAMETER_COUNT: i32 = 24;
 /// Invalid floating point number.
 pub const INVALID_NUMBER: i32 = 25;
+/// A command not allowed for the stage (for a hexapod's axes: `RON`).
+pub const NOT_FOR_STAGE: i32 = 34;
 /// Referencing failed.
 pub const REFERENCING_FAILED: i32 = 45;
 /// A command not allowed while the axis is moving.
 pub const NOT_WHILE_MOVING: i32 = 53;
+/// Unknown parameter id.
+pub const UNKNOWN_PARAMETER: i32 = 54;
+/// Wrong password for a command level (`CCL`).
+pub const INVALID_PASSWORD: i32 = 56;
+/// A parameter protected at the current command level.
+pub const PARAMETER_PROTECTED: i32 = 60;
+/// A command names a coordinate system that does not exist.
+pub const COORDINATE_SYSTEM_MISSING: i32 = 530;
+/// A coordinate system defined while the hexapod moves.
+pub const COORDINATE_SYSTEM_WHILE_MOVING: i32 = 536;
+/// A coordinate system that cannot be changed.
+pub const COORDINATE_SYSTEM_WRITE_PROTECTED: i32 = 546;
 
 /// What PI's manuals call a code, for the codes a hexapod controller sends in operation.
 pub fn describe(code: i32) -> &'static str {
@@ -51,8 +65,17 @@ pub fn describe(code: i32) -> &'static str {
         WRONG_PARAMETER_COUNT => "incorrect number of parameters",
         INVALID_NUMBER => "invalid floating point number",
         26 => "parameter missing",
+        NOT_FOR_STAGE => "command not allowed for selected stage(s)",
         REFERENCING_FAILED => "referencing failed",
         NOT_WHILE_MOVING => "command is not allowed while the affected axis is in motion",
+        UNKNOWN_PARAMETER => "unknown parameter",
+        INVALID_PASSWORD => "password invalid",
+        PARAMETER_PROTECTED => "protected parameter: current command level (CCL) too low",
+        COORDINATE_SYSTEM_MISSING => "a command refers to a coordinate system that does not exist",
+        COORDINATE_SYSTEM_WHILE_MOVING => {
+            "coordinate system cannot be defined as long as the hexapod is in motion"
+        }
+        COORDINATE_SYSTEM_WRITE_PROTECTED => "coordinate system is write protected",
         -1024 => "motion error: position error too large, servo switched off automatically",
         _ => "unknown controller error",
     }

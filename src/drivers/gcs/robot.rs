@@ -266,7 +266,16 @@ impl GcsRobot {
         let poll = Duration::from_millis(self.settings.poll_interval_ms);
         let client = self.client_mut()?;
         let deadline = Instant::now() + Duration::from_millis(deadline_ms);
-        client.command(&command)?;
+        if let Err(error) = client.command(&command) {
+            if let GcsError::Controller { .. } = error {
+                // The controller may have taken the move all the same (an error it reports can
+                // be an earlier command's): stop it and take the platform where it is.
+                client.send("STP")?;
+                client.error_code()?;
+                self.setpoint = self.read_position()?;
+            }
+            return Err(error);
+        }
         while !read_flags(client, "ONT?")?.iter().all(|on| *on) {
             if Instant::now() >= deadline {
                 client.send("STP")?;
