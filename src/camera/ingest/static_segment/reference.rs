@@ -308,7 +308,7 @@ fn same_as_every_frame_kept(seed: u64, frames: usize) -> Seen {
         if late.is_some_and(|at| k >= at) {
             w_f = late_shift * w_f;
         }
-        if k == 0 && seed % 5 == 0 || rng.random_bool(0.02) {
+        if k == 0 && seed.is_multiple_of(5) || rng.random_bool(0.02) {
             w_f.translation.vector.x += 0.5;
         }
         let covariance = a * a.transpose();
@@ -431,7 +431,7 @@ fn beyond_the_exact_frames_a_knock_is_noticed_when_every_frame_kept_notices_it()
     for (seed, shift) in shifts.iter().enumerate() {
         let mut rng = ChaCha8Rng::seed_from_u64(seed as u64);
         let (mut blocks, mut every) = (StaticSegment::default(), AllFrames::default());
-        let noticed = (0..at + 50).find_map(|k| {
+        let noticed = (0..at + 50).find(|&k| {
             let z = Vector6::<f64>::from_fn(|_, _| StandardNormal.sample(&mut rng));
             let mut seen = truth * pose_of(&sd.component_mul(&z));
             if k >= at {
@@ -445,7 +445,7 @@ fn beyond_the_exact_frames_a_knock_is_noticed_when_every_frame_kept_notices_it()
                 verdicts.0 == StaticFrame::Shifted,
                 verdicts.1 == StaticFrame::Shifted
             );
-            (verdicts.0 == StaticFrame::Shifted).then_some(k)
+            verdicts.0 == StaticFrame::Shifted
         });
         let noticed = noticed.expect("the shift is noticed");
         assert!((at..at + STATIC_WINDOW).contains(&noticed), "{noticed}");
