@@ -39,7 +39,20 @@ impl Samples {
     }
 }
 
-/// Measures the three latencies, `count` samples each (the e-stop's: `count / 10`, at least 1).
+/// Ingestion's samples at a few lengths of its episode: the frames up to the length, the last
+/// [`LENGTH_SAMPLES`] of them. The watch on Segment II weighs every frame of the episode, so
+/// these show whether a frame costs more the longer the episode has run.
+const EPISODE_LENGTHS: [(usize, &str); 3] = [
+    (100, "  ingestion at frames 1-100 of the episode"),
+    (1000, "  ingestion at frames 901-1000"),
+    (5000, "  ingestion at frames 4901-5000"),
+];
+/// Frames timed at each of [`EPISODE_LENGTHS`].
+const LENGTH_SAMPLES: usize = 100;
+
+/// Measures the three latencies, `count` samples each (the e-stop's: `count / 10`, at least 1),
+/// and ingestion's at each of [`EPISODE_LENGTHS`] that `count` reaches (ingestion's samples are
+/// one episode's frames, in order).
 pub fn measure(cell: &CellConfig, count: usize) -> anyhow::Result<Vec<Samples>> {
     let server = TwinServer::start(&TwinServerOptions::loopback(cell, 1))?;
     let settings = GcsSettings::default();
@@ -51,20 +64,36 @@ pub fn measure(cell: &CellConfig, count: usize) -> anyhow::Result<Vec<Samples>> 
         robot.execute(&step)?;
         round_trip.push(start.elapsed().as_secs_f64() * 1e6);
     }
-    Ok(vec![
+    let ingested = ingestion(cell, count)?;
+    let by_length = by_episode_length(&ingested);
+    let mut measured = vec![
         Samples {
             name: "move round trip (MOV to on target and POS?)",
             micros: round_trip,
         },
         Samples {
             name: "ingestion (POINT message to estimate)",
-            micros: ingestion(cell, count)?,
+            micros: ingested,
         },
-        Samples {
-            name: "e-stop (call to STP on the wire, while moving)",
-            micros: estop(cell, &server, (count / 10).max(1))?,
-        },
-    ])
+    ];
+    measured.extend(by_length);
+    measured.push(Samples {
+        name: "e-stop (call to STP on the wire, while moving)",
+        micros: estop(cell, &server, (count / 10).max(1))?,
+    });
+    Ok(measured)
+}
+
+/// One episode's ingestion samples, frame by frame, at each of [`EPISODE_LENGTHS`] they reach.
+fn by_episode_length(micros: &[f64]) -> Vec<Samples> {
+    EPISODE_LENGTHS
+        .iter()
+        .filter(|(length, _)| *length <= micros.len())
+        .map(|&(length, name)| Samples {
+            name,
+            micros: micros[length - LENGTH_SAMPLES.min(length)..length].to_vec(),
+        })
+        .collect()
 }
 
 /// Message bytes to estimate: decode, frame, fit, fusion; the captures prepared beforehand.
@@ -205,6 +234,19 @@ mod tests {
             let (p50, p99) = (latency.quantile(0.5), latency.quantile(0.99));
             assert!(p50.is_finite() && p50 > 0.0 && p99 >= p50, "{latency:?}");
         }
+    }
+
+    #[test]
+    fn ingestion_is_read_at_the_episode_lengths_it_reaches() {
+        let micros: Vec<f64> = (1..=1500).map(f64::from).collect();
+        let lengths = by_episode_length(&micros);
+        // Frames 1-100 and 901-1000 (the samples are the frames' numbers); 5000 not reached.
+        let ranges: Vec<(f64, f64, usize)> = lengths
+            .iter()
+            .map(|s| (s.micros[0], s.quantile(1.0), s.micros.len()))
+            .collect();
+        assert_eq!(ranges, [(1.0, 100.0, 100), (901.0, 1000.0, 100)]);
+        assert!(by_episode_length(&micros[..99]).is_empty());
     }
 
     #[test]
