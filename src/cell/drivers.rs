@@ -149,6 +149,7 @@ impl DriverBackend {
         CameraFrame {
             points: Vec::new(),
             sequence: self.last_sequence,
+            ..CameraFrame::default()
         }
     }
 
