@@ -219,7 +219,12 @@ fn difference_and_spread(a: &Run, b: &Run) -> Vec<(f64, f64)> {
 }
 
 /// A tracker's frames against the POINT camera's on the same captures: the held-to standard.
-fn holds_to_the_point_path(cell: &CellConfig, by_points: &[CameraFrame], by_fits: &[CameraFrame], truth: &Pose) {
+fn holds_to_the_point_path(
+    cell: &CellConfig,
+    by_points: &[CameraFrame],
+    by_fits: &[CameraFrame],
+    truth: &Pose,
+) {
     assert_eq!(by_points.len(), by_fits.len());
     assert!(by_fits.iter().all(|f| f.kind
         == FrameKind::Fitted {
@@ -363,8 +368,8 @@ fn jobs_through_a_tracker_end_as_through_the_point_camera() {
     let threshold = StateEstimator::new(&cell, &frames).rejection_threshold_mm();
     let server = TwinServer::start(&TwinServerOptions::loopback(&cell, 0)).unwrap();
     let tracker = tracker_relay(server.igtl, frames, threshold);
-    let mut by_points = DriverBackend::connect(&cell, settings(server.igtl, server.gcs), None)
-        .unwrap();
+    let mut by_points =
+        DriverBackend::connect(&cell, settings(server.igtl, server.gcs), None).unwrap();
     let mut by_fits = DriverBackend::connect(&cell, settings(tracker, server.gcs), None).unwrap();
     for seed in 1..=6 {
         let (expected, _) = job(seed, &cell, &mut by_points);
@@ -391,10 +396,8 @@ fn ring_file() -> PathBuf {
 fn calibrated_cell(layout: &str) -> (tempfile::TempDir, Result<CellConfig, CellConfigError>) {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("fixtures.csv"), layout).unwrap();
-    let text = include_str!("../cells/phi170.toml").replace(
-        "[camera]",
-        "[camera]\nfixture_layout = \"fixtures.csv\"",
-    );
+    let text = include_str!("../cells/phi170.toml")
+        .replace("[camera]", "[camera]\nfixture_layout = \"fixtures.csv\"");
     let path = dir.path().join("cell.toml");
     std::fs::write(&path, text).unwrap();
     let cell = CellConfig::load(&path);
@@ -444,7 +447,12 @@ fn points_named_by_their_calibrated_ids_cross_the_wire_and_estimate_alike() {
         .map(|line| {
             let mut values: Vec<String> = line.split(',').map(str::to_string).collect();
             let id: u16 = values[1].trim().parse().unwrap();
-            values[1] = if values[0] == "C1" { 101 + id } else { 7 + 2 * id }.to_string();
+            values[1] = if values[0] == "C1" {
+                101 + id
+            } else {
+                7 + 2 * id
+            }
+            .to_string();
             values.join(",")
         })
         .collect();
@@ -496,7 +504,10 @@ fn points_named_by_their_calibrated_ids_cross_the_wire_and_estimate_alike() {
     }
     for (a, b) in ring_received.iter().zip(&received) {
         for (p, q) in a.points.iter().zip(&b.points) {
-            assert_eq!((p.fixture, p.id, p.position_mm), (q.fixture, 5 - q.id, q.position_mm));
+            assert_eq!(
+                (p.fixture, p.id, p.position_mm),
+                (q.fixture, 5 - q.id, q.position_mm)
+            );
         }
     }
     for (p, q) in x.estimates.iter().zip(&y.estimates) {
@@ -585,7 +596,10 @@ fn a_bad_calibration_file_is_refused_naming_the_point() {
     }
     let (_dir, negative) = calibrated_cell("fixture,id,x_mm,y_mm,z_mm,sigma_mm\nC1,4,1,2,3,-1\n");
     let message = negative.unwrap_err().to_string();
-    assert!(message.contains("point C1 4: `sigma_mm` is -1"), "{message}");
+    assert!(
+        message.contains("point C1 4: `sigma_mm` is -1"),
+        "{message}"
+    );
     let (_dir, not_finite) = calibrated_cell("fixture,id,x_mm,y_mm,z_mm\nC2,8,1,inf,3\n");
     let message = not_finite.unwrap_err().to_string();
     assert!(message.contains("point C2 8: `y_mm` is inf"), "{message}");
@@ -723,4 +737,3 @@ fn pyigtl_as_a_tracker_estimates_as_the_point_camera_does() {
     let by_points = point_frames(&cell, &captures);
     holds_to_the_point_path(&cell, &by_points, &by_fits, &truth);
 }
-

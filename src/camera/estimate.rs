@@ -284,7 +284,10 @@ impl StateEstimator {
                 });
             }
             points.model[points.usable] = *model_point;
-            points.calibration[points.usable] = calibration[usize::from(point.id)];
+            points.calibration[points.usable] = calibration
+                .get(usize::from(point.id))
+                .copied()
+                .unwrap_or(0.0);
             points.measured[points.usable] = *p;
             points.usable += 1;
         }

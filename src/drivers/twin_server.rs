@@ -242,7 +242,13 @@ impl CameraSide {
         let message = {
             let mut twin = lock(twin);
             let frame = twin.rig.capture().clone();
-            point_message(&frame, twin.rig.frames(), self.version, message_id, Timestamp::now())
+            point_message(
+                &frame,
+                twin.rig.frames(),
+                self.version,
+                message_id,
+                Timestamp::now(),
+            )
         };
         writer
             .lock()

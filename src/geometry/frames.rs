@@ -135,7 +135,9 @@ impl Layout {
             .collect();
         Layout {
             points_mm,
-            labels: (0..count).map(|k| u16::try_from(k).unwrap_or(u16::MAX)).collect(),
+            labels: (0..count)
+                .map(|k| u16::try_from(k).unwrap_or(u16::MAX))
+                .collect(),
             sigma_mm: vec![0.0; count],
         }
     }

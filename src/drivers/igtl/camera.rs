@@ -21,8 +21,8 @@
 use super::codec::{Content, HEADER_BYTES, Header, IgtlError, Message, Timestamp};
 use crate::camera::{CameraFrame, CodedPoint, Fixture, FrameKind};
 use crate::geometry::{CellFrames, Pose};
-use nalgebra::{Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use inbox::{Inbox, Waited};
+use nalgebra::{Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::sync::Arc;
@@ -424,10 +424,7 @@ impl IgtlCamera {
 
     /// The next message the reader decoded, waiting until `deadline`: the outer error is the
     /// wait's (a timeout, the reader stopped), the inner one the message's.
-    fn next_message(
-        &self,
-        deadline: Instant,
-    ) -> Result<Result<Message, FrameError>, FrameError> {
+    fn next_message(&self, deadline: Instant) -> Result<Result<Message, FrameError>, FrameError> {
         match self.inbox.wait(deadline) {
             Waited::Message(message) => Ok(message),
             Waited::TimedOut => Err(FrameError::Timeout {

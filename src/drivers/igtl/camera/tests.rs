@@ -293,10 +293,7 @@ fn a_backlog_past_the_inbox_keeps_the_newest_and_a_stale_one_alone_is_refused() 
     assert_eq!(camera.inbox.len(), inbox::INBOX_MESSAGES);
     assert_eq!(number_of(&camera.capture().unwrap()), count - 1);
     // Nothing newer comes: within the frame timeout, a silent camera.
-    assert_eq!(
-        camera.capture(),
-        Err(FrameError::Timeout { waited_ms: 50 })
-    );
+    assert_eq!(camera.capture(), Err(FrameError::Timeout { waited_ms: 50 }));
 
     // A camera whose whole backlog is stale and that then falls silent: the capture waits no
     // longer than the frame timeout and says why the frames were refused.
@@ -321,10 +318,7 @@ fn a_streaming_tracker_after_an_idle_spell_gives_its_newest_pair() {
             [transform(at, "C1", &pose(k)), transform(at, "C2", &pose(k))]
         })
         .collect();
-    let mut camera = streaming(
-        streaming_camera(backlog, Vec::new(), Duration::ZERO),
-        2000,
-    );
+    let mut camera = streaming(streaming_camera(backlog, Vec::new(), Duration::ZERO), 2000);
     received(&camera, 240);
     let frame = camera.capture().unwrap();
     assert_eq!(
