@@ -571,7 +571,10 @@ fn a_calibration_sigma_widens_the_fits_covariance_as_it_should() {
 fn a_bad_calibration_file_is_refused_naming_the_point() {
     let ring = std::fs::read_to_string(ring_file()).unwrap();
     let (_dir, duplicated) = calibrated_cell(&format!("{ring}C2,3,1,2,3\n"));
-    let message = duplicated.unwrap_err().to_string();
+    let error = duplicated.unwrap_err();
+    // The problem is said once, in the message, not again as a source in an error chain.
+    assert!(std::error::Error::source(&error).is_none());
+    let message = error.to_string();
     assert!(
         message.contains("fixtures.csv") && message.contains("point C2 3 again"),
         "{message}"
@@ -584,8 +587,8 @@ fn a_bad_calibration_file_is_refused_naming_the_point() {
             .join("\n"),
     );
     match few {
-        Err(CellConfigError::Layout { source, .. }) => assert_eq!(
-            source,
+        Err(CellConfigError::Layout { problem, .. }) => assert_eq!(
+            problem,
             LayoutError::TooFew {
                 fixture: "C1",
                 found: 1,

@@ -27,11 +27,13 @@ pub enum CellConfigError {
         value: String,
         reason: String,
     },
-    #[error("cell file {path}: `camera.fixture_layout` {layout}: {source}")]
+    /// A calibration file refused; its problem is in the message (not a `source`, which an
+    /// error chain would print a second time).
+    #[error("cell file {path}: `camera.fixture_layout` {layout}: {problem}")]
     Layout {
         path: String,
         layout: String,
-        source: LayoutError,
+        problem: LayoutError,
     },
 }
 
@@ -366,10 +368,10 @@ impl CellConfig {
                 source,
             })?;
             let layout =
-                FixtureLayout::parse_csv(&text).map_err(|source| CellConfigError::Layout {
+                FixtureLayout::parse_csv(&text).map_err(|problem| CellConfigError::Layout {
                     path: origin.to_string(),
                     layout: at.display().to_string(),
-                    source,
+                    problem,
                 })?;
             config.camera.calibrated_layout = Some(layout);
         }
