@@ -67,6 +67,7 @@ fn frame_of(points: &serde_json::Value) -> CameraFrame {
     CameraFrame {
         points,
         sequence: 1,
+        ..CameraFrame::default()
     }
 }
 

@@ -29,6 +29,9 @@ const RESIDUALS_TAIL_SIGMAS: f64 = 3.719;
 pub struct StateEstimator {
     c1_model: Vec<Point3<f64>>,
     c2_model: Vec<Point3<f64>>,
+    /// Each model point's calibration σ per axis, mm (0: not given).
+    c1_calibration_mm: Vec<f64>,
+    c2_calibration_mm: Vec<f64>,
     /// {M} in {C1}.
     c1_m: Pose,
     /// {F} in {C2}.
@@ -83,6 +86,8 @@ impl StateEstimator {
         StateEstimator {
             c1_model: frames.c1_points_mm.clone(),
             c2_model: frames.c2_points_mm.clone(),
+            c1_calibration_mm: frames.c1_sigma_mm.clone(),
+            c2_calibration_mm: frames.c2_sigma_mm.clone(),
             c1_m: frames.m_c1.inverse(),
             c2_f: frames.f_c2.inverse(),
             reject_above_mm: (cell.camera.outlier_rejection_sigmas * sigma).max(MIN_REJECTION_MM),
@@ -113,9 +118,10 @@ impl StateEstimator {
             let mut ratios: Vec<f64> = model
                 .iter()
                 .zip(measured)
-                .map(|(m, q)| {
+                .zip(points.calibration())
+                .map(|((m, q), calibration)| {
                     let fitted = fit.pose * m;
-                    (q - fitted).norm() / self.sheet.at_mm(&fitted)
+                    (q - fitted).norm() / self.point_sigma_mm(&fitted, *calibration)
                 })
                 .collect();
             ratios.sort_by(f64::total_cmp);
@@ -192,12 +198,14 @@ impl StateEstimator {
         let reject_above_mm = self.reject_above_mm * noise_scale.max(1.0);
         let points = self.fixture_points(frame, fixture)?;
         let (model, measured) = (points.model(), points.measured());
+        let calibration = points.calibration();
         let mut fit = fit_frame(model, measured, reject_above_mm)
             .map_err(|source| CameraError::Fixture { fixture, source })?;
         if let Some(variance_factor) = known_variance_factor {
             while let Some(better) = self.without_the_unexplained_point(
                 model,
                 measured,
+                calibration,
                 reject_above_mm,
                 variance_factor,
                 &fit,
@@ -205,16 +213,17 @@ impl StateEstimator {
                 fit = better;
             }
         }
-        // The fitted positions of the points used and their data-sheet σ.
+        // The fitted positions of the points used and their data-sheet σ (with their
+        // calibration's, where the layout gives one).
         let mut fitted = [Point3::origin(); MAX_FIT_POINTS];
         let mut sigmas = [0.0; MAX_FIT_POINTS];
         let mut count = 0;
         for i in (0..model.len()).filter(|i| fit.inliers & (1u64 << i) != 0) {
             fitted[count] = fit.pose * model[i];
-            sigmas[count] = self.sheet.at_mm(&fitted[count]);
+            sigmas[count] = self.point_sigma_mm(&fitted[count], calibration[i]);
             count += 1;
         }
-        let residual_squares = self.residual_squares(model, measured, &fit);
+        let residual_squares = self.residual_squares(model, measured, calibration, &fit);
         let centre = Point3::from(
             fitted[..count]
                 .iter()
@@ -244,13 +253,14 @@ impl StateEstimator {
         frame: &CameraFrame,
         fixture: Fixture,
     ) -> Result<FixturePoints, CameraError> {
-        let layout = match fixture {
-            Fixture::C1 => &self.c1_model,
-            Fixture::C2 => &self.c2_model,
+        let (layout, calibration) = match fixture {
+            Fixture::C1 => (&self.c1_model, &self.c1_calibration_mm),
+            Fixture::C2 => (&self.c2_model, &self.c2_calibration_mm),
         };
         let mut points = FixturePoints {
             model: [Point3::origin(); MAX_FIT_POINTS],
             measured: [Point3::origin(); MAX_FIT_POINTS],
+            calibration: [0.0; MAX_FIT_POINTS],
             usable: 0,
             dropped: 0,
         };
@@ -274,27 +284,45 @@ impl StateEstimator {
                 });
             }
             points.model[points.usable] = *model_point;
+            points.calibration[points.usable] = calibration
+                .get(usize::from(point.id))
+                .copied()
+                .unwrap_or(0.0);
             points.measured[points.usable] = *p;
             points.usable += 1;
         }
         Ok(points)
     }
 
-    /// The residuals of the points `fit` used, each over its point's data-sheet σ, squared and
-    /// summed.
+    /// The residuals of the points `fit` used, each over its point's σ
+    /// ([`point_sigma_mm`](Self::point_sigma_mm)), squared and summed.
     fn residual_squares(
         &self,
         model: &[Point3<f64>],
         measured: &[Point3<f64>],
+        calibration: &[f64],
         fit: &FrameFit,
     ) -> f64 {
         (0..model.len())
             .filter(|i| fit.inliers & (1u64 << i) != 0)
             .map(|i| {
                 let fitted = fit.pose * model[i];
-                (measured[i] - fitted).norm_squared() / self.sheet.at_mm(&fitted).powi(2)
+                (measured[i] - fitted).norm_squared()
+                    / self.point_sigma_mm(&fitted, calibration[i]).powi(2)
             })
             .sum()
+    }
+
+    /// A coded point's σ per axis at `fitted` (mm): the data sheet's, and with a calibration
+    /// σ (`calibration_mm` > 0) the two added in quadrature. The fit itself is unweighted; the
+    /// calibration's σ enters the fit's covariance and the residuals' scale.
+    fn point_sigma_mm(&self, fitted: &Point3<f64>, calibration_mm: f64) -> f64 {
+        let sheet = self.sheet.at_mm(fitted);
+        if calibration_mm > 0.0 {
+            sheet.hypot(calibration_mm)
+        } else {
+            sheet
+        }
     }
 
     /// When `fit`'s residuals are beyond what a camera of `variance_factor` × the data sheet's
@@ -307,6 +335,7 @@ impl StateEstimator {
         &self,
         model: &[Point3<f64>],
         measured: &[Point3<f64>],
+        calibration: &[f64],
         reject_above_mm: f64,
         variance_factor: f64,
         fit: &FrameFit,
@@ -316,13 +345,16 @@ impl StateEstimator {
         }
         let dof = (3 * fit.used - 6) as f64;
         let chance = chi2_upper_quantile(dof, RESIDUALS_TAIL_SIGMAS) * variance_factor.max(1.0);
-        if self.residual_squares(model, measured, fit) <= chance {
+        if self.residual_squares(model, measured, calibration, fit) <= chance {
             return None;
         }
         (0..model.len())
             .filter(|i| fit.inliers & (1u64 << i) != 0)
             .filter_map(|i| refit_without(model, measured, reject_above_mm, fit, i).ok())
-            .map(|without| (self.residual_squares(model, measured, &without), without))
+            .map(|without| {
+                let squares = self.residual_squares(model, measured, calibration, &without);
+                (squares, without)
+            })
             .min_by(|a, b| a.0.total_cmp(&b.0))
             .map(|(_, without)| without)
     }
@@ -332,6 +364,8 @@ impl StateEstimator {
 struct FixturePoints {
     model: [Point3<f64>; MAX_FIT_POINTS],
     measured: [Point3<f64>; MAX_FIT_POINTS],
+    /// Each point's calibration σ, mm (0: not given).
+    calibration: [f64; MAX_FIT_POINTS],
     usable: usize,
     /// Points left out for an unknown id or non-finite coordinates.
     dropped: usize,
@@ -344,6 +378,10 @@ impl FixturePoints {
 
     fn measured(&self) -> &[Point3<f64>] {
         &self.measured[..self.usable]
+    }
+
+    fn calibration(&self) -> &[f64] {
+        &self.calibration[..self.usable]
     }
 }
 

@@ -5,7 +5,8 @@
 use super::drift::DriftKnowledge;
 use super::uncertainty::{NoiseScale, relative_covariance_of};
 use super::{
-    CameraError, CameraFrame, Fusion, FusionTuning, StateEstimator, StateFilter, state_vector,
+    CameraError, CameraFrame, FrameKind, Fusion, FusionTuning, StateEstimator, StateFilter,
+    state_vector,
 };
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Move, Pose};
@@ -366,7 +367,11 @@ impl Ingest {
 
     /// Gives every filter the camera's noise as now learned.
     fn pass_noise_scale(&mut self) {
-        let scale = self.noise.scale();
+        self.pass_scale(self.noise.scale());
+    }
+
+    /// Gives every filter this noise scale (× the data sheet's point noise).
+    fn pass_scale(&mut self, scale: f64) {
         for filter in self.filters() {
             filter.set_noise_scale(scale);
         }
@@ -393,8 +398,11 @@ impl Ingest {
         // sheet's threshold a camera four times as noisy loses one or two good points of six in
         // most fits, and the episode's view of Segment II starts from it. Once seen, the fits are
         // also screened against that noise, taken cautiously high so that a noise still being
-        // learned does not read as a point gone astray.
-        let (noise_scale, known_variance_factor) = if self.noise.has_seen_frames() {
+        // learned does not read as a point gone astray. A tracker's fitted frame is exact by
+        // construction: nothing to reject, nothing to screen.
+        let (noise_scale, known_variance_factor) = if let FrameKind::Fitted { .. } = frame.kind {
+            (1.0, None)
+        } else if self.noise.has_seen_frames() {
             let factor = self.noise.cautious_variance_factor();
             (self.noise.scale(), Some(factor))
         } else {
@@ -411,10 +419,26 @@ impl Ingest {
             measurement.w_m *= remaining;
             measurement.m_f = remaining.inverse() * measurement.m_f;
         }
-        self.noise
-            .add(measurement.residual_squares, measurement.residual_dof);
-        self.pass_noise_scale();
-        let variance_factor = self.noise.cautious_variance_factor();
+        // Residuals show the camera's noise only where the points were measured; a tracker's
+        // fit is as uncertain as the tracker says.
+        let variance_factor = match frame.kind {
+            FrameKind::Measured => {
+                self.noise
+                    .add(measurement.residual_squares, measurement.residual_dof);
+                self.pass_noise_scale();
+                self.noise.cautious_variance_factor()
+            }
+            FrameKind::Fitted { variance_factor } => {
+                // A factor that is no variance's is taken as the data sheet's.
+                let factor = if variance_factor.is_finite() && variance_factor > 0.0 {
+                    variance_factor
+                } else {
+                    1.0
+                };
+                self.pass_scale(factor.sqrt());
+                factor
+            }
+        };
         // Segment II from the episode's mean, not from this frame alone; this frame's view of
         // it goes into the mean unless it is gross.
         let c2 = measurement.c2.in_frame(&measurement.w_f);
@@ -482,6 +506,7 @@ mod tests {
                     })
                     .collect(),
                 sequence,
+                kind: crate::camera::FrameKind::Measured,
             })
             .collect()
     }

@@ -68,7 +68,8 @@ impl std::fmt::Display for Fixture {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CodedPoint {
     pub fixture: Fixture,
-    /// Index of the point in its fixture's layout (`CellFrames::c1_points_mm` / `c2_points_mm`).
+    /// Index of the point in its fixture's layout (`CellFrames::c1_points_mm` / `c2_points_mm`;
+    /// a camera names it by its label, `CellFrames::c1_labels` / `c2_labels`).
     pub id: u16,
     /// Measured position in the camera frame {W}, mm.
     pub position_mm: Point3<f64>,
@@ -82,6 +83,22 @@ pub struct CameraFrame {
     /// The capture's number within its episode: 1 for the episode's first capture, +1 per
     /// capture (0 when nobody numbered it). A frame delivered late or twice keeps its number.
     pub sequence: u64,
+    /// Whether the points were measured or rebuilt from a tracker's fit.
+    pub kind: FrameKind,
+}
+
+/// What a frame's points are: it decides what the frame may teach of the camera's noise.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub enum FrameKind {
+    /// The coded points as the camera measured them, each with its own noise: their fit's
+    /// residuals show how noisy the camera is.
+    #[default]
+    Measured,
+    /// Each fixture's coded points rebuilt at their layout from the frame a tracker fitted to
+    /// them (OpenIGTLink TRANSFORM): exact by construction, so their residuals say nothing of
+    /// the noise. The fit is as uncertain as the tracker made it: the data-sheet noise of the
+    /// points it fitted times `variance_factor` (1: as noisy as the data sheet says).
+    Fitted { variance_factor: f64 },
 }
 
 /// Why a capture gave no state.

@@ -1,6 +1,6 @@
 //! The simulated binocular camera.
 
-use super::{CameraFrame, CodedPoint, Fixture, PointNoise};
+use super::{CameraFrame, CodedPoint, Fixture, FrameKind, PointNoise};
 use crate::config::cell::CellConfig;
 use crate::geometry::{CellFrames, Pose};
 use nalgebra::{Point3, Vector3};
@@ -78,6 +78,7 @@ impl SimCamera {
         frame: &mut CameraFrame,
     ) {
         frame.points.clear();
+        frame.kind = FrameKind::Measured;
         for (fixture, pose, points) in [
             (Fixture::C1, w_m, &self.c1_in_m),
             (Fixture::C2, w_f, &self.c2_in_f),
@@ -116,6 +117,7 @@ impl SimCamera {
         let mut frame = CameraFrame {
             points: Vec::with_capacity(self.c1_in_m.len() + self.c2_in_f.len()),
             sequence: 0,
+            kind: FrameKind::Measured,
         };
         self.capture_into(w_m, w_f, rng, &mut frame);
         frame

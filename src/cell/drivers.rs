@@ -163,6 +163,7 @@ impl DriverBackend {
         CameraFrame {
             points: Vec::new(),
             sequence: self.last_sequence,
+            ..CameraFrame::default()
         }
     }
 

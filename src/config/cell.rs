@@ -5,6 +5,7 @@
 //! z pointing out of the bore; {M} sits on the shaft axis at the shoulder, z pointing from the tip
 //! back to the shoulder, so that {M} = {F} when the parts are docked.
 
+use super::fixture_layout::{FixtureLayout, LayoutError};
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -25,6 +26,14 @@ pub enum CellConfigError {
         key: &'static str,
         value: String,
         reason: String,
+    },
+    /// A calibration file refused; its problem is in the message (not a `source`, which an
+    /// error chain would print a second time).
+    #[error("cell file {path}: `camera.fixture_layout` {layout}: {problem}")]
+    Layout {
+        path: String,
+        layout: String,
+        problem: LayoutError,
     },
 }
 
@@ -206,11 +215,20 @@ pub struct CameraConfig {
     /// Point noise σ per axis = `noise_base_mm` + `noise_per_m_mm` × range in metres.
     pub noise_base_mm: f64,
     pub noise_per_m_mm: f64,
+    /// The generated ring of coded points on each fixture (when no `fixture_layout` is given):
+    /// this many points, ids 0 to n − 1, evenly on the ring from 0.1 rad.
     pub points_per_fixture: u32,
     /// Radius of the ring of coded points on each fixture.
     pub fixture_radius_mm: f64,
     /// Coded points alternate ± this far along the fixture axis, so the ring is not flat.
     pub fixture_height_spread_mm: f64,
+    /// A calibration file of both fixtures' coded points (CSV, `config::fixture_layout`),
+    /// relative to the cell file; it replaces the generated ring.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fixture_layout: Option<String>,
+    /// The coded points read from `fixture_layout` when the cell file was parsed.
+    #[serde(default, skip_deserializing, skip_serializing_if = "Option::is_none")]
+    pub calibrated_layout: Option<FixtureLayout>,
     /// Fixture {C1} sits this far behind Segment I's shoulder (+z of {M}); fixture {C2} this far
     /// inside Segment II from its entrance (−z of {F}).
     pub fixture_offset_mm: f64,
@@ -332,13 +350,31 @@ impl CellConfig {
         Self::parse(&text, &path.display().to_string())
     }
 
-    /// Parses and validates cell TOML; `origin` names the source in messages.
+    /// Parses and validates cell TOML; `origin` names the source in messages, and a relative
+    /// `camera.fixture_layout` is read from its folder.
     pub fn parse(text: &str, origin: &str) -> Result<Self, CellConfigError> {
-        let config: CellConfig = toml::from_str(text).map_err(|e| CellConfigError::Parse {
+        let mut config: CellConfig = toml::from_str(text).map_err(|e| CellConfigError::Parse {
             path: origin.to_string(),
             message: e.to_string(),
         })?;
         config.validate(origin)?;
+        if let Some(file) = &config.camera.fixture_layout {
+            let at = Path::new(origin)
+                .parent()
+                .unwrap_or(Path::new(""))
+                .join(file);
+            let text = std::fs::read_to_string(&at).map_err(|source| CellConfigError::Io {
+                path: at.display().to_string(),
+                source,
+            })?;
+            let layout =
+                FixtureLayout::parse_csv(&text).map_err(|problem| CellConfigError::Layout {
+                    path: origin.to_string(),
+                    layout: at.display().to_string(),
+                    problem,
+                })?;
+            config.camera.calibrated_layout = Some(layout);
+        }
         Ok(config)
     }
 

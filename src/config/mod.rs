@@ -1,3 +1,4 @@
 pub mod cell;
 pub mod drivers;
+pub mod fixture_layout;
 pub mod service;

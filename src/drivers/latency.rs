@@ -106,7 +106,7 @@ fn ingestion(cell: &CellConfig, count: usize) -> anyhow::Result<Vec<f64>> {
     let messages: Vec<Vec<u8>> = (0..count)
         .map(|k| {
             let stamp = Timestamp::from_secs_f64(now + k as f64 * 1e-3);
-            point_message(rig.capture(), 2, 0, stamp).encode()
+            point_message(rig.capture(), &frames, 2, 0, stamp).encode()
         })
         .collect();
     let mut assembler = FrameAssembler::new(&frames, u64::MAX / 2);

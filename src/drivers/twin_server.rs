@@ -11,6 +11,7 @@ use super::gcs::twin::TwinController;
 use super::igtl::codec::{Content, HEADER_BYTES, Header, Message, PointElement, Timestamp};
 use crate::camera::{CameraFrame, Fixture};
 use crate::config::cell::CellConfig;
+use crate::geometry::CellFrames;
 use crate::sim::rig::TwinRig;
 use crate::sim::{CELL_ROBOT_SEED, InitialConditions};
 use std::io::{Read, Write};
@@ -285,8 +286,17 @@ impl CameraSide {
 
     /// Captures and sends one POINT message; false once the client is gone.
     fn send_capture(&self, twin: &Shared, writer: &Mutex<TcpStream>, message_id: u32) -> bool {
-        let frame = lock(twin).capture();
-        let message = point_message(&frame, self.version, message_id, Timestamp::now());
+        let message = {
+            let mut twin = lock(twin);
+            let frame = twin.capture();
+            point_message(
+                &frame,
+                twin.rig.frames(),
+                self.version,
+                message_id,
+                Timestamp::now(),
+            )
+        };
         writer
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -295,9 +305,11 @@ impl CameraSide {
     }
 }
 
-/// A capture as a POINT message: group `C1`/`C2`, name the point's index, position in mm.
+/// A capture as a POINT message: group `C1`/`C2`, name the point's label in its fixture's
+/// layout (`frames`), position in mm.
 pub fn point_message(
     frame: &CameraFrame,
+    frames: &CellFrames,
     version: u16,
     message_id: u32,
     timestamp: Timestamp,
@@ -306,7 +318,7 @@ pub fn point_message(
         .points
         .iter()
         .map(|point| PointElement {
-            name: point.id.to_string(),
+            name: label_of(frames, point.fixture, point.id).to_string(),
             group: match point.fixture {
                 Fixture::C1 => "C1".into(),
                 Fixture::C2 => "C2".into(),
@@ -324,6 +336,15 @@ pub fn point_message(
         message_id,
         content: Content::Point(points),
     }
+}
+
+/// The label a camera names point `index` of `fixture` by (the index itself past the layout).
+fn label_of(frames: &CellFrames, fixture: Fixture, index: u16) -> u16 {
+    let labels = match fixture {
+        Fixture::C1 => &frames.c1_labels,
+        Fixture::C2 => &frames.c2_labels,
+    };
+    labels.get(usize::from(index)).copied().unwrap_or(index)
 }
 
 #[cfg(test)]

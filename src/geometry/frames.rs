@@ -13,6 +13,7 @@
 
 use super::pose::{Pose, rotation_x_deg};
 use crate::config::cell::CellConfig;
+use crate::config::fixture_layout::LayoutPoint;
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 /// Fixed transforms and coded-point layouts of one cell.
@@ -32,6 +33,14 @@ pub struct CellFrames {
     pub c1_points_mm: Vec<Point3<f64>>,
     /// Coded points of fixture {C2}, in {C2} coordinates (mm).
     pub c2_points_mm: Vec<Point3<f64>>,
+    /// The ids a camera names {C1}'s coded points by, beside `c1_points_mm`.
+    pub c1_labels: Vec<u16>,
+    /// The ids of {C2}'s coded points, beside `c2_points_mm`.
+    pub c2_labels: Vec<u16>,
+    /// The calibration's σ per axis of each of {C1}'s coded points, mm (0: not given).
+    pub c1_sigma_mm: Vec<f64>,
+    /// The same for {C2}'s.
+    pub c2_sigma_mm: Vec<f64>,
 }
 
 impl CellFrames {
@@ -45,19 +54,29 @@ impl CellFrames {
             Vector3::from(cell.camera.position_mm),
             Vector3::from(cell.camera.target_mm),
         );
-        let ring = coded_point_ring(
-            cell.camera.points_per_fixture as usize,
-            cell.camera.fixture_radius_mm,
-            cell.camera.fixture_height_spread_mm,
-        );
+        let (c1, c2) = match &cell.camera.calibrated_layout {
+            Some(layout) => (Layout::of(&layout.c1), Layout::of(&layout.c2)),
+            None => {
+                let ring = Layout::ring(
+                    cell.camera.points_per_fixture as usize,
+                    cell.camera.fixture_radius_mm,
+                    cell.camera.fixture_height_spread_mm,
+                );
+                (ring.clone(), ring)
+            }
+        };
         CellFrames {
             p_m,
             o_f,
             m_c1,
             f_c2,
             o_w,
-            c1_points_mm: ring.clone(),
-            c2_points_mm: ring,
+            c1_points_mm: c1.points_mm,
+            c2_points_mm: c2.points_mm,
+            c1_labels: c1.labels,
+            c2_labels: c2.labels,
+            c1_sigma_mm: c1.sigma_mm,
+            c2_sigma_mm: c2.sigma_mm,
         }
     }
 
@@ -95,15 +114,42 @@ fn look_at(eye: Vector3<f64>, target: Vector3<f64>) -> Pose {
     )
 }
 
-/// `count` coded points evenly on a ring, alternately `spread_mm` above and below its plane.
-fn coded_point_ring(count: usize, radius_mm: f64, spread_mm: f64) -> Vec<Point3<f64>> {
-    (0..count)
-        .map(|k| {
-            let angle = std::f64::consts::TAU * k as f64 / count as f64 + 0.1;
-            let z = if k % 2 == 0 { spread_mm } else { -spread_mm };
-            Point3::new(radius_mm * angle.cos(), radius_mm * angle.sin(), z)
-        })
-        .collect()
+/// One fixture's coded points: positions, labels and calibration σ side by side.
+#[derive(Clone)]
+struct Layout {
+    points_mm: Vec<Point3<f64>>,
+    labels: Vec<u16>,
+    sigma_mm: Vec<f64>,
+}
+
+impl Layout {
+    /// `count` coded points evenly on a ring, alternately `spread_mm` above and below its
+    /// plane, labelled 0 to `count` − 1, with no calibration σ.
+    fn ring(count: usize, radius_mm: f64, spread_mm: f64) -> Layout {
+        let points_mm = (0..count)
+            .map(|k| {
+                let angle = std::f64::consts::TAU * k as f64 / count as f64 + 0.1;
+                let z = if k % 2 == 0 { spread_mm } else { -spread_mm };
+                Point3::new(radius_mm * angle.cos(), radius_mm * angle.sin(), z)
+            })
+            .collect();
+        Layout {
+            points_mm,
+            labels: (0..count)
+                .map(|k| u16::try_from(k).unwrap_or(u16::MAX))
+                .collect(),
+            sigma_mm: vec![0.0; count],
+        }
+    }
+
+    /// A calibrated fixture's points, in the file's order.
+    fn of(points: &[LayoutPoint]) -> Layout {
+        Layout {
+            points_mm: points.iter().map(|p| p.position_mm.into()).collect(),
+            labels: points.iter().map(|p| p.label).collect(),
+            sigma_mm: points.iter().map(|p| p.sigma_mm.unwrap_or(0.0)).collect(),
+        }
+    }
 }
 
 #[cfg(test)]

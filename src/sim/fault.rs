@@ -477,6 +477,7 @@ mod tests {
         CameraFrame {
             points,
             sequence: u64::from(step) + 1,
+            ..CameraFrame::default()
         }
     }
 

@@ -106,6 +106,11 @@ impl TwinRig {
         &self.cell
     }
 
+    /// The cell's frames and its fixtures' coded-point layouts.
+    pub fn frames(&self) -> &CellFrames {
+        &self.frames
+    }
+
     /// The initial pose of {M} in {F}, drawn as `AssemblyEnv` draws it (the test below holds
     /// the two together).
     fn sample_initial(&mut self, initial: InitialConditions) -> Pose {

@@ -3,10 +3,15 @@
 //!
 //! Two kinds of camera are read. One sends a POINT message per capture with the coded points
 //! it decoded: each point's group names its fixture (`C1` or `C2`) and its name the point's
-//! index in the fixture's layout; positions are in the camera frame {W}, mm. The other, a
-//! tracker that fits the fixtures itself, sends a TRANSFORM message per fixture (device name
-//! `C1` or `C2`, the fixture's frame in {W}, mm) with one timestamp per capture; the frame is
-//! then the fixture's coded points at their nominal layout.
+//! label in the fixture's layout (`CellFrames::c1_labels`); positions are in the camera frame
+//! {W}, mm. The other, a tracker that fits the fixtures itself, sends a TRANSFORM message per
+//! fixture (device name `C1` or `C2`, the fixture's frame in {W}, mm) with one timestamp per
+//! capture; the frame is then the fixture's coded points at their layout, marked
+//! [`FrameKind::Fitted`] so that its residuals, zero by construction, teach nothing of the
+//! camera's noise.
+//!
+//! A streaming camera's messages queue while the cell is idle ([`inbox`], bounded); a capture
+//! takes everything queued and keeps the newest frame.
 //!
 //! Each capture's timestamp orders it: a newer one gets the next sequence number, the same
 //! one again (a repeated frame) its own number, an older one a number below the last, so
@@ -14,13 +19,16 @@
 //! older than the staleness limit by this machine's clock is refused here.
 
 use super::codec::{Content, HEADER_BYTES, Header, IgtlError, Message, Timestamp};
-use crate::camera::{CameraFrame, CodedPoint, Fixture};
+use crate::camera::{CameraFrame, CodedPoint, Fixture, FrameKind};
 use crate::geometry::{CellFrames, Pose};
+use inbox::{Inbox, Waited};
 use nalgebra::{Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use std::io::{Read, Write};
 use std::net::TcpStream;
-use std::sync::mpsc;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+pub mod inbox;
 
 /// Why no frame came from the camera.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -76,6 +84,9 @@ impl FrameError {
 pub struct FrameAssembler {
     c1_points_mm: Vec<Point3<f64>>,
     c2_points_mm: Vec<Point3<f64>>,
+    /// The labels a camera names each fixture's points by, in layout order.
+    c1_labels: Vec<u16>,
+    c2_labels: Vec<u16>,
     /// Oldest frame accepted, ms (by the receiving machine's clock).
     max_age_ms: u64,
     last: Option<(Timestamp, u64)>,
@@ -88,6 +99,8 @@ impl FrameAssembler {
         FrameAssembler {
             c1_points_mm: frames.c1_points_mm.clone(),
             c2_points_mm: frames.c2_points_mm.clone(),
+            c1_labels: frames.c1_labels.clone(),
+            c2_labels: frames.c2_labels.clone(),
             max_age_ms,
             last: None,
             pending: None,
@@ -106,13 +119,13 @@ impl FrameAssembler {
         message: &Message,
         now: Timestamp,
     ) -> Result<Option<CameraFrame>, FrameError> {
-        let points = match &message.content {
+        let (points, kind) = match &message.content {
             Content::Point(elements) => {
                 let mut points = Vec::with_capacity(elements.len());
                 for element in elements {
                     let fixture = fixture_named(&element.group);
-                    let id = element.name.trim().parse::<u16>().ok();
-                    let (Some(fixture), Some(id)) = (fixture, id) else {
+                    let label = element.name.trim().parse::<u16>().ok();
+                    let (Some(fixture), Some(label)) = (fixture, label) else {
                         return Err(FrameError::UnknownPoint {
                             group: element.group.clone(),
                             name: element.name.clone(),
@@ -120,11 +133,11 @@ impl FrameAssembler {
                     };
                     points.push(CodedPoint {
                         fixture,
-                        id,
+                        id: self.index_of(fixture, label),
                         position_mm: Point3::from(element.position.map(f64::from)),
                     });
                 }
-                points
+                (points, FrameKind::Measured)
             }
             Content::Transform(matrix) => {
                 let bad = || FrameError::BadTransform {
@@ -140,7 +153,11 @@ impl FrameAssembler {
                             Fixture::C1 => (pose, other_pose),
                             Fixture::C2 => (other_pose, pose),
                         };
-                        self.layout(&c1, &c2)
+                        // The tracker's fit at the data sheet's noise of its points.
+                        let kind = FrameKind::Fitted {
+                            variance_factor: 1.0,
+                        };
+                        (self.layout(&c1, &c2), kind)
                     }
                     _ => {
                         self.pending = Some((message.timestamp, fixture, pose));
@@ -169,7 +186,25 @@ impl FrameAssembler {
         {
             self.last = Some((message.timestamp, sequence));
         }
-        Ok(Some(CameraFrame { points, sequence }))
+        Ok(Some(CameraFrame {
+            points,
+            sequence,
+            kind,
+        }))
+    }
+
+    /// The index in `fixture`'s layout of the point labelled `label`; a label the layout does
+    /// not have gets an index no layout has, and the fit leaves the point out.
+    fn index_of(&self, fixture: Fixture, label: u16) -> u16 {
+        let labels = match fixture {
+            Fixture::C1 => &self.c1_labels,
+            Fixture::C2 => &self.c2_labels,
+        };
+        labels
+            .iter()
+            .position(|&l| l == label)
+            .and_then(|k| u16::try_from(k).ok())
+            .unwrap_or(u16::MAX)
     }
 
     /// The coded points of both fixtures at their nominal layout.
@@ -243,11 +278,11 @@ impl Default for CameraSettings {
     }
 }
 
-/// A camera connection: a reader thread decodes messages; [`IgtlCamera::capture`] turns them
-/// into frames on the caller's thread.
+/// A camera connection: a reader thread decodes messages into a bounded [`Inbox`];
+/// [`IgtlCamera::capture`] turns them into frames on the caller's thread.
 pub struct IgtlCamera {
     stream: TcpStream,
-    messages: mpsc::Receiver<Result<Message, FrameError>>,
+    inbox: Arc<Inbox>,
     assembler: FrameAssembler,
     settings: CameraSettings,
     /// A message id for the queries sent.
@@ -268,14 +303,15 @@ impl IgtlCamera {
         let stream =
             crate::drivers::connect_tcp(address, settings.connect_timeout_ms).map_err(failed)?;
         let reader = stream.try_clone().map_err(|e| failed(e.to_string()))?;
-        let (sender, messages) = mpsc::channel();
+        let inbox = Arc::new(Inbox::default());
+        let filled = inbox.clone();
         std::thread::Builder::new()
             .name("celld-igtl".into())
-            .spawn(move || read_messages(reader, &sender))
+            .spawn(move || read_messages(reader, &filled))
             .map_err(|e| failed(e.to_string()))?;
         Ok(IgtlCamera {
             stream,
-            messages,
+            inbox,
             assembler: FrameAssembler::new(frames, settings.max_age_ms),
             settings,
             queries: 0,
@@ -291,51 +327,117 @@ impl IgtlCamera {
     /// streamed since the last call, waiting for one if none came.
     pub fn capture(&mut self) -> Result<CameraFrame, FrameError> {
         if self.settings.triggered {
-            // Whatever arrived unasked for is not this capture's.
-            while self.messages.try_recv().is_ok() {}
-            self.queries = self.queries.wrapping_add(1);
-            let query = Message {
-                version: 2,
-                device: "celld".into(),
-                timestamp: Timestamp::now(),
-                message_id: self.queries,
-                content: Content::Query("GET_POINT".into()),
-            };
-            self.stream
-                .write_all(&query.encode())
-                .map_err(|e| FrameError::Dropped {
-                    reason: e.to_string(),
-                })?;
+            self.triggered()
         } else {
-            let mut newest = None;
-            while let Ok(message) = self.messages.try_recv() {
-                if let Some(frame) = self.assembler.take(&message?, Timestamp::now())? {
-                    newest = Some(frame);
+            self.newest_streamed()
+        }
+    }
+
+    /// Asks for a capture with `GET_POINT` and waits for the frame it gives.
+    fn triggered(&mut self) -> Result<CameraFrame, FrameError> {
+        // Whatever arrived unasked for is not this capture's.
+        self.inbox.drain();
+        self.queries = self.queries.wrapping_add(1);
+        let query = Message {
+            version: 2,
+            device: "celld".into(),
+            timestamp: Timestamp::now(),
+            message_id: self.queries,
+            content: Content::Query("GET_POINT".into()),
+        };
+        self.stream
+            .write_all(&query.encode())
+            .map_err(|e| FrameError::Dropped {
+                reason: e.to_string(),
+            })?;
+        let deadline = self.deadline();
+        loop {
+            let message = self.next_message(deadline)??;
+            if let Some(frame) = self.assembler.take(&message, Timestamp::now())? {
+                return Ok(frame);
+            }
+        }
+    }
+
+    /// The newest frame of a streaming camera: everything queued is taken in, in order, and
+    /// the newest complete frame kept; a frame refused (stale, damaged) is passed over when a
+    /// newer one is there. With none queued, the first frame to come within the frame timeout;
+    /// past it, why the last one was refused, or the timeout.
+    fn newest_streamed(&mut self) -> Result<CameraFrame, FrameError> {
+        let deadline = self.deadline();
+        let mut refused = None;
+        let mut newest: Option<CameraFrame> = None;
+        let (queued, closed) = self.inbox.drain();
+        for message in queued {
+            self.offer(message, &mut newest, &mut refused)?;
+        }
+        if let Some(frame) = newest {
+            return Ok(frame);
+        }
+        if closed {
+            return Err(refused.unwrap_or_else(reader_stopped));
+        }
+        loop {
+            match self.next_message(deadline) {
+                Ok(message) => self.offer(message, &mut newest, &mut refused)?,
+                Err(FrameError::Timeout { waited_ms }) => {
+                    return Err(refused.unwrap_or(FrameError::Timeout { waited_ms }));
                 }
+                Err(error) => return Err(error),
             }
             if let Some(frame) = newest {
                 return Ok(frame);
             }
         }
-        let waited_ms = self.settings.frame_timeout_ms;
-        let deadline = Instant::now() + Duration::from_millis(waited_ms);
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            let message = match self.messages.recv_timeout(left) {
-                Ok(message) => message?,
-                Err(mpsc::RecvTimeoutError::Timeout) => {
-                    return Err(FrameError::Timeout { waited_ms });
+    }
+
+    /// Takes one streamed message in: a frame it completes becomes `newest` unless that is
+    /// newer; a message or frame refused is remembered in `refused`; an error that ends the
+    /// connection is returned.
+    fn offer(
+        &mut self,
+        message: Result<Message, FrameError>,
+        newest: &mut Option<CameraFrame>,
+        refused: &mut Option<FrameError>,
+    ) -> Result<(), FrameError> {
+        let taken = message.and_then(|message| self.assembler.take(&message, Timestamp::now()));
+        match taken {
+            Ok(Some(frame)) => {
+                if newest
+                    .as_ref()
+                    .is_none_or(|kept| frame.sequence >= kept.sequence)
+                {
+                    *newest = Some(frame);
                 }
-                Err(mpsc::RecvTimeoutError::Disconnected) => {
-                    return Err(FrameError::Dropped {
-                        reason: "the reader stopped".into(),
-                    });
-                }
-            };
-            if let Some(frame) = self.assembler.take(&message, Timestamp::now())? {
-                return Ok(frame);
             }
+            Ok(None) => {}
+            Err(error) if error.ends_connection() => return Err(error),
+            Err(error) => *refused = Some(error),
         }
+        Ok(())
+    }
+
+    /// The frame timeout from now.
+    fn deadline(&self) -> Instant {
+        Instant::now() + Duration::from_millis(self.settings.frame_timeout_ms)
+    }
+
+    /// The next message the reader decoded, waiting until `deadline`: the outer error is the
+    /// wait's (a timeout, the reader stopped), the inner one the message's.
+    fn next_message(&self, deadline: Instant) -> Result<Result<Message, FrameError>, FrameError> {
+        match self.inbox.wait(deadline) {
+            Waited::Message(message) => Ok(message),
+            Waited::TimedOut => Err(FrameError::Timeout {
+                waited_ms: self.settings.frame_timeout_ms,
+            }),
+            Waited::Closed => Err(reader_stopped()),
+        }
+    }
+}
+
+fn reader_stopped() -> FrameError {
+    FrameError::Dropped {
+        reason: "the reader stopped".into(),
     }
 }
 
@@ -360,15 +462,17 @@ pub fn read_message<R: Read>(reader: &mut R, body: &mut Vec<u8>) -> Result<Messa
     Ok(Message::decode(&parsed, body)?)
 }
 
-/// Reads messages until the connection ends or a header is garbage; a body with a bad CRC or
-/// content is reported and skipped.
-fn read_messages(mut stream: TcpStream, sender: &mpsc::Sender<Result<Message, FrameError>>) {
+/// Reads messages into `inbox` until the connection ends or a header is garbage; a body with
+/// a bad CRC or content is reported and skipped.
+fn read_messages(mut stream: TcpStream, inbox: &Inbox) {
     let mut body = Vec::new();
     loop {
         let message = read_message(&mut stream, &mut body);
         let fatal = message.as_ref().is_err_and(FrameError::ends_connection);
-        if sender.send(message).is_err() || fatal {
+        inbox.push(message);
+        if fatal {
             let _ = stream.shutdown(std::net::Shutdown::Both);
+            inbox.close();
             return;
         }
     }

@@ -188,3 +188,151 @@ fn a_damaged_body_is_skipped_and_a_garbage_header_ends_the_stream() {
         Err(FrameError::Dropped { .. })
     ));
 }
+
+/// A POINT frame of the reference layout's points, its first point's x the message's number
+/// `k`, so a test can tell which message a frame came from.
+fn numbered(k: usize, at_s: f64) -> Message {
+    let mut elements = vec![("C1", "0", [k as f32, 0.0, 2000.0])];
+    for id in ["1", "2"] {
+        elements.push(("C1", id, [0.0, 1.0, 2000.0]));
+    }
+    points(at_s, &elements)
+}
+
+/// The message number of `frame`: its first point's x.
+fn number_of(frame: &CameraFrame) -> usize {
+    frame.points[0].position_mm.x as usize
+}
+
+/// How far the test cameras' clocks run ahead of the driver's, s: a loaded test machine's
+/// delays between a backlog's stamping and its capture then cannot make its newest frame
+/// stale.
+const AHEAD_S: f64 = 1.0;
+
+/// A streaming camera on a free loopback port that, once a client connects, writes
+/// `backlog` at once (what queued while the cell was idle), then every `period` one more
+/// message numbered from `live`, stamped as it is sent, then stays connected until the client
+/// leaves. Its clock runs a second ahead of the driver's ([`AHEAD_S`]).
+fn streaming_camera(
+    backlog: Vec<Message>,
+    live: std::ops::Range<usize>,
+    period: Duration,
+) -> std::net::SocketAddr {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = listener.local_addr().unwrap();
+    std::thread::spawn(move || {
+        let (mut client, _) = listener.accept().unwrap();
+        let bytes: Vec<u8> = backlog.iter().flat_map(Message::encode).collect();
+        client.write_all(&bytes).unwrap();
+        for k in live {
+            std::thread::sleep(period);
+            let message = numbered(k, Timestamp::now().as_secs_f64() + AHEAD_S);
+            if client.write_all(&message.encode()).is_err() {
+                return;
+            }
+        }
+        let mut rest = Vec::new();
+        let _ = client.read_to_end(&mut rest);
+    });
+    address
+}
+
+/// A streaming camera's driver: frames up to 2 s old accepted (a loaded test machine may take
+/// a while between the backlog's writing and its capture).
+fn streaming(address: std::net::SocketAddr, frame_timeout_ms: u64) -> IgtlCamera {
+    let settings = CameraSettings {
+        frame_timeout_ms,
+        max_age_ms: 2000,
+        triggered: false,
+        ..CameraSettings::default()
+    };
+    let frames = CellFrames::from_config(&CellConfig::reference());
+    IgtlCamera::connect(&address.to_string(), settings, &frames).unwrap()
+}
+
+/// Waits until the camera's reader has taken in `count` messages.
+fn received(camera: &IgtlCamera, count: u64) {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while camera.inbox.received() < count {
+        assert!(Instant::now() < deadline, "{}", camera.inbox.received());
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+#[test]
+fn a_streaming_camera_after_an_idle_spell_gives_its_newest_frame() {
+    // 30 Hz for ten seconds of idle: 300 frames queued, most of them stale.
+    let now = Timestamp::now().as_secs_f64() + AHEAD_S;
+    let backlog: Vec<Message> = (0..300)
+        .map(|k| numbered(k, now - 10.0 + (k + 1) as f64 / 30.0))
+        .collect();
+    let mut camera = streaming(
+        streaming_camera(backlog, 300..550, Duration::from_millis(33)),
+        2000,
+    );
+    received(&camera, 300);
+    let frame = camera.capture().unwrap();
+    assert_eq!(number_of(&frame), 299);
+    assert!(camera.inbox.is_empty());
+    // Then frame after frame as the stream goes on, each newer than the last, none refused.
+    let mut last = (299, frame.sequence);
+    for _ in 0..5 {
+        std::thread::sleep(Duration::from_millis(120));
+        let frame = camera.capture().unwrap();
+        assert!(number_of(&frame) > last.0 && frame.sequence > last.1);
+        last = (number_of(&frame), frame.sequence);
+    }
+}
+
+#[test]
+fn a_backlog_past_the_inbox_keeps_the_newest_and_a_stale_one_alone_is_refused() {
+    // 100 Hz for a minute: far more than the inbox keeps; the newest are the ones kept.
+    let now = Timestamp::now().as_secs_f64() + AHEAD_S;
+    let count = 6000;
+    let backlog: Vec<Message> = (0..count)
+        .map(|k| numbered(k, now - 60.0 + (k + 1) as f64 / 100.0))
+        .collect();
+    let mut camera = streaming(streaming_camera(backlog, 0..0, Duration::ZERO), 50);
+    received(&camera, count as u64);
+    assert_eq!(camera.inbox.len(), inbox::INBOX_MESSAGES);
+    assert_eq!(number_of(&camera.capture().unwrap()), count - 1);
+    // Nothing newer comes: within the frame timeout, a silent camera.
+    assert_eq!(camera.capture(), Err(FrameError::Timeout { waited_ms: 50 }));
+
+    // A camera whose whole backlog is stale and that then falls silent: the capture waits no
+    // longer than the frame timeout and says why the frames were refused.
+    let backlog: Vec<Message> = (0..40)
+        .map(|k| numbered(k, now - 10.0 + k as f64 / 30.0))
+        .collect();
+    let mut camera = streaming(streaming_camera(backlog, 0..0, Duration::ZERO), 50);
+    received(&camera, 40);
+    assert!(matches!(
+        camera.capture(),
+        Err(FrameError::Stale { max_ms: 2000, .. })
+    ));
+}
+
+#[test]
+fn a_streaming_tracker_after_an_idle_spell_gives_its_newest_pair() {
+    // Four seconds of pairs at 30 Hz.
+    let now = Timestamp::now().as_secs_f64() + AHEAD_S;
+    let pose = |k: usize| Pose::translation(k as f64, 0.0, 2000.0);
+    let backlog: Vec<Message> = (0..120)
+        .flat_map(|k| {
+            let at = now - 4.0 + (k + 1) as f64 / 30.0;
+            [transform(at, "C1", &pose(k)), transform(at, "C2", &pose(k))]
+        })
+        .collect();
+    let mut camera = streaming(streaming_camera(backlog, 0..0, Duration::ZERO), 2000);
+    received(&camera, 240);
+    let frame = camera.capture().unwrap();
+    assert_eq!(
+        frame.kind,
+        FrameKind::Fitted {
+            variance_factor: 1.0
+        }
+    );
+    let frames = CellFrames::from_config(&CellConfig::reference());
+    let expected = pose(119) * frames.c1_points_mm[0];
+    assert!((frame.points[0].position_mm - expected).norm() < 1e-3);
+}
