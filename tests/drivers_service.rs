@@ -53,6 +53,11 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
     let job = server.create_job(&operator, json!({"controller": "expert", "seed": 2}));
     let done = server.wait_final(id(&job));
     assert_eq!(done["status"], "succeeded", "{done}");
+    // The drivers' figures: a round trip for each query, an age for each frame.
+    let metrics = exposition(&server);
+    assert!(count_of(&metrics, "celld_controller_round_trip_seconds_count") > 50.0);
+    assert!(count_of(&metrics, "celld_camera_frame_age_seconds_count") > 10.0);
+    assert_eq!(count_of(&metrics, "celld_driver_latched"), 0.0);
 
     // The controller goes away mid-job.
     let job = server.create_job(&operator, json!({"controller": "expert", "seed": 3}));
@@ -102,6 +107,7 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
         "{latch}"
     );
     assert!(latch["since_unix_ms"].as_u64().unwrap() > 0, "{latch}");
+    assert_eq!(count_of(&exposition(&server), "celld_driver_latched"), 1.0);
     let (status, refused) = server.post(
         "/api/jobs",
         Some(&operator),
@@ -135,6 +141,9 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
     assert_eq!(status, 200, "{cell}");
     assert!(cell["driver_latch"].is_null(), "{cell}");
     assert_eq!(cell["accepting_jobs"], true, "{cell}");
+    let metrics = exposition(&server);
+    assert_eq!(count_of(&metrics, "celld_driver_latched"), 0.0);
+    assert!(count_of(&metrics, "celld_driver_reconnects_total{driver=\"robot\"}") >= 1.0);
     let job = server.create_job(&operator, json!({"controller": "expert", "seed": 6}));
     let done = server.wait_final(id(&job));
     assert_eq!(done["status"], "succeeded", "{done}");
@@ -148,6 +157,22 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
         |cell| !cell["driver_latch"].is_null(),
     );
     assert_eq!(cell["driver_latch"]["code"], "controller_dropped", "{cell}");
+}
+
+fn exposition(server: &Server) -> String {
+    let (_, metrics) = server.get("/metrics", None);
+    metrics.as_str().unwrap().to_string()
+}
+
+/// The value of the sample named `name` (with its labels) in a metrics exposition.
+fn count_of(metrics: &str, name: &str) -> f64 {
+    metrics
+        .lines()
+        .find_map(|line| line.strip_prefix(name)?.strip_prefix(' '))
+        .unwrap_or_else(|| panic!("no {name} in {metrics}"))
+        .trim()
+        .parse()
+        .unwrap()
 }
 
 /// Polls until the job has stored `count` steps.

@@ -145,6 +145,9 @@ impl DriverBackend {
         let camera = self.camera.as_mut().expect("connected above");
         match camera.capture() {
             Ok(mut frame) => {
+                if let Some(age_ms) = camera.frame_age_ms() {
+                    self.observer.camera_frame_age(age_ms / 1e3);
+                }
                 frame.sequence += self.sequence_base;
                 self.last_sequence = self.last_sequence.max(frame.sequence);
                 (frame, None)

@@ -90,6 +90,8 @@ pub struct FrameAssembler {
     /// Oldest frame accepted, ms (by the receiving machine's clock).
     max_age_ms: u64,
     last: Option<(Timestamp, u64)>,
+    /// The age of the last frame completed, by the receiving machine's clock, ms.
+    last_age_ms: Option<f64>,
     /// A tracker's fixture transform waiting for the other fixture's of the same capture.
     pending: Option<(Timestamp, Fixture, Pose)>,
 }
@@ -103,8 +105,15 @@ impl FrameAssembler {
             c2_labels: frames.c2_labels.clone(),
             max_age_ms,
             last: None,
+            last_age_ms: None,
             pending: None,
         }
+    }
+
+    /// The age of the last frame completed when it was (its timestamp to the receiving
+    /// machine's clock), ms.
+    pub fn last_age_ms(&self) -> Option<f64> {
+        self.last_age_ms
     }
 
     /// A new episode: sequence numbers start again.
@@ -168,6 +177,7 @@ impl FrameAssembler {
             _ => return Ok(None),
         };
         let age_ms = (now.as_secs_f64() - message.timestamp.as_secs_f64()) * 1000.0;
+        self.last_age_ms = Some(age_ms);
         if age_ms > self.max_age_ms as f64 {
             return Err(FrameError::Stale {
                 age_ms,
@@ -287,6 +297,8 @@ pub struct IgtlCamera {
     settings: CameraSettings,
     /// A message id for the queries sent.
     queries: u32,
+    /// The age of the frame the last capture gave, ms.
+    frame_age_ms: Option<f64>,
 }
 
 impl IgtlCamera {
@@ -315,7 +327,13 @@ impl IgtlCamera {
             assembler: FrameAssembler::new(frames, settings.max_age_ms),
             settings,
             queries: 0,
+            frame_age_ms: None,
         })
+    }
+
+    /// The age of the frame the last capture gave when it was taken in, ms.
+    pub fn frame_age_ms(&self) -> Option<f64> {
+        self.frame_age_ms
     }
 
     /// A new episode: the frames' numbering starts again.
@@ -354,6 +372,7 @@ impl IgtlCamera {
         loop {
             let message = self.next_message(deadline)??;
             if let Some(frame) = self.assembler.take(&message, Timestamp::now())? {
+                self.frame_age_ms = self.assembler.last_age_ms();
                 return Ok(frame);
             }
         }
@@ -408,6 +427,7 @@ impl IgtlCamera {
                     .is_none_or(|kept| frame.sequence >= kept.sequence)
                 {
                     *newest = Some(frame);
+                    self.frame_age_ms = self.assembler.last_age_ms();
                 }
             }
             Ok(None) => {}
