@@ -79,17 +79,26 @@ fn text_of(browser: &Browser, css: &str) -> String {
     }
 }
 
-#[test]
-fn dashboard_drives_the_cell_in_a_real_browser() {
+/// A headless Chromium saving its screenshots under [`screenshots`]; none (said so) where
+/// chromedriver is not installed, which fails under CI.
+fn browser() -> Option<(Browser, PathBuf)> {
     let Some(browser) = Browser::start() else {
         if std::env::var_os("CI").is_some() {
             panic!("CI is set but chromedriver is not installed (.ci/run installs it)");
         }
         eprintln!("skipping the browser test: chromedriver is not installed");
-        return;
+        return None;
     };
     let shots = screenshots();
     browser.set_screenshot_dir(Some(&shots));
+    Some((browser, shots))
+}
+
+#[test]
+fn dashboard_drives_the_cell_in_a_real_browser() {
+    let Some((browser, shots)) = browser() else {
+        return;
+    };
     let dir = tempfile::tempdir().unwrap();
     // A gate of 1: a policy must succeed in every episode of its evaluation. The bundled flat
     // `td3` baseline, uploaded below, succeeds in none, so the page can show the gate's
@@ -374,15 +383,9 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
 /// the latch; with the controller back, the page's reset clears it.
 #[test]
 fn a_latched_robot_driver_is_shown_and_reset_from_the_dashboard() {
-    let Some(browser) = Browser::start() else {
-        if std::env::var_os("CI").is_some() {
-            panic!("CI is set but chromedriver is not installed (.ci/run installs it)");
-        }
-        eprintln!("skipping the browser test: chromedriver is not installed");
+    let Some((browser, shots)) = browser() else {
         return;
     };
-    let shots = screenshots();
-    browser.set_screenshot_dir(Some(&shots));
     let twin = TwinServer::start(&[]);
     let (gcs, igtl) = (twin.gcs.port(), twin.igtl.port());
     let dir = tempfile::tempdir().unwrap();
