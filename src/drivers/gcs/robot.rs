@@ -103,6 +103,11 @@ impl GcsRobot {
     /// from where the cell last put it fails the reset (`position_mismatch`, which the
     /// operator could not have seen yet); the next reset takes it where it is.
     pub fn reset(&mut self) -> Result<(), GcsError> {
+        // A connection lost on the way is given up as any other.
+        self.check_and_unlatch().map_err(|error| self.note(error))
+    }
+
+    fn check_and_unlatch(&mut self) -> Result<(), GcsError> {
         let acknowledged = self.mismatch_latched();
         if self.client.is_none() {
             self.reconnect()?;
