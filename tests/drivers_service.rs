@@ -72,6 +72,10 @@ fn jobs_run_through_the_drivers_and_a_lost_controller_holds_until_an_operator_re
                 .is_some_and(|items| items.len() >= 5)
         },
     );
+    // A running job counts the steps stored so far.
+    let running = server.job(id(&job));
+    assert_eq!(running["status"], "running", "{running}");
+    assert!(running["steps"].as_i64().unwrap() >= 5, "{running}");
     drop(twin);
     let failed = server.wait_final(id(&job));
     assert_eq!(failed["status"], "failed", "{failed}");
