@@ -301,7 +301,8 @@ impl ControlLoop {
                     Ok(()) => self.status.send_modify(|s| s.estop_latched = false),
                     Err(error) => tracing::warn!(%error, "reset: the hardware is not ready"),
                 }
-                self.publish();
+                // The reset may have cleared the driver's latch, or found it graver.
+                self.take_driver_latch();
                 self.send_latches();
                 let _ = reply.send(result);
             }
@@ -394,18 +395,26 @@ impl ControlLoop {
         (self.sink)(event);
     }
 
-    fn publish(&mut self) {
+    /// Takes the backend's latch into the status; whether it changed.
+    fn take_driver_latch(&mut self) -> bool {
         let driver_latch = self.backend.latch();
-        if driver_latch != self.status.borrow().driver_latch {
-            if let Some(latch) = &driver_latch {
-                tracing::warn!(
-                    code = latch.code,
-                    reason = latch.reason,
-                    "the driver latched"
-                );
-            }
-            self.status
-                .send_modify(|status| status.driver_latch = driver_latch);
+        if driver_latch == self.status.borrow().driver_latch {
+            return false;
+        }
+        if let Some(latch) = &driver_latch {
+            tracing::warn!(
+                code = latch.code,
+                reason = latch.reason,
+                "the driver latched"
+            );
+        }
+        self.status
+            .send_modify(|status| status.driver_latch = driver_latch);
+        true
+    }
+
+    fn publish(&mut self) {
+        if self.take_driver_latch() {
             self.send_latches();
         }
         let current_job = self.running.as_ref().map(|r| r.id);
