@@ -21,6 +21,7 @@ use assembly_cell::cell::job::JobStatus;
 use assembly_cell::cell::{CellBackend, DriverBackend, TwinBackend};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::drivers::twin_server::{TwinServer, TwinServerOptions};
+use assembly_cell::sim::judge::Judge;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
@@ -40,6 +41,8 @@ struct Tally {
     detected: BTreeMap<String, usize>,
     /// Per seed: succeeded, steps.
     ends: Vec<(bool, u32)>,
+    /// Jobs whose verdict (judged on the estimate) the twin-server's truth disagrees with.
+    truth_disagrees: Option<usize>,
     seconds: f64,
 }
 
@@ -82,21 +85,32 @@ fn join(counts: &BTreeMap<String, usize>) -> String {
 }
 
 /// Runs `jobs` jobs (seeds 1 to `jobs`) on `backend`, with a progress line every ten jobs and
-/// one for each job that fails.
+/// one for each job that fails; each verdict checked against the truth of `server` when the
+/// jobs run there.
 fn run_jobs(
     label: &str,
     cell: &CellConfig,
     backend: &mut dyn CellBackend,
+    server: Option<&TwinServer>,
     jobs: u64,
 ) -> anyhow::Result<Tally> {
     let mut tally = Tally {
         label: label.into(),
+        truth_disagrees: server.map(|_| 0),
         ..Tally::default()
     };
+    let judge = Judge::new(cell);
     let start = Instant::now();
     for seed in 1..=jobs {
         let (end, detected) = run_job(seed, cell, backend)?;
         let succeeded = end.status == JobStatus::Succeeded;
+        if let (Some(server), Some(disagrees)) = (server, tally.truth_disagrees.as_mut()) {
+            let truth = judge.errors(&server.true_f_m());
+            if judge.is_success(&truth) != succeeded {
+                println!("  {label}: seed {seed}: the truth disagrees with the verdict: {truth:?}");
+                *disagrees += 1;
+            }
+        }
         tally.jobs += 1;
         tally.steps += u64::from(end.steps);
         tally.ends.push((succeeded, end.steps));
@@ -138,15 +152,18 @@ fn twin_server(cell: &CellConfig, stream_hz: f64) -> anyhow::Result<TwinServer> 
 
 fn print_table(tallies: &[&Tally]) {
     println!(
-        "| run | jobs | succeeded | mean steps | ended camera_shift | shift steps | failures | s |"
+        "| run | jobs | succeeded | truth disagrees | mean steps | ended camera_shift \
+         | shift steps | failures | s |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for t in tallies {
         println!(
-            "| {} | {} | {} | {:.1} | {} | {} | {} | {:.0} |",
+            "| {} | {} | {} | {} | {:.1} | {} | {} | {} | {:.0} |",
             t.label,
             t.jobs,
             t.succeeded,
+            t.truth_disagrees
+                .map_or_else(|| "-".to_string(), |n| n.to_string()),
             t.mean_steps(),
             t.ended("camera_shift"),
             t.shift_steps(),
@@ -189,12 +206,12 @@ fn streaming(cell: &CellConfig, jobs: u64, idle_s: f64) -> anyhow::Result<()> {
         DriverBackend::connect(cell, driver_settings(server.igtl, server.gcs, false), None)?;
     println!("  connected; idle {idle_s} s while the camera streams");
     std::thread::sleep(Duration::from_secs_f64(idle_s));
-    let streamed = run_jobs("streaming 30 Hz", cell, &mut backend, jobs)?;
+    let streamed = run_jobs("streaming 30 Hz", cell, &mut backend, Some(&server), jobs)?;
     drop(backend);
     let server = twin_server(cell, 0.0)?;
     let mut backend =
         DriverBackend::connect(cell, driver_settings(server.igtl, server.gcs, true), None)?;
-    let triggered = run_jobs("triggered", cell, &mut backend, jobs)?;
+    let triggered = run_jobs("triggered", cell, &mut backend, Some(&server), jobs)?;
     println!();
     print_table(&[&streamed, &triggered]);
     let ratio = streamed.mean_steps() / triggered.mean_steps();
@@ -221,11 +238,11 @@ fn tracker(cell: &CellConfig, jobs: u64) -> anyhow::Result<()> {
         driver_settings(relay.address, server.gcs, false),
         None,
     )?;
-    let fitted = run_jobs("pyigtl tracker", cell, &mut backend, jobs)?;
+    let fitted = run_jobs("pyigtl tracker", cell, &mut backend, Some(&server), jobs)?;
     drop(backend);
     drop(relay);
     let mut twin = TwinBackend::new(cell, None);
-    let in_twin = run_jobs("in-process twin", cell, &mut twin, jobs)?;
+    let in_twin = run_jobs("in-process twin", cell, &mut twin, None, jobs)?;
     println!();
     print_table(&[&fitted, &in_twin]);
     let ratio = fitted.mean_steps() / in_twin.mean_steps();
@@ -235,9 +252,10 @@ fn tracker(cell: &CellConfig, jobs: u64) -> anyhow::Result<()> {
          largest step difference {largest}"
     );
     println!(
-        "goal: no job ends camera_shift: {}; successes as the twin's: {}; steps within 10 % \
-         of the twin's: {}",
+        "goal: no job ends camera_shift: {}; the truth agrees with every verdict: {}; \
+         successes as the twin's: {}; steps within 10 % of the twin's: {}",
         met(fitted.ended("camera_shift") == 0),
+        met(fitted.truth_disagrees == Some(0)),
         met(fitted.succeeded >= in_twin.succeeded),
         met((ratio - 1.0).abs() <= 0.1)
     );
