@@ -56,7 +56,10 @@ def main(path, camera_port, camera_host):
     reject_above_mm = spec["reject_above_mm"]
     labels = spec.get("labels", {})
     indexes = {
-        name: {str(label): index for index, label in enumerate(labels.get(name, range(len(points))))}
+        name: {
+            str(label): index
+            for index, label in enumerate(labels.get(name, range(len(points))))
+        }
         for name, points in layout.items()
     }
     camera = pyigtl.OpenIGTLinkClient(host=camera_host, port=camera_port)
