@@ -4,6 +4,8 @@
 // Each example uses what it needs of this module.
 #![allow(dead_code)]
 
+pub mod camera_jobs;
+
 /// Positional argument `index` (1 is the first), or `default` when it is not given; an error
 /// naming it when it is given but does not parse.
 pub fn arg<T: std::str::FromStr>(index: usize, default: T) -> anyhow::Result<T> {
