@@ -11,8 +11,7 @@
 //! garbage gives a frame with no points (the supervisor then vetoes every move, and the job
 //! ends `stale_camera`), named the same way (`camera_silent`, `camera_garbage`, …).
 
-use super::backend::DriverLatch;
-use super::backend::{BackendError, CellBackend, EmergencyStop};
+use super::backend::{BackendError, CellBackend, DriverLatch, EmergencyStop};
 use super::ingestion::Ingestion;
 use crate::camera::ingest::{Estimate, Ingest, Shot};
 use crate::camera::{CameraFrame, StateFilter};
