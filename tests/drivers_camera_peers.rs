@@ -6,16 +6,18 @@
 //! as a streaming camera and as a tracker (without it, its test says so and passes; with `CI`
 //! set, a missing one fails it).
 
+// The tracker-relay job runner and its settings, shared with examples/camera_goals.rs.
+#[path = "../examples/common/camera_jobs.rs"]
+#[allow(dead_code)]
+mod camera_jobs;
 mod drivers_support;
 #[path = "drivers_camera_peers/layouts.rs"]
 mod layouts;
 
 use assembly_cell::camera::ingest::{Detected, Estimate, Ingest, Shot};
 use assembly_cell::camera::{CameraFrame, Fixture, FrameKind, StateEstimator};
-use assembly_cell::cell::job::{ControllerSource, JobEnd, JobRun, JobSpec, SafetyLimits};
-use assembly_cell::cell::{CellBackend, DriverBackend, DriverSettings};
+use assembly_cell::cell::DriverBackend;
 use assembly_cell::config::cell::CellConfig;
-use assembly_cell::drivers::gcs::GcsSettings;
 use assembly_cell::drivers::igtl::camera::{
     CameraSettings, FrameAssembler, IgtlCamera, read_message,
 };
@@ -25,6 +27,7 @@ use assembly_cell::geometry::fit::fit_frame;
 use assembly_cell::geometry::{CellFrames, Pose};
 use assembly_cell::sim::InitialConditions;
 use assembly_cell::sim::rig::TwinRig;
+use camera_jobs::{driver_settings, run_job};
 use drivers_support::{python_has, script};
 use nalgebra::Point3;
 use std::io::{BufRead, BufReader, Write};
@@ -320,45 +323,6 @@ fn tracker_relay(upstream: SocketAddr, frames: CellFrames, reject_above_mm: f64)
     address
 }
 
-fn job(seed: u64, cell: &CellConfig, backend: &mut dyn CellBackend) -> (JobEnd, Vec<String>) {
-    let spec = JobSpec {
-        id: seed as i64,
-        controller: ControllerSource::Builtin("expert".into()),
-        seed,
-        initial: InitialConditions::from_cell(cell),
-        demonstration: false,
-    };
-    let limits = SafetyLimits {
-        deadline_s: 10.0,
-        max_stale_steps: 4,
-    };
-    let mut run = JobRun::start(&spec, cell, backend, limits, 0.0).unwrap();
-    let mut detected = Vec::new();
-    loop {
-        let report = run.step(backend, &|| 0.0);
-        detected.extend(report.record.and_then(|r| r.detected));
-        if let Some(end) = report.end {
-            return (end, detected);
-        }
-    }
-}
-
-fn settings(camera_address: SocketAddr, gcs: SocketAddr) -> DriverSettings {
-    DriverSettings {
-        robot_address: gcs.to_string(),
-        robot: GcsSettings {
-            answer_timeout_ms: 2000,
-            ..GcsSettings::default()
-        },
-        camera_address: camera_address.to_string(),
-        camera: CameraSettings {
-            frame_timeout_ms: 2000,
-            ..CameraSettings::default()
-        },
-        rehearsal: true,
-    }
-}
-
 #[test]
 fn jobs_through_a_tracker_end_as_through_the_point_camera() {
     // The integrator's case: a tracker's TRANSFORMs, one per fixture per capture, fitted at
@@ -369,11 +333,13 @@ fn jobs_through_a_tracker_end_as_through_the_point_camera() {
     let server = TwinServer::start(&TwinServerOptions::loopback(&cell, 0)).unwrap();
     let tracker = tracker_relay(server.igtl, frames, threshold);
     let mut by_points =
-        DriverBackend::connect(&cell, settings(server.igtl, server.gcs), None).unwrap();
-    let mut by_fits = DriverBackend::connect(&cell, settings(tracker, server.gcs), None).unwrap();
+        DriverBackend::connect(&cell, driver_settings(server.igtl, server.gcs, true), None)
+            .unwrap();
+    let mut by_fits =
+        DriverBackend::connect(&cell, driver_settings(tracker, server.gcs, true), None).unwrap();
     for seed in 1..=6 {
-        let (expected, _) = job(seed, &cell, &mut by_points);
-        let (got, detected) = job(seed, &cell, &mut by_fits);
+        let (expected, _) = run_job(seed, &cell, &mut by_points).unwrap();
+        let (got, detected) = run_job(seed, &cell, &mut by_fits).unwrap();
         assert!(
             !detected.iter().any(|d| d.starts_with("camera_shift")),
             "seed {seed}: {detected:?}"
