@@ -87,11 +87,14 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     let metrics = Metrics::default();
     let (telemetry, _) = broadcast::channel(settings.control.telemetry_buffer);
     let (events, events_inbox) = mpsc::unbounded_channel();
+    // Jobs whose steps the storage writer cannot store: the control thread holds them.
+    let (unrecorded, unrecorded_jobs) = mpsc::unbounded_channel();
     let recorder = tokio::spawn(recorder::run(
         db.clone(),
         events_inbox,
         settings.control.step_batch,
         cell.config_hash(),
+        unrecorded,
     ));
     let sink = event_sink(metrics.clone(), telemetry.clone(), events);
     let period = settings
@@ -125,6 +128,10 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         }
     };
     let (cell_handle, control_thread) = task::spawn(cell.clone(), backend, loop_settings, sink);
+    tokio::spawn(workflows::cell::fail_unrecorded_jobs(
+        cell_handle.clone(),
+        unrecorded_jobs,
+    ));
 
     let (stop_streams, shutdown) = watch::channel(false);
     let accepting = Arc::new(AtomicBool::new(true));

@@ -99,7 +99,8 @@ impl JobStatus {
 pub struct JobEnd {
     pub status: JobStatus,
     /// `estop`, `cancelled`, `missed_deadline`, `stale_camera`, `nan_action`, an episode
-    /// failure code (`contact`, `collision_limit`, ...) or `shutdown`; none on success.
+    /// failure code (`contact`, `collision_limit`, ...), `storage_failed` (its steps could not
+    /// be stored) or `shutdown`; none on success.
     pub failure_reason: Option<String>,
     pub steps: u32,
     pub reward: f64,

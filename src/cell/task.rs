@@ -33,6 +33,24 @@ pub enum CellCommand {
     Reset {
         reply: oneshot::Sender<Result<(), String>>,
     },
+    /// The first half of a reset whose latch must be stored before it is cleared: resets the
+    /// backend (clearing the driver's latch when the hardware is ready) and keeps the e-stop
+    /// latched; answers the count of e-stop presses so far, for [`CellCommand::ClearEStop`],
+    /// or why the hardware is not ready (both latches then stay).
+    ResetHardware {
+        reply: oneshot::Sender<Result<u64, String>>,
+    },
+    /// The second half: clears the e-stop latch unless it was pressed again after the
+    /// [`CellCommand::ResetHardware`] that answered `presses`; answers whether it cleared.
+    ClearEStop {
+        presses: u64,
+        reply: oneshot::Sender<bool>,
+    },
+    /// The storage writer cannot store job `job_id`'s steps: if it is running, the robot holds
+    /// and the job fails with `storage_failed`; queued jobs are cancelled with that reason.
+    StorageFailed {
+        job_id: i64,
+    },
     /// Holds the robot, closes the running and queued jobs as interrupted, and ends the thread.
     Shutdown {
         reply: oneshot::Sender<()>,
@@ -162,6 +180,7 @@ pub fn spawn(
         queue: VecDeque::new(),
         running: None,
         epoch: Instant::now(),
+        estop_presses: 0,
     };
     let thread = std::thread::Builder::new()
         .name("celld-control".into())
@@ -197,6 +216,8 @@ struct ControlLoop {
     queue: VecDeque<JobSpec>,
     running: Option<JobRun>,
     epoch: Instant,
+    /// E-stops pressed since the thread started (see [`CellCommand::ClearEStop`]).
+    estop_presses: u64,
 }
 
 impl ControlLoop {
@@ -285,6 +306,7 @@ impl ControlLoop {
             }
             CellCommand::EStop { reply } => {
                 self.backend.hold();
+                self.estop_presses += 1;
                 self.status.send_modify(|s| s.estop_latched = true);
                 self.send_latches();
                 if self.running.is_some() {
@@ -305,6 +327,33 @@ impl ControlLoop {
                 self.take_driver_latch();
                 self.send_latches();
                 let _ = reply.send(result);
+            }
+            CellCommand::ResetHardware { reply } => {
+                let result = self.backend.reset().map_err(|error| error.to_string());
+                if let Err(error) = &result {
+                    tracing::warn!(%error, "reset: the hardware is not ready");
+                }
+                if self.take_driver_latch() {
+                    self.send_latches();
+                }
+                let _ = reply.send(result.map(|()| self.estop_presses));
+            }
+            CellCommand::ClearEStop { presses, reply } => {
+                let clear = presses == self.estop_presses;
+                if clear {
+                    self.status.send_modify(|s| s.estop_latched = false);
+                    self.send_latches();
+                }
+                let _ = reply.send(clear);
+            }
+            CellCommand::StorageFailed { job_id } => {
+                if self.running.as_ref().is_some_and(|r| r.id == job_id) {
+                    self.backend.hold();
+                    self.finish(JobStatus::Failed, Some("storage_failed"));
+                }
+                for spec in std::mem::take(&mut self.queue) {
+                    self.end_unstarted(spec.id, JobStatus::Cancelled, "storage_failed");
+                }
             }
             CellCommand::Shutdown { .. } => unreachable!("handled by the loop"),
         }
@@ -468,6 +517,111 @@ mod tests {
         CellCommand::EStop {
             reply: oneshot::channel().0,
         }
+    }
+
+    /// The storage writer's report ends the running job at once, with the steps it took, and
+    /// cancels the queue; the robot takes no step after it.
+    #[test]
+    fn a_job_whose_steps_cannot_be_stored_fails_storage_failed() {
+        use super::super::job::ControllerSource;
+        use crate::sim::InitialConditions;
+        let cell = CellConfig::reference();
+        let settings = LoopSettings {
+            period: Some(Duration::from_millis(20)),
+            limits: SafetyLimits {
+                deadline_s: 5.0,
+                max_stale_steps: 4,
+            },
+            estop_latched: false,
+            cpu: None,
+        };
+        let (events, inbox) = mpsc::channel();
+        let (handle, thread) = spawn(
+            cell.clone(),
+            Box::new(TwinBackend::new(&cell, None)),
+            settings,
+            Box::new(move |event| {
+                let _ = events.send(event);
+            }),
+        );
+        for id in [1, 2] {
+            let spec = JobSpec {
+                id,
+                controller: ControllerSource::Builtin("expert".into()),
+                seed: 7,
+                initial: InitialConditions::from_cell(&cell),
+                demonstration: false,
+            };
+            handle.send(CellCommand::Enqueue(spec)).unwrap();
+        }
+        let mut steps = 0;
+        while steps < 3 {
+            if let CellEvent::Step(record) = inbox.recv().unwrap() {
+                assert_eq!(record.job_id, 1);
+                steps += 1;
+            }
+        }
+        handle
+            .send(CellCommand::StorageFailed { job_id: 1 })
+            .unwrap();
+        let mut ends = Vec::new();
+        while ends.len() < 2 {
+            match inbox.recv().unwrap() {
+                CellEvent::Step(record) => {
+                    assert_eq!(record.job_id, 1);
+                    steps += 1;
+                }
+                CellEvent::JobEnded { job_id, end } => ends.push((job_id, end)),
+                other => panic!("unexpected {other:?}"),
+            }
+        }
+        assert_eq!(ends[0].0, 1);
+        assert_eq!(ends[0].1.status, JobStatus::Failed);
+        assert_eq!(ends[0].1.failure_reason.as_deref(), Some("storage_failed"));
+        assert_eq!(
+            ends[0].1.steps, steps,
+            "the end counts every step sent before it"
+        );
+        assert_eq!(ends[1].0, 2);
+        assert_eq!(ends[1].1.status, JobStatus::Cancelled);
+        assert_eq!(ends[1].1.failure_reason.as_deref(), Some("storage_failed"));
+        let (reply, _answer) = oneshot::channel();
+        handle.send(CellCommand::Shutdown { reply }).unwrap();
+        thread.join().unwrap();
+        assert!(inbox.try_iter().all(|e| !matches!(e, CellEvent::Step(_))));
+    }
+
+    /// A reset in two halves clears the e-stop only when no press came between them.
+    #[test]
+    fn an_estop_during_a_reset_keeps_the_latch() {
+        let (handle, thread) = start(Box::new(|_| {}));
+        let ask = |command: fn(oneshot::Sender<Result<u64, String>>) -> CellCommand| {
+            let (reply, answer) = oneshot::channel();
+            handle.send(command(reply)).unwrap();
+            answer.blocking_recv().unwrap()
+        };
+        let clear = |presses| {
+            let (reply, answer) = oneshot::channel();
+            handle
+                .send(CellCommand::ClearEStop { presses, reply })
+                .unwrap();
+            answer.blocking_recv().unwrap()
+        };
+        handle.send(estop()).unwrap();
+        let presses = ask(|reply| CellCommand::ResetHardware { reply }).unwrap();
+        assert!(
+            handle.status().estop_latched,
+            "the first half keeps the latch"
+        );
+        handle.send(estop()).unwrap();
+        assert!(!clear(presses), "pressed since: stays latched");
+        let presses = ask(|reply| CellCommand::ResetHardware { reply }).unwrap();
+        assert!(clear(presses));
+        // Its answer comes after the status changed.
+        assert!(!handle.status().estop_latched);
+        let (reply, _answer) = oneshot::channel();
+        handle.send(CellCommand::Shutdown { reply }).unwrap();
+        thread.join().unwrap();
     }
 
     #[test]

@@ -67,6 +67,9 @@ impl IntoResponse for ApiError {
 
 impl From<sqlx::Error> for ApiError {
     fn from(error: sqlx::Error) -> Self {
+        if crate::storage::is_fault(&error) {
+            return crate::workflows::Error::from(error).into();
+        }
         Self::new(
             StatusCode::INTERNAL_SERVER_ERROR,
             "storage",
@@ -94,6 +97,11 @@ impl From<crate::workflows::Error> for ApiError {
             Error::Conflict(_) => Self::conflict(message),
             Error::Unavailable(_) => Self::unavailable(message),
             Error::Storage(_) => Self::new(StatusCode::INTERNAL_SERVER_ERROR, "storage", message),
+            Error::StorageUnavailable(_) => Self::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "storage_unavailable",
+                message,
+            ),
             Error::Internal(_) => Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", message),
         }
     }

@@ -5,6 +5,7 @@ use super::Context;
 use super::auth::Auth;
 use super::error::{ApiResult, Items, Json, Query};
 use crate::storage::audit::{self, AuditEntry};
+use crate::storage::health::WriteFault;
 use crate::storage::tokens::{NewToken, Role};
 use axum::extract::State;
 use axum::http::{StatusCode, header};
@@ -26,16 +27,31 @@ pub fn router() -> OpenApiRouter<Context> {
 
 #[derive(Serialize, ToSchema)]
 pub struct Health {
-    /// `ok`, or `degraded` when the database or the control thread is gone.
+    /// `ok`, or `degraded` when the database or the control thread is gone or the database
+    /// takes no writes.
     status: &'static str,
     version: &'static str,
+    /// Whether the database answers and takes writes (see `storage`).
     database: bool,
     control_thread: bool,
     accepting_jobs: bool,
+    /// Whether writes commit; when they do not, the error and since when.
+    storage: Storage,
+}
+
+/// The database's writes as the service last saw them.
+#[derive(Serialize, ToSchema)]
+pub struct Storage {
+    /// False from a write that failed for the storage (a full disk, an I/O error) until one
+    /// commits again; the storage writer retries on its own.
+    writable: bool,
+    /// The standing fault (none while writable).
+    fault: Option<WriteFault>,
 }
 
 /// Whether the service can work: 200 when it can, 503 when the database or the control thread
-/// is gone.
+/// is gone or the database takes no writes (requests that write answer 503
+/// `storage_unavailable` then; the service recovers by itself once the disk has room).
 #[utoipa::path(get, path = "/api/health", tag = "service", security(()),
     responses(
         (status = 200, description = "Healthy", body = Health),
@@ -46,6 +62,8 @@ async fn health(State(context): State<Context>) -> impl IntoResponse {
         .fetch_one(&context.db.reader)
         .await
         .is_ok();
+    let fault = context.db.health.fault();
+    let database = database && fault.is_none();
     let control_thread = context.cell.is_running();
     let healthy = database && control_thread;
     let status = if healthy {
@@ -59,6 +77,10 @@ async fn health(State(context): State<Context>) -> impl IntoResponse {
         database,
         control_thread,
         accepting_jobs: context.accepting_jobs(),
+        storage: Storage {
+            writable: fault.is_none(),
+            fault,
+        },
     };
     (status, Json(body))
 }

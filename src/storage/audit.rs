@@ -5,11 +5,23 @@ use serde::Serialize;
 use serde_json::Value;
 
 pub async fn record(db: &Db, actor: &str, action: &str, detail: Value) -> Result<(), DbError> {
+    let done = record_with(&db.writer, actor, action, &detail).await;
+    db.track(done)
+}
+
+/// [`record`] with whatever executor the caller holds (a transaction that writes what is
+/// audited with it).
+pub async fn record_with<'e>(
+    executor: impl sqlx::SqliteExecutor<'e>,
+    actor: &str,
+    action: &str,
+    detail: &Value,
+) -> Result<(), DbError> {
     sqlx::query("INSERT INTO audit (actor, action, detail) VALUES (?, ?, ?)")
         .bind(actor)
         .bind(action)
         .bind(detail.to_string())
-        .execute(&db.writer)
+        .execute(executor)
         .await?;
     Ok(())
 }

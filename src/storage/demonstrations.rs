@@ -64,8 +64,9 @@ pub async fn insert<'e>(
     .bind(new.inputs)
     .bind(body_of(episodes))
     .bind(new.created_by)
-    .fetch_one(executor)
+    .fetch_all(executor)
     .await
+    .and_then(super::only_row)
 }
 
 pub async fn get(db: &Db, id: i64) -> Result<Option<Demonstration>, DbError> {

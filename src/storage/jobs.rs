@@ -119,7 +119,7 @@ impl From<JobRow> for Job {
 }
 
 pub async fn insert(db: &Db, job: &NewJob) -> Result<Job, DbError> {
-    let id: i64 = sqlx::query_scalar(
+    let id = sqlx::query_scalar::<_, i64>(
         "INSERT INTO jobs (status, controller, policy_id, seed, initial_pos_mm, initial_ori_deg,
                            demonstration, created_by)
          VALUES ('queued', ?, ?, ?, ?, ?, ?, ?) RETURNING id",
@@ -131,8 +131,9 @@ pub async fn insert(db: &Db, job: &NewJob) -> Result<Job, DbError> {
     .bind(job.initial_ori_deg)
     .bind(job.demonstration)
     .bind(&job.created_by)
-    .fetch_one(&db.writer)
-    .await?;
+    .fetch_all(&db.writer)
+    .await;
+    let id = db.track(id.and_then(super::only_row))?;
     get_from(&db.writer, id).await?.ok_or(DbError::RowNotFound)
 }
 

@@ -4,9 +4,20 @@
 //! One writer connection (every write goes through it, so writes never contend) and a small
 //! pool of readers; WAL so readers never wait for the writer; `synchronous = FULL` so a
 //! committed step survives a power cut, not only a killed process; foreign keys on.
+//!
+//! A write that fails (a full disk, an I/O error) must leave nothing behind that makes a later
+//! write look stored when it is not. sqlx counts a connection's open transactions itself, and
+//! a failed `COMMIT` or a `ROLLBACK` after SQLite already rolled back leaves that count at one:
+//! every later `begin()` is then a `SAVEPOINT` inside a transaction no one commits. So the
+//! writer checks its connection each time it is handed back ([`connection_is_clean`]) and drops
+//! one that is, or believes it is, inside a transaction; the next write opens a fresh one.
+//! And a write that returns rows is stepped to its end ([`only_row`]): outside a transaction
+//! SQLite commits when the statement ends, and sqlx drops the error of a statement it stops
+//! early. [`health::WriteHealth`] keeps the last write fault for `/api/health`.
 
 pub mod audit;
 pub mod demonstrations;
+pub mod health;
 pub mod jobs;
 pub mod policies;
 pub mod recorder;
@@ -14,9 +25,12 @@ pub mod steps;
 pub mod tokens;
 pub mod training;
 
-use sqlx::SqlitePool;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous,
+};
+use sqlx::{Connection, SqlitePool};
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 pub use sqlx::Error as DbError;
@@ -26,6 +40,8 @@ pub use sqlx::Error as DbError;
 pub struct Db {
     pub writer: SqlitePool,
     pub reader: SqlitePool,
+    /// Whether writes commit: the last write fault, until a write commits again.
+    pub health: Arc<health::WriteHealth>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -69,6 +85,9 @@ impl Db {
         };
         let writer = SqlitePoolOptions::new()
             .max_connections(1)
+            .after_release(|connection, _| {
+                Box::pin(async move { Ok(connection_is_clean(connection).await) })
+            })
             .connect_with(options)
             .await
             .map_err(open_error)?;
@@ -84,7 +103,22 @@ impl Db {
             .connect_with(base.read_only(true))
             .await
             .map_err(open_error)?;
-        Ok(Db { writer, reader })
+        Ok(Db {
+            writer,
+            reader,
+            health: Default::default(),
+        })
+    }
+
+    /// Notes a write's outcome for [`health::WriteHealth`] and passes it on: a commit clears
+    /// the fault, a storage fault ([`is_fault`]) sets it; a refused row says nothing of the disk.
+    pub fn track<T>(&self, result: Result<T, DbError>) -> Result<T, DbError> {
+        match &result {
+            Ok(_) => self.health.succeeded(),
+            Err(error) if is_fault(error) => self.health.failed(error),
+            Err(_) => {}
+        }
+        result
     }
 
     /// `PRAGMA integrity_check`'s answer (`ok` when the file is sound).
@@ -103,6 +137,57 @@ impl Db {
                 .await?;
         Ok(value.as_deref() == Some("true"))
     }
+}
+
+/// Whether the writer's connection may be handed out again: SQLite is in autocommit mode
+/// (a `BEGIN` succeeds) and sqlx counts no open transaction. A connection that fails either
+/// is closed by the pool, which rolls back whatever it held.
+async fn connection_is_clean(connection: &mut SqliteConnection) -> bool {
+    // Queued behind the rollback sqlx started for a dropped transaction, so that has run.
+    let begun = sqlx::Executor::execute(&mut *connection, "BEGIN; ROLLBACK").await;
+    if begun.is_err() {
+        tracing::warn!("the database writer was left inside a transaction; reconnecting");
+        return false;
+    }
+    if connection.is_in_transaction() {
+        tracing::warn!("the database writer lost count of its transactions; reconnecting");
+        return false;
+    }
+    true
+}
+
+/// Whether an error is the storage failing (a full disk, an I/O error, a busy or read-only
+/// database, the writer unreachable) rather than the rows being refused or not found: the
+/// same write may pass once the fault clears.
+pub fn is_fault(error: &DbError) -> bool {
+    match error {
+        DbError::Database(e) => {
+            let primary = e
+                .code()
+                .and_then(|code| code.parse::<i32>().ok())
+                .map(|code| code & 0xff);
+            // SQLITE_BUSY, LOCKED, NOMEM, READONLY, IOERR, CORRUPT, FULL, CANTOPEN, PROTOCOL.
+            matches!(primary, Some(5 | 6 | 7 | 8 | 10 | 11 | 13 | 14 | 15))
+        }
+        DbError::Io(_)
+        | DbError::PoolTimedOut
+        | DbError::PoolClosed
+        | DbError::WorkerCrashed
+        | DbError::Protocol(_) => true,
+        _ => false,
+    }
+}
+
+/// What a request that met a storage fault ([`is_fault`]) answers.
+pub fn unavailable_message(error: &DbError) -> String {
+    format!("storage unavailable, nothing was stored: {error}")
+}
+
+/// The one row an `INSERT … RETURNING` answers, from all its rows (`fetch_all`). `fetch_one`
+/// stops after the first row and resets the statement; outside a transaction SQLite commits
+/// at that reset, and sqlx drops its error: a write that could not commit would look stored.
+pub fn only_row<T>(rows: Vec<T>) -> Result<T, DbError> {
+    rows.into_iter().next().ok_or(DbError::RowNotFound)
 }
 
 /// Sets a latched value (`estop`).
@@ -130,3 +215,6 @@ pub(crate) fn json_column(text: Option<String>) -> serde_json::Value {
 
 /// SQLite's current time in the schema's format.
 pub const NOW: &str = "strftime('%Y-%m-%dT%H:%M:%fZ', 'now')";
+
+#[cfg(test)]
+mod full_disk;

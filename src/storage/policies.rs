@@ -170,7 +170,7 @@ async fn with_evaluation(db: &Db, row: PolicyRow) -> Result<Policy, DbError> {
 
 /// Stores a policy, or finds the one with the same bytes. The flag says whether it is new.
 pub async fn insert_or_find(db: &Db, new: &NewPolicy<'_>) -> Result<(Policy, bool), DbError> {
-    let inserted: Option<i64> = sqlx::query_scalar(
+    let inserted = sqlx::query_scalar::<_, i64>(
         "INSERT INTO policies (name, sha256, file, metadata, shapes, uploaded_by)
          VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT (sha256) DO NOTHING RETURNING id",
     )
@@ -180,8 +180,9 @@ pub async fn insert_or_find(db: &Db, new: &NewPolicy<'_>) -> Result<(Policy, boo
     .bind(new.metadata.to_string())
     .bind(new.shapes.to_string())
     .bind(new.uploaded_by)
-    .fetch_optional(&db.writer)
-    .await?;
+    .fetch_all(&db.writer)
+    .await;
+    let inserted = db.track(inserted)?.into_iter().next();
     let id = match inserted {
         Some(id) => id,
         None => {
@@ -282,7 +283,7 @@ pub async fn start_evaluation(
     requested_by: &str,
 ) -> Result<Evaluation, DbError> {
     let mismatch = on.mismatch();
-    let row: EvaluationRow = sqlx::query_as(
+    let rows = sqlx::query_as::<_, EvaluationRow>(
         "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, noise_scale,
                 calibration_scale, fault, randomise_cells, requested_by)
          VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
@@ -296,8 +297,9 @@ pub async fn start_evaluation(
     .bind(mismatch.fault.map(|f| f.code()))
     .bind(on.is_drawn())
     .bind(requested_by)
-    .fetch_one(&db.writer)
-    .await?;
+    .fetch_all(&db.writer)
+    .await;
+    let row = db.track(rows.and_then(super::only_row))?;
     Ok(Evaluation::from(row))
 }
 

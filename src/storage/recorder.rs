@@ -7,94 +7,181 @@
 //! (it breaks a constraint, as a step with a NaN reward breaks `NOT NULL`) would be refused on
 //! every retry and hold back everything after it, so the batch is then written one event at a
 //! time and the refused event alone is dropped, logged with its job and step.
+//!
+//! When the storage fails (a full disk) the events wait in memory and are retried every tick,
+//! in order, until they commit. A running job is not let run unrecorded: the first failed
+//! write that holds its start or steps sends its id to `storage_failed`, and the control
+//! thread holds the robot and ends it `storage_failed` (that end is stored, after the steps
+//! before it, once the disk takes writes again). While a fault stands and nothing waits, the
+//! writer probes every half second ([`health::probe`]) so the fault clears by itself.
 
 use super::demonstrations::{self, NewDemonstration};
-use super::{Db, DbError, jobs, steps};
+use super::{Db, DbError, health, jobs, steps};
 use crate::cell::{CellEvent, StepRecord};
 use crate::learning::demos::DemoEpisode;
 use crate::policy::inputs::PolicyInputs;
-use std::collections::VecDeque;
+use std::collections::{BTreeSet, VecDeque};
 use std::time::Duration;
-use tokio::sync::mpsc::UnboundedReceiver;
+use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender};
+
+/// Ticks (of 100 ms) between probes while a fault stands and nothing waits.
+const PROBE_TICKS: u32 = 5;
 
 /// Runs until the event channel closes, then writes what is left.
-/// `cell_hash` names the cell in the demonstrations it records.
+/// `cell_hash` names the cell in the demonstrations it records; `storage_failed` takes the id
+/// of each running job whose events could not be stored.
 pub async fn run(
     db: Db,
     mut events: UnboundedReceiver<CellEvent>,
     batch: usize,
     cell_hash: String,
+    storage_failed: UnboundedSender<i64>,
 ) {
-    let mut pending: VecDeque<CellEvent> = VecDeque::new();
-    let mut pending_steps = 0usize;
+    let mut writer = Writer {
+        db,
+        pending: VecDeque::new(),
+        pending_steps: 0,
+        cell_hash,
+        storage_failed,
+        told: BTreeSet::new(),
+    };
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut idle_ticks = 0u32;
     loop {
         tokio::select! {
             event = events.recv() => {
                 let Some(event) = event else { break };
                 let urgent = !matches!(event, CellEvent::Step(_));
-                pending_steps += usize::from(!urgent);
-                pending.push_back(event);
-                if urgent || pending_steps >= batch {
+                writer.push(event);
+                if urgent || writer.pending_steps >= batch {
                     // Take whatever else is already waiting, so bursts go in one transaction.
                     while let Ok(event) = events.try_recv() {
-                        pending_steps += usize::from(matches!(event, CellEvent::Step(_)));
-                        pending.push_back(event);
+                        writer.push(event);
                     }
-                    flush(&db, &mut pending, &mut pending_steps, &cell_hash).await;
+                    writer.flush().await;
                 }
             }
             _ = tick.tick() => {
-                if !pending.is_empty() {
-                    flush(&db, &mut pending, &mut pending_steps, &cell_hash).await;
+                if !writer.pending.is_empty() {
+                    writer.flush().await;
+                } else if writer.db.health.fault().is_some() {
+                    idle_ticks += 1;
+                    if idle_ticks >= PROBE_TICKS {
+                        idle_ticks = 0;
+                        let _ = health::probe(&writer.db).await;
+                    }
                 }
             }
         }
     }
     for attempt in 0..10 {
-        if pending.is_empty() {
+        if writer.pending.is_empty() {
             return;
         }
         if attempt > 0 {
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
-        flush(&db, &mut pending, &mut pending_steps, &cell_hash).await;
+        writer.flush().await;
     }
-    tracing::error!(events = pending.len(), "could not store the last events");
+    tracing::error!(
+        events = writer.pending.len(),
+        "could not store the last events"
+    );
 }
 
-async fn flush(
-    db: &Db,
-    pending: &mut VecDeque<CellEvent>,
-    pending_steps: &mut usize,
-    cell_hash: &str,
-) {
-    match write(db, pending.iter(), cell_hash).await {
-        Ok(()) => {
-            pending.clear();
-            *pending_steps = 0;
+struct Writer {
+    db: Db,
+    pending: VecDeque<CellEvent>,
+    pending_steps: usize,
+    cell_hash: String,
+    storage_failed: UnboundedSender<i64>,
+    /// Jobs reported to `storage_failed` since the last write that stored everything.
+    told: BTreeSet<i64>,
+}
+
+impl Writer {
+    fn push(&mut self, event: CellEvent) {
+        self.pending_steps += usize::from(matches!(event, CellEvent::Step(_)));
+        self.pending.push_back(event);
+    }
+
+    async fn flush(&mut self) {
+        // Latches alone write nothing here: an empty commit would say nothing of the disk.
+        if self
+            .pending
+            .iter()
+            .all(|e| matches!(e, CellEvent::Latches { .. }))
+        {
+            self.pending.clear();
+            return;
         }
-        Err(error) if refused(&error) => {
-            while let Some(event) = pending.front() {
-                match write(db, [event], cell_hash).await {
-                    Ok(()) => {}
-                    Err(error) if refused(&error) => {
-                        tracing::error!(%error, event = %describe(event), "dropped an event the database refuses");
-                    }
-                    Err(error) => {
-                        tracing::error!(%error, "storing steps failed; will retry");
-                        break;
-                    }
-                }
-                pending.pop_front();
+        let db = &self.db;
+        let cell_hash = self.cell_hash.as_str();
+        let pending = &mut self.pending;
+        match db.track(write(db, pending.iter(), cell_hash).await) {
+            Ok(()) => {
+                pending.clear();
+                self.pending_steps = 0;
+                self.told.clear();
+                return;
             }
-            *pending_steps = pending
-                .iter()
-                .filter(|e| matches!(e, CellEvent::Step(_)))
-                .count();
+            Err(error) if refused(&error) => {
+                let mut failed = None;
+                while let Some(event) = pending.front() {
+                    match db.track(write(db, [event], cell_hash).await) {
+                        Ok(()) => {}
+                        Err(error) if refused(&error) => {
+                            tracing::error!(%error, event = %describe(event), "dropped an event the database refuses");
+                        }
+                        Err(error) => {
+                            failed = Some(error);
+                            break;
+                        }
+                    }
+                    pending.pop_front();
+                }
+                self.pending_steps = pending
+                    .iter()
+                    .filter(|e| matches!(e, CellEvent::Step(_)))
+                    .count();
+                if failed.is_none() {
+                    return;
+                }
+            }
+            // Logged once when writes begin to fail (`WriteHealth`); retried every tick.
+            Err(_) => {}
         }
-        Err(error) => tracing::error!(%error, "storing steps failed; will retry"),
+        self.hold_unrecorded_jobs();
+    }
+
+    /// Reports each job that started or stepped in the waiting events and has not ended there:
+    /// it runs while its record cannot be kept.
+    fn hold_unrecorded_jobs(&mut self) {
+        let mut running = BTreeSet::new();
+        for event in &self.pending {
+            match event {
+                CellEvent::JobStarted { job_id } => {
+                    running.insert(*job_id);
+                }
+                CellEvent::Step(record) => {
+                    running.insert(record.job_id);
+                }
+                CellEvent::JobEnded { job_id, .. } => {
+                    running.remove(job_id);
+                }
+                CellEvent::Latches { .. } => {}
+            }
+        }
+        for job_id in running {
+            if self.told.insert(job_id) {
+                tracing::error!(
+                    job_id,
+                    "the job's steps cannot be stored: holding the robot"
+                );
+                let _ = self.storage_failed.send(job_id);
+            }
+        }
     }
 }
 
@@ -167,7 +254,8 @@ async fn write(
                             demonstrations::insert(&mut *tx, &new, &[episode]).await?;
                         }
                     }
-                    // The latch is stored by whoever latched it, before they answer.
+                    // The latch is stored by whoever latched it, before they answer
+                    // (`workflows::cell`, which also retries an e-stop's failed write).
                     CellEvent::Latches { .. } => {}
                     CellEvent::Step(_) => unreachable!(),
                 }
@@ -259,7 +347,8 @@ mod tests {
             events.send(event).unwrap();
         }
         drop(events);
-        run(db.clone(), inbox, 100, "cell".into()).await;
+        let (failed, _) = tokio::sync::mpsc::unbounded_channel();
+        run(db.clone(), inbox, 100, "cell".into(), failed).await;
         assert_eq!(stored(&db, first).await, ("failed".to_string(), vec![1]));
         assert_eq!(
             stored(&db, second).await,

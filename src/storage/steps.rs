@@ -12,11 +12,15 @@ pub const ROWS_PER_STATEMENT: usize = 100;
 
 /// Inserts the records in one transaction.
 pub async fn insert_batch(db: &Db, records: &[StepRecord]) -> Result<(), DbError> {
-    let mut tx = db.writer.begin().await?;
-    for chunk in records.chunks(ROWS_PER_STATEMENT) {
-        insert_rows(&mut *tx, chunk).await?;
+    let done = async {
+        let mut tx = db.writer.begin().await?;
+        for chunk in records.chunks(ROWS_PER_STATEMENT) {
+            insert_rows(&mut *tx, chunk).await?;
+        }
+        tx.commit().await
     }
-    tx.commit().await
+    .await;
+    db.track(done)
 }
 
 /// Inserts the records with whatever executor the caller holds (a transaction).

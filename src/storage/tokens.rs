@@ -74,15 +74,16 @@ pub async fn create(
     let secret: String = std::iter::once("celld_".to_string())
         .chain(bytes.iter().map(|b| format!("{b:02x}")))
         .collect();
-    let id: i64 = sqlx::query_scalar(
+    let id = sqlx::query_scalar::<_, i64>(
         "INSERT INTO tokens (name, role, token_hash, created_by) VALUES (?, ?, ?, ?) RETURNING id",
     )
     .bind(name)
     .bind(role.as_str())
     .bind(hash(&secret))
     .bind(created_by)
-    .fetch_one(&db.writer)
-    .await?;
+    .fetch_all(&db.writer)
+    .await;
+    let id = db.track(id.and_then(super::only_row))?;
     Ok(NewToken {
         id,
         name: name.to_string(),

@@ -65,15 +65,16 @@ pub async fn start(
     demonstration_ids: &[i64],
     created_by: &str,
 ) -> Result<TrainingRun, DbError> {
-    let row: TrainingRunRow = sqlx::query_as(
+    let rows = sqlx::query_as::<_, TrainingRunRow>(
         "INSERT INTO training_runs (status, settings, demonstration_ids, stage, created_by)
          VALUES ('running', ?, ?, 'demonstrations', ?) RETURNING *",
     )
     .bind(settings.to_string())
     .bind(serde_json::json!(demonstration_ids).to_string())
     .bind(created_by)
-    .fetch_one(&db.writer)
-    .await?;
+    .fetch_all(&db.writer)
+    .await;
+    let row = db.track(rows.and_then(super::only_row))?;
     Ok(TrainingRun::from(row))
 }
 

@@ -1,10 +1,18 @@
 //! The e-stop and its latch: motion stops first, then the latch is stored so that it survives
-//! a restart, then the press is audited.
+//! a restart, with the press audited in the same transaction.
+//!
+//! The latch in memory follows what was stored, with one exception, for safety: an e-stop
+//! holds the robot and latches at once, and only then stores; if that write fails it answers
+//! [`Error::StorageUnavailable`] saying so, the cell stays latched, and the write is retried
+//! until the disk takes it. A reset stores the cleared latch first
+//! and clears it in memory only once that committed: a reset whose write fails leaves the cell
+//! latched and answers [`Error::StorageUnavailable`].
 
 use super::{Context, Error, Result};
-use crate::cell::CellCommand;
-use crate::storage::{self, audit};
-use serde_json::json;
+use crate::cell::{CellCommand, CellHandle};
+use crate::storage::{self, DbError, audit};
+use serde_json::{Value, json};
+use tokio::sync::mpsc::UnboundedReceiver;
 
 /// Latches the e-stop: motion stops at once, the running job fails with `estop`, queued jobs
 /// are cancelled; answers once the running job's end is stored. Stays latched (across
@@ -16,13 +24,15 @@ pub async fn estop(context: &Context, by: &str) -> Result<()> {
         .cell
         .ask(|reply| CellCommand::EStop { reply })
         .await?;
-    store_latch(context).await.map_err(|e| {
-        Error::Storage(format!(
-            "motion is stopped and the e-stop latched, but the latch could not be stored and \
-             would not survive a restart: {e}"
-        ))
-    })?;
-    audit::record(&context.db, by, "cell.estop", json!({"job": running})).await?;
+    let detail = json!({"job": running});
+    if let Err(e) = store_latch(context, by, "cell.estop", detail.clone()).await {
+        tokio::spawn(keep_storing_latch(context.clone(), by.to_string(), detail));
+        return Err(Error::StorageUnavailable(format!(
+            "the robot holds and the e-stop is latched, but the latch could not be stored \
+             ({e}): it is stored once the database takes writes again, and until then a \
+             restart would not know it"
+        )));
+    }
     if let Some(id) = running {
         super::jobs::wait_until_final(context, id).await?;
     }
@@ -31,35 +41,100 @@ pub async fn estop(context: &Context, by: &str) -> Result<()> {
 
 /// Clears the e-stop latch and the driver's. Starts nothing: the next motion is the next job
 /// an operator creates. Hardware that is not ready again (unreachable, not referenced, moved)
-/// keeps both latches: [`Error::Unavailable`] with the reason.
+/// keeps both latches: [`Error::Unavailable`] with the reason. The cleared latch is stored
+/// before it is cleared in memory: if that write fails the cell stays latched
+/// ([`Error::StorageUnavailable`]); an e-stop pressed meanwhile wins.
 pub async fn reset(context: &Context, by: &str) -> Result<()> {
-    let result = context
+    let _one_writer = context.latch_writes.lock().await;
+    let presses = context
         .cell
-        .ask(|reply| CellCommand::Reset { reply })
+        .ask(|reply| CellCommand::ResetHardware { reply })
         .await?;
-    audit::record(
-        &context.db,
-        by,
-        "cell.reset",
-        json!({"refused": result.as_ref().err()}),
-    )
-    .await?;
-    result.map_err(|reason| {
-        Error::unavailable(format!(
-            "the cell stays latched: the hardware is not ready ({reason})"
-        ))
-    })?;
-    store_latch(context).await?;
+    let presses = match presses {
+        Ok(presses) => presses,
+        Err(reason) => {
+            audit::record(&context.db, by, "cell.reset", json!({"refused": reason})).await?;
+            return Err(Error::unavailable(format!(
+                "the cell stays latched: the hardware is not ready ({reason})"
+            )));
+        }
+    };
+    write_latch(context, false, by, "cell.reset", json!({"refused": null}))
+        .await
+        .map_err(|e| {
+            Error::StorageUnavailable(format!(
+                "the cell stays latched: the reset could not be stored ({e})"
+            ))
+        })?;
+    let cleared = context
+        .cell
+        .ask(|reply| CellCommand::ClearEStop { presses, reply })
+        .await?;
+    if !cleared {
+        // Pressed while the reset was stored: the press's own write stores the latch (it
+        // waits for this one), and the cell stays latched.
+        return Err(Error::conflict(
+            "the e-stop was pressed during the reset: the cell stays latched",
+        ));
+    }
     Ok(())
 }
 
-/// Stores the control thread's latch as it is now. The control thread is asked first, so a
-/// stop never waits on storage; the writes are serialised and each stores the latest state,
-/// so an e-stop and a reset racing each other cannot leave the stored latch behind the
-/// control thread's (which a restart would then believe).
-pub async fn store_latch(context: &Context) -> Result<()> {
+/// Stores the control thread's latch as it is now, with an audit entry, in one transaction.
+/// The control thread is asked first, so a stop never waits on storage; the writes are
+/// serialised and each stores the latest state, so an e-stop and a reset racing each other
+/// cannot leave the stored latch behind the control thread's (which a restart would then
+/// believe).
+pub async fn store_latch(
+    context: &Context,
+    by: &str,
+    action: &str,
+    detail: Value,
+) -> std::result::Result<(), DbError> {
     let _one_writer = context.latch_writes.lock().await;
     let latched = context.cell.status().estop_latched;
-    storage::set_cell_flag(&context.db.writer, "estop", latched).await?;
-    Ok(())
+    write_latch(context, latched, by, action, detail).await
+}
+
+/// Retries an e-stop's failed [`store_latch`] every quarter second until it commits (or the
+/// service stops). Each try stores the latch as it is then, so a reset meanwhile is not undone.
+async fn keep_storing_latch(context: Context, by: String, detail: Value) {
+    while !context.shutting_down() {
+        tokio::time::sleep(std::time::Duration::from_millis(250)).await;
+        if store_latch(&context, &by, "cell.estop", detail.clone())
+            .await
+            .is_ok()
+        {
+            return;
+        }
+    }
+}
+
+/// Writes the latch and its audit entry in one transaction (the caller holds `latch_writes`).
+async fn write_latch(
+    context: &Context,
+    latched: bool,
+    by: &str,
+    action: &str,
+    detail: Value,
+) -> std::result::Result<(), DbError> {
+    let db = &context.db;
+    let done = async {
+        let mut tx = db.writer.begin().await?;
+        storage::set_cell_flag(&mut *tx, "estop", latched).await?;
+        audit::record_with(&mut *tx, by, action, &detail).await?;
+        tx.commit().await
+    }
+    .await;
+    db.track(done)
+}
+
+/// Ends each job the storage writer reports it cannot record (`storage_failed`): the control
+/// thread holds the robot at once. Runs until the writer stops.
+pub async fn fail_unrecorded_jobs(cell: CellHandle, mut jobs: UnboundedReceiver<i64>) {
+    while let Some(job_id) = jobs.recv().await {
+        if cell.send(CellCommand::StorageFailed { job_id }).is_err() {
+            return;
+        }
+    }
 }

@@ -85,6 +85,10 @@ pub enum Error {
     Unavailable(String),
     #[error("storage: {0}")]
     Storage(String),
+    /// The database takes no writes now (a full disk, an I/O error): nothing was stored; the
+    /// same request may pass once the fault clears.
+    #[error("{0}")]
+    StorageUnavailable(String),
     #[error("{0}")]
     Internal(String),
 }
@@ -117,7 +121,11 @@ impl Error {
 
 impl From<sqlx::Error> for Error {
     fn from(error: sqlx::Error) -> Self {
-        Error::Storage(error.to_string())
+        if crate::storage::is_fault(&error) {
+            Error::StorageUnavailable(crate::storage::unavailable_message(&error))
+        } else {
+            Error::Storage(error.to_string())
+        }
     }
 }
 
