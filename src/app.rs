@@ -159,10 +159,10 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             listener,
             http::router(context).into_make_service_with_connect_info::<std::net::SocketAddr>(),
         )
-            .with_graceful_shutdown(async move {
-                let _ = server_shutdown.wait_for(|stop| *stop).await;
-            })
-            .into_future(),
+        .with_graceful_shutdown(async move {
+            let _ = server_shutdown.wait_for(|stop| *stop).await;
+        })
+        .into_future(),
     );
     println!(
         "celld: cell `{}` on the {} backend{}, database {}",

@@ -350,9 +350,9 @@ impl ServiceConfig {
                         .map_err(|_| invalid("CELLD_AUTH_FAILURE_LIMIT", "not a whole number"))?
                 }
                 "AUTH_FAILURE_WINDOW_S" => {
-                    self.access.auth_failure_window_s = value.parse().map_err(|_| {
-                        invalid("CELLD_AUTH_FAILURE_WINDOW_S", "not a whole number")
-                    })?
+                    self.access.auth_failure_window_s = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_AUTH_FAILURE_WINDOW_S", "not a whole number"))?
                 }
                 "AUTH_FAILURE_ADDRESSES" => {
                     self.access.auth_failure_addresses = value.parse().map_err(|_| {

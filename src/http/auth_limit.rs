@@ -104,9 +104,7 @@ pub type Limiter = Arc<Mutex<FailureTable>>;
 
 /// Whether the request presents a token (a bearer header or `?access_token=`), right or wrong.
 fn presents_token(request: &Request) -> bool {
-    request
-        .headers()
-        .contains_key(header::AUTHORIZATION)
+    request.headers().contains_key(header::AUTHORIZATION)
         || request.uri().query().is_some_and(|query| {
             query
                 .split('&')

@@ -27,8 +27,8 @@ async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Item
 }
 
 /// Revokes a token (admin): its next request is refused with 401, and the revocation is in the
-/// audit log. Revoking a revoked token answers it unchanged; the last admin token that still
-/// authenticates is refused (409): make another admin token first.
+/// audit log. Revoking a revoked token answers it unchanged; a token revoking itself, or the
+/// last admin token that still authenticates, is refused (409).
 #[utoipa::path(delete, path = "/api/tokens/{id}", tag = "service",
     params(("id" = i64, Path)),
     responses((status = 200, description = "The token, revoked", body = TokenInfo)))]
@@ -38,6 +38,6 @@ async fn revoke(
     Path(id): Path<i64>,
 ) -> ApiResult<Json<TokenInfo>> {
     let caller = auth.require(Role::Admin)?;
-    let info = workflows::tokens::revoke(&context, id, &caller.name).await?;
+    let info = workflows::tokens::revoke(&context, id, caller).await?;
     Ok(Json(info))
 }

@@ -142,7 +142,14 @@ pub async fn create(
 
 /// The token whose secret has this [`hash`], if any, revoked and expired ones included.
 pub async fn find_by_hash(db: &Db, token_hash: &str) -> Result<Option<FoundToken>, DbError> {
-    type Row = (i64, String, String, Option<String>, Option<i64>, Option<String>);
+    type Row = (
+        i64,
+        String,
+        String,
+        Option<String>,
+        Option<i64>,
+        Option<String>,
+    );
     let row: Option<Row> = sqlx::query_as(&format!(
         "SELECT id, name, role, expires_at, {EXPIRES_UNIX_MS}, revoked_at
          FROM tokens WHERE token_hash = ?"
@@ -150,8 +157,8 @@ pub async fn find_by_hash(db: &Db, token_hash: &str) -> Result<Option<FoundToken
     .bind(token_hash)
     .fetch_optional(&db.reader)
     .await?;
-    Ok(
-        row.and_then(|(token_id, name, role, expires_at, expires_unix_ms, revoked_at)| {
+    Ok(row.and_then(
+        |(token_id, name, role, expires_at, expires_unix_ms, revoked_at)| {
             Some(FoundToken {
                 caller: Caller {
                     token_id,
@@ -162,8 +169,8 @@ pub async fn find_by_hash(db: &Db, token_hash: &str) -> Result<Option<FoundToken
                 expires_unix_ms,
                 revoked_at,
             })
-        }),
-    )
+        },
+    ))
 }
 
 /// A row of `tokens` as listed.
@@ -275,19 +282,33 @@ mod tests {
     #[tokio::test]
     async fn a_token_is_found_by_its_hash_until_revoked_and_the_last_admin_stays() {
         let (_dir, db) = open().await;
-        let first = create(&db, Role::Admin, "first", "test", None).await.unwrap();
-        let operator = create(&db, Role::Operator, "op", "test", None).await.unwrap();
+        let first = create(&db, Role::Admin, "first", "test", None)
+            .await
+            .unwrap();
+        let operator = create(&db, Role::Operator, "op", "test", None)
+            .await
+            .unwrap();
         let found = find_by_hash(&db, &hash(&operator.token)).await.unwrap();
         let found = found.unwrap();
         assert_eq!(found.caller.name, "op");
         assert_eq!((found.expires_at, found.revoked_at), (None, None));
-        assert!(find_by_hash(&db, &hash("celld_nothing")).await.unwrap().is_none());
+        assert!(
+            find_by_hash(&db, &hash("celld_nothing"))
+                .await
+                .unwrap()
+                .is_none()
+        );
 
         // The only admin that authenticates cannot be revoked; once a second exists it can.
         assert!(!revoke(&db, first.id, "test").await.unwrap());
-        let second = create(&db, Role::Admin, "second", "test", None).await.unwrap();
+        let second = create(&db, Role::Admin, "second", "test", None)
+            .await
+            .unwrap();
         assert!(revoke(&db, first.id, "test").await.unwrap());
-        assert!(!revoke(&db, first.id, "test").await.unwrap(), "already revoked");
+        assert!(
+            !revoke(&db, first.id, "test").await.unwrap(),
+            "already revoked"
+        );
         assert!(!revoke(&db, second.id, "test").await.unwrap());
         assert!(revoke(&db, operator.id, "test").await.unwrap());
 
@@ -302,7 +323,10 @@ mod tests {
             ]
         );
         assert_eq!(listed[0].revoked_by.as_deref(), Some("test"));
-        let found = find_by_hash(&db, &hash(&operator.token)).await.unwrap().unwrap();
+        let found = find_by_hash(&db, &hash(&operator.token))
+            .await
+            .unwrap()
+            .unwrap();
         assert_eq!(found.revoked_at, listed[1].revoked_at);
     }
 
@@ -313,7 +337,10 @@ mod tests {
             .await
             .unwrap();
         let at = token.expires_at.clone().unwrap();
-        let found = find_by_hash(&db, &hash(&token.token)).await.unwrap().unwrap();
+        let found = find_by_hash(&db, &hash(&token.token))
+            .await
+            .unwrap()
+            .unwrap();
         assert_eq!(found.expires_at.as_deref(), Some(at.as_str()));
         // An hour from the clock now, give or take the test's own time.
         let now_ms = std::time::SystemTime::now()
@@ -321,7 +348,10 @@ mod tests {
             .unwrap()
             .as_millis() as i64;
         let left_ms = found.expires_unix_ms.unwrap() - now_ms;
-        assert!((3_590_000..=3_600_000).contains(&left_ms), "{left_ms} ms left");
+        assert!(
+            (3_590_000..=3_600_000).contains(&left_ms),
+            "{left_ms} ms left"
+        );
         // The epoch milliseconds of a hand-picked stamp: 2001-09-09T01:46:40Z is 10^9 s.
         let (ms,): (i64,) = sqlx::query_as(&format!(
             "SELECT {} FROM (SELECT '2001-09-09T01:46:40.250Z' AS expires_at)",
@@ -331,10 +361,15 @@ mod tests {
         .await
         .unwrap();
         assert_eq!(ms, 1_000_000_000_250);
-        let expired = create(&db, Role::Viewer, "gone", "test", Some(0)).await.unwrap();
+        let expired = create(&db, Role::Viewer, "gone", "test", Some(0))
+            .await
+            .unwrap();
         let listed = get(&db, expired.id).await.unwrap().unwrap();
         assert_eq!(listed.state, TokenState::Expired);
-        assert_eq!(get(&db, token.id).await.unwrap().unwrap().state, TokenState::Active);
+        assert_eq!(
+            get(&db, token.id).await.unwrap().unwrap().state,
+            TokenState::Active
+        );
         assert!(get(&db, 99).await.unwrap().is_none());
     }
 

@@ -162,7 +162,10 @@ mod tests {
 
         let running = evaluation(3, "running", None);
         let waiting = judge(7, "cell", 0.95, "a job", None, Some(&running)).unwrap_err();
-        assert!(waiting.contains("evaluation 3 (40 episodes) is still running"), "{waiting}");
+        assert!(
+            waiting.contains("evaluation 3 (40 episodes) is still running"),
+            "{waiting}"
+        );
         // A running evaluation under a mismatch, or of another cell, is not the gate's.
         let mut other_cell = running.clone();
         other_cell.cell_hash = "elsewhere".to_string();

@@ -6,8 +6,8 @@ use crate::policy;
 use crate::sim::InitialConditions;
 use crate::storage::jobs::{self, Job, NewJob};
 use crate::storage::{audit, policies};
-use serde_json::json;
 use rand::Rng;
+use serde_json::json;
 use std::time::Duration;
 
 /// Largest initial offset and orientation error a job may ask for (the workspace the twin's

@@ -133,10 +133,18 @@ pub async fn revoke_stored(db: &Db, id: i64, by: &str) -> Result<TokenInfo> {
         .ok_or_else(|| Error::not_found(format!("no token with id {id}")))
 }
 
-/// [`revoke_stored`], and the token forgotten by this service's cache, so that its next
-/// request is refused.
-pub async fn revoke(context: &Context, id: i64, by: &str) -> Result<TokenInfo> {
-    let info = revoke_stored(&context.db, id, by).await?;
+/// [`revoke_stored`] by `caller`, and the token forgotten by this service's cache, so that its
+/// next request is refused. A token does not revoke itself (409): another admin token does, so
+/// a revocation over the API always leaves an admin that can make the next token.
+pub async fn revoke(context: &Context, id: i64, caller: &Caller) -> Result<TokenInfo> {
+    if caller.token_id == id {
+        return Err(Error::conflict(format!(
+            "token {id} (`{}`) is the one making this request: revoke it with another admin \
+             token, or with `celld token revoke {id}`",
+            caller.name
+        )));
+    }
+    let info = revoke_stored(&context.db, id, &caller.name).await?;
     if let Ok(mut known) = context.known_callers.write() {
         known.retain(|_, k| k.caller.token_id != id);
     }
@@ -153,7 +161,10 @@ fn now_unix_ms() -> i64 {
 /// The caller a presented secret names, if its token neither is revoked nor has expired: from
 /// the cache while its row was read under [`RECHECK`] ago (the expiry checked every time),
 /// else from storage.
-pub async fn authenticate(context: &Context, secret: &str) -> std::result::Result<Caller, AuthError> {
+pub async fn authenticate(
+    context: &Context,
+    secret: &str,
+) -> std::result::Result<Caller, AuthError> {
     let hash = tokens::hash(secret);
     let now = Instant::now();
     let known = context
@@ -220,7 +231,16 @@ mod tests {
         assert_eq!(parse_lifetime(" 12h "), Ok(43_200));
         assert_eq!(parse_lifetime("30d"), Ok(2_592_000));
         assert_eq!(parse_lifetime("3650d"), Ok(MAX_EXPIRES_IN_S));
-        for bad in ["", "d", "0", "1.5h", "-3", "2w", "3651d", "99999999999999999999d"] {
+        for bad in [
+            "",
+            "d",
+            "0",
+            "1.5h",
+            "-3",
+            "2w",
+            "3651d",
+            "99999999999999999999d",
+        ] {
             assert!(parse_lifetime(bad).is_err(), "{bad}");
         }
     }
