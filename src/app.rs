@@ -156,12 +156,20 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     workflows::policies::register_bundled(&context)
         .await
         .context("registering the bundled policy")?;
+    if let Some(why) = workflows::jobs::configured_policy_refused(&context).await? {
+        // Jobs asking for `active` are refused for this reason until it passes (or a policy
+        // is activated); the service itself runs.
+        tracing::warn!(%why, "control.active_controller names a policy the gate refuses");
+    }
     let server = tokio::spawn(
-        axum::serve(listener, http::router(context))
-            .with_graceful_shutdown(async move {
-                let _ = server_shutdown.wait_for(|stop| *stop).await;
-            })
-            .into_future(),
+        axum::serve(
+            listener,
+            http::router(context).into_make_service_with_connect_info::<std::net::SocketAddr>(),
+        )
+        .with_graceful_shutdown(async move {
+            let _ = server_shutdown.wait_for(|stop| *stop).await;
+        })
+        .into_future(),
     );
     println!(
         "celld: cell `{}` on the {} backend{}, database {}",
@@ -321,6 +329,7 @@ async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
         db,
         Role::Admin,
         "admin",
+        None,
         "celld serve (first start)",
         "celld",
     )
@@ -342,17 +351,75 @@ async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
     Ok(token.token)
 }
 
-/// `celld token create`: a new token in the database, printed once.
-pub async fn create_token(db_path: &Path, role: &str, name: &str) -> Result<()> {
+/// `celld token create`: a new token in the database, printed once; `expires_in` is a
+/// lifetime such as `3600`, `90m`, `12h` or `30d` (none: never expires).
+pub async fn create_token(
+    db_path: &Path,
+    role: &str,
+    name: &str,
+    expires_in: Option<&str>,
+) -> Result<()> {
     let Some(role) = Role::parse(role) else {
         bail!("role `{role}` is not viewer, operator or admin");
     };
+    let expires_in_s = expires_in
+        .map(workflows::tokens::parse_lifetime)
+        .transpose()
+        .map_err(anyhow::Error::msg)
+        .context("--expires-in")?;
     let db = Db::open(db_path).await?;
-    let token = workflows::tokens::create(&db, role, name, "celld token create", "cli")
-        .await
-        .context("--name")?;
+    let token =
+        workflows::tokens::create(&db, role, name, expires_in_s, "celld token create", "cli")
+            .await
+            .context("--name")?;
     println!("{}", token.token);
+    if let Some(at) = &token.expires_at {
+        eprintln!("celld: token {} expires at {at}", token.id);
+    }
     db.writer.close().await;
     db.reader.close().await;
+    Ok(())
+}
+
+/// `celld token list`: every token, one a line, without secrets.
+pub async fn list_tokens(db_path: &Path) -> Result<()> {
+    let db = Db::open(db_path).await?;
+    let listed = workflows::tokens::list(&db).await?;
+    println!(
+        "{:>4}  {:<8}  {:<8}  {:<24}  {:<24}  {:<24}  name",
+        "id", "role", "state", "created", "expires", "revoked"
+    );
+    for token in listed {
+        println!(
+            "{:>4}  {:<8}  {:<8}  {:<24}  {:<24}  {:<24}  {}",
+            token.id,
+            token.role.as_str(),
+            serde_json::to_value(token.state)?.as_str().unwrap_or(""),
+            token.created_at,
+            token.expires_at.as_deref().unwrap_or("never"),
+            token.revoked_at.as_deref().unwrap_or("-"),
+            token.name
+        );
+    }
+    db.writer.close().await;
+    db.reader.close().await;
+    Ok(())
+}
+
+/// `celld token revoke ID`: revokes a token (audited as `cli`). A running service reads the
+/// revocation within [`workflows::tokens::RECHECK`].
+pub async fn revoke_token(db_path: &Path, id: i64) -> Result<()> {
+    let db = Db::open(db_path).await?;
+    let revoked = workflows::tokens::revoke_stored(&db, id, "cli").await;
+    db.writer.close().await;
+    db.reader.close().await;
+    let token = revoked?;
+    println!(
+        "celld: token {} (`{}`, {}) revoked at {}",
+        token.id,
+        token.name,
+        token.role.as_str(),
+        token.revoked_at.as_deref().unwrap_or("?")
+    );
     Ok(())
 }

@@ -1,6 +1,8 @@
 //! `celld serve` under faults and abuse: each module takes one kind (storage, work, connections,
 //! access, inputs) against a real server, with its own SQLite file.
 
+#[path = "serve_faults/access.rs"]
+mod access;
 mod serve_support;
 #[path = "serve_faults/storage.rs"]
 mod storage;

@@ -137,7 +137,18 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
     assert_eq!(policy["status"], "candidate", "{policy}");
     assert_eq!(policy["training_run_id"], id);
     assert_eq!(policy["shapes"]["pos.0.weight"], json!([16, 12]));
-    let job = server.create_job(&admin, json!({"controller": format!("policy:{policy_id}")}));
+    // A fresh candidate, never evaluated: the gate refuses it; the admin overrides it, audited.
+    let controller = format!("policy:{policy_id}");
+    let (status, refused) = server.post(
+        "/api/jobs",
+        Some(&admin),
+        Some(json!({"controller": controller})),
+    );
+    assert_eq!(status, 409, "{refused}");
+    let job = server.create_job(
+        &admin,
+        json!({"controller": controller, "override_gate": {"reason": "first run of a trained policy"}}),
+    );
     assert_eq!(job["policy_id"], policy_id);
     let finished = server.wait_final(job["id"].as_i64().unwrap());
     assert!(finished["steps"].as_i64().unwrap() > 0, "{finished}");
@@ -150,6 +161,7 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
         .map(|e| e["action"].as_str().unwrap())
         .collect();
     assert!(actions.contains(&"training.start") && actions.contains(&"training.cancel"));
+    assert!(actions.contains(&"job.override_gate"), "{actions:?}");
 }
 
 /// A run for any cell records its demonstrations on randomised cells with cell-scaled inputs,
@@ -182,7 +194,13 @@ fn a_run_for_any_cell_learns_cell_scaled_inputs_and_keeps_the_kinds_apart() {
     let (_, policy) = server.get(&format!("/api/policies/{policy_id}"), Some(&admin));
     assert_eq!(policy["metadata"]["format_version"], "2", "{policy}");
     assert_eq!(policy["metadata"]["inputs"], "cell-scaled", "{policy}");
-    let job = server.create_job(&admin, json!({"controller": format!("policy:{policy_id}")}));
+    let job = server.create_job(
+        &admin,
+        json!({
+            "controller": format!("policy:{policy_id}"),
+            "override_gate": {"reason": "a trained candidate, run before its evaluation"}
+        }),
+    );
     let finished = server.wait_final(job["id"].as_i64().unwrap());
     assert!(finished["steps"].as_i64().unwrap() > 0, "{finished}");
 

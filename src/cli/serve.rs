@@ -1,4 +1,4 @@
-//! `celld serve` and `celld token create`: the CLI side of the service (settings layering and a
+//! `celld serve` and `celld token create|list|revoke`: the CLI side of the service (settings layering and a
 //! runtime); the service itself is `app`.
 
 use anyhow::Result;
@@ -37,6 +37,25 @@ pub enum TokenCommand {
         /// Who or what the token is for.
         #[arg(long)]
         name: String,
+        /// Lifetime: whole seconds, or a number with s, m, h or d (`30d`); default: never
+        /// expires.
+        #[arg(long)]
+        expires_in: Option<String>,
+        /// SQLite database file (default data/celld.db, or the one CELLD_DB names).
+        #[arg(long)]
+        db: Option<PathBuf>,
+    },
+    /// List the tokens (never their secrets): id, role, state, created, expires, revoked, name.
+    List {
+        /// SQLite database file (default data/celld.db, or the one CELLD_DB names).
+        #[arg(long)]
+        db: Option<PathBuf>,
+    },
+    /// Revoke a token by its id; a running service refuses it within two seconds. The last
+    /// admin token that still authenticates is kept: make another first.
+    Revoke {
+        /// The token's id (`celld token list`).
+        id: i64,
         /// SQLite database file (default data/celld.db, or the one CELLD_DB names).
         #[arg(long)]
         db: Option<PathBuf>,
@@ -69,12 +88,26 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 }
 
 pub fn token(command: TokenCommand) -> Result<()> {
+    let database = |db: Option<PathBuf>| -> Result<PathBuf> {
+        let mut settings = ServiceConfig::default();
+        settings.apply_env(std::env::vars())?;
+        Ok(db.unwrap_or(settings.db))
+    };
     match command {
-        TokenCommand::Create { role, name, db } => {
-            let mut settings = ServiceConfig::default();
-            settings.apply_env(std::env::vars())?;
-            let db = db.unwrap_or(settings.db);
-            runtime()?.block_on(app::create_token(&db, &role, &name))
+        TokenCommand::Create {
+            role,
+            name,
+            expires_in,
+            db,
+        } => runtime()?.block_on(app::create_token(
+            &database(db)?,
+            &role,
+            &name,
+            expires_in.as_deref(),
+        )),
+        TokenCommand::List { db } => runtime()?.block_on(app::list_tokens(&database(db)?)),
+        TokenCommand::Revoke { id, db } => {
+            runtime()?.block_on(app::revoke_token(&database(db)?, id))
         }
     }
 }

@@ -47,6 +47,30 @@ pub struct ServiceConfig {
     pub robot: RobotDriverConfig,
     /// The camera's driver (`twin` or `igtl`).
     pub camera: CameraDriverConfig,
+    pub access: AccessConfig,
+}
+
+/// `[access]`: how many refused tokens one client address may send before it is answered 429.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AccessConfig {
+    /// Refused tokens from one address within a window before it is limited.
+    pub auth_failure_limit: u32,
+    /// The window, s: it starts at an address's first refused token; a limited address waits
+    /// until it ends.
+    pub auth_failure_window_s: u64,
+    /// Addresses whose failures are remembered at most (the oldest are forgotten first).
+    pub auth_failure_addresses: usize,
+}
+
+impl Default for AccessConfig {
+    fn default() -> Self {
+        AccessConfig {
+            auth_failure_limit: 20,
+            auth_failure_window_s: 60,
+            auth_failure_addresses: 10_000,
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -167,6 +191,7 @@ impl Default for ServiceConfig {
             policies: PolicyConfig::default(),
             robot: RobotDriverConfig::default(),
             camera: CameraDriverConfig::default(),
+            access: AccessConfig::default(),
         }
     }
 }
@@ -319,6 +344,21 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|_| invalid("CELLD_CAMERA_PORT", "not a port number"))?
                 }
+                "AUTH_FAILURE_LIMIT" => {
+                    self.access.auth_failure_limit = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_AUTH_FAILURE_LIMIT", "not a whole number"))?
+                }
+                "AUTH_FAILURE_WINDOW_S" => {
+                    self.access.auth_failure_window_s = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_AUTH_FAILURE_WINDOW_S", "not a whole number"))?
+                }
+                "AUTH_FAILURE_ADDRESSES" => {
+                    self.access.auth_failure_addresses = value.parse().map_err(|_| {
+                        invalid("CELLD_AUTH_FAILURE_ADDRESSES", "not a whole number")
+                    })?
+                }
                 // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
                 _ => {}
             }
@@ -401,6 +441,31 @@ impl ServiceConfig {
         }
         if self.http.body_limit_bytes == 0 {
             return Err(invalid("http.body_limit_bytes", "0".into(), "must be ≥ 1"));
+        }
+        for (key, value) in [
+            (
+                "access.auth_failure_limit",
+                self.access.auth_failure_limit as u64,
+            ),
+            (
+                "access.auth_failure_window_s",
+                self.access.auth_failure_window_s,
+            ),
+            (
+                "access.auth_failure_addresses",
+                self.access.auth_failure_addresses as u64,
+            ),
+        ] {
+            if value == 0 {
+                return Err(invalid(key, "0".into(), "must be ≥ 1"));
+            }
+        }
+        if self.access.auth_failure_window_s > 86_400 {
+            return Err(invalid(
+                "access.auth_failure_window_s",
+                self.access.auth_failure_window_s.to_string(),
+                "must be at most 86400 (a day)",
+            ));
         }
         Ok(())
     }

@@ -5,7 +5,7 @@
 
 use super::Context;
 use super::error::ApiError;
-use crate::storage::tokens::{self, Caller, Role};
+use crate::storage::tokens::{Caller, Role};
 use axum::extract::FromRequestParts;
 use axum::http::request::Parts;
 
@@ -29,25 +29,18 @@ impl Auth {
 }
 
 async fn caller_of(context: &Context, secret: Option<&str>) -> Result<Caller, ApiError> {
+    use crate::workflows::tokens::{AuthError, authenticate};
     let secret = secret.ok_or_else(|| {
         ApiError::unauthorized("missing token: send `Authorization: Bearer TOKEN`")
     })?;
-    let hash = tokens::hash(secret);
-    let known = context
-        .known_callers
-        .read()
-        .ok()
-        .and_then(|k| k.get(&hash).cloned());
-    if let Some(caller) = known {
-        return Ok(caller);
-    }
-    let caller = tokens::find_by_hash(&context.db, &hash)
-        .await?
-        .ok_or_else(|| ApiError::unauthorized("unknown token"))?;
-    if let Ok(mut known) = context.known_callers.write() {
-        known.insert(hash, caller.clone());
-    }
-    Ok(caller)
+    authenticate(context, secret).await.map_err(|e| match e {
+        AuthError::Storage(_) => ApiError::new(
+            axum::http::StatusCode::INTERNAL_SERVER_ERROR,
+            "storage",
+            e.to_string(),
+        ),
+        refused => ApiError::unauthorized(refused.to_string()),
+    })
 }
 
 fn bearer(parts: &Parts) -> Result<Option<&str>, ApiError> {

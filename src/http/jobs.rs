@@ -42,6 +42,18 @@ pub struct CreateJob {
     initial: Option<InitialBody>,
     /// Keep the job's steps as a demonstration when it succeeds.
     demonstration: Option<bool>,
+    /// Admin only: run a registered policy the evaluation gate refuses (never evaluated on
+    /// this cell, below the threshold, or still being evaluated), for the reason given, which
+    /// the audit log keeps. An operator sending it is refused (403).
+    override_gate: Option<OverrideGate>,
+}
+
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct OverrideGate {
+    /// Why this policy may drive the robot without passing the gate.
+    #[schema(min_length = 1, max_length = 500, pattern = r"\S")]
+    reason: String,
 }
 
 #[derive(Debug, Deserialize, ToSchema)]
@@ -55,7 +67,9 @@ pub struct InitialBody {
     ori_deg: f64,
 }
 
-/// Queues a job on the cell (operator).
+/// Queues a job on the cell (operator). A registered policy runs only if it is the active one,
+/// a bundled one, or its evaluation on this cell passed the gate; else 409 says why, unless an
+/// admin overrides the gate with a reason (`override_gate`).
 #[utoipa::path(post, path = "/api/jobs", tag = "jobs", request_body = CreateJob,
     responses((status = 201, description = "Queued", body = Job)))]
 async fn create(
@@ -64,11 +78,19 @@ async fn create(
     Json(body): Json<CreateJob>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
     let caller = auth.require(Role::Operator)?;
+    if body.override_gate.is_some() && caller.role < Role::Admin {
+        return Err(ApiError::forbidden(format!(
+            "override_gate needs the admin role; token `{}` is {}",
+            caller.name,
+            caller.role.as_str()
+        )));
+    }
     let request = JobRequest {
         controller: body.controller,
         seed: body.seed,
         initial: body.initial.map(|i| (i.pos_mm, i.ori_deg)),
         demonstration: body.demonstration.unwrap_or(false),
+        override_gate: body.override_gate.map(|o| o.reason),
     };
     let job = workflows::jobs::create(&context, request, &caller.name).await?;
     Ok((StatusCode::CREATED, Json(job)))

@@ -151,6 +151,10 @@ pub struct CreateToken {
     /// Who or what the token is for; spaces around it are dropped.
     #[schema(min_length = 1, max_length = 100, pattern = r"\S")]
     name: String,
+    /// Seconds from now until the token stops authenticating (default: never).
+    #[serde(default, deserialize_with = "crate::integer::optional_integer")]
+    #[schema(minimum = 1, maximum = 315_360_000)]
+    expires_in_s: Option<u64>,
 }
 
 /// A new token (admin). The secret is in the answer once and stored only as a hash.
@@ -166,6 +170,7 @@ async fn create_token(
         &context.db,
         body.role,
         &body.name,
+        body.expires_in_s,
         &caller.name,
         &caller.name,
     )

@@ -5,6 +5,7 @@
 //! from them; it is served at `/api/openapi.json` and browsable at `/api/docs`.
 
 pub mod auth;
+pub mod auth_limit;
 pub mod cell;
 pub mod dashboard;
 pub mod demonstrations;
@@ -15,6 +16,7 @@ pub mod meta;
 pub mod policies;
 pub mod stats;
 pub mod telemetry;
+pub mod tokens;
 pub mod training;
 
 pub use crate::workflows::{Context, TelemetryMessage};
@@ -34,6 +36,7 @@ fn described_routes(max_upload_bytes: usize) -> OpenApiRouter<Context> {
         .merge(demonstrations::router(max_upload_bytes))
         .merge(stats::router())
         .merge(telemetry::router())
+        .merge(tokens::router())
         .merge(training::router())
 }
 
@@ -52,6 +55,13 @@ pub fn openapi_json() -> &'static str {
 pub fn router(context: Context) -> Router {
     let body_limit = context.settings.http.body_limit_bytes;
     let api: Router<Context> = described_routes(context.settings.policies.max_upload_bytes).into();
+    let access = &context.settings.access;
+    let limiter: auth_limit::Limiter =
+        std::sync::Arc::new(std::sync::Mutex::new(auth_limit::FailureTable::new(
+            access.auth_failure_limit,
+            std::time::Duration::from_secs(access.auth_failure_window_s),
+            access.auth_failure_addresses,
+        )));
     Router::new()
         .merge(dashboard::router())
         .merge(document::browser())
@@ -65,13 +75,43 @@ pub fn router(context: Context) -> Router {
             )
         })
         .layer(DefaultBodyLimit::max(body_limit))
+        .layer(axum::middleware::from_fn_with_state(
+            limiter,
+            auth_limit::limit,
+        ))
         // One span per request (method, path, status, latency) at CELLD_LOG=debug.
-        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .layer(tower_http::trace::TraceLayer::new_for_http().make_span_with(request_span))
         .layer(axum::middleware::from_fn_with_state(
             context.clone(),
             refuse_announced_oversize,
         ))
         .with_state(context)
+}
+
+/// The span of a request: its method, path and query with any `access_token` value replaced
+/// (the telemetry stream takes the token there), never a header.
+fn request_span(request: &axum::http::Request<axum::body::Body>) -> tracing::Span {
+    let query = request.uri().query().map(redact_query).unwrap_or_default();
+    tracing::debug_span!(
+        "request",
+        method = %request.method(),
+        path = %request.uri().path(),
+        query = %query,
+    )
+}
+
+/// A query string with the value of every `access_token` replaced by `[redacted]`.
+fn redact_query(query: &str) -> String {
+    query
+        .split('&')
+        .map(|pair| match pair.split_once('=') {
+            Some((key, _)) if key.eq_ignore_ascii_case("access_token") => {
+                format!("{key}=[redacted]")
+            }
+            _ => pair.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("&")
 }
 
 /// Answers 413 from the headers alone when `Content-Length` is over the route's limit, before
@@ -103,5 +143,21 @@ async fn refuse_announced_oversize(
         )
         .into_response(),
         _ => next.run(request).await,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_query_keeps_everything_but_the_token() {
+        assert_eq!(
+            super::redact_query("job=3&access_token=celld_ab12&x="),
+            "job=3&access_token=[redacted]&x="
+        );
+        assert_eq!(
+            super::redact_query("ACCESS_TOKEN=s&access_token"),
+            "ACCESS_TOKEN=[redacted]&access_token"
+        );
+        assert_eq!(super::redact_query("limit=5"), "limit=5");
     }
 }

@@ -1,12 +1,13 @@
 //! Jobs: queued on the cell after the checks a job must pass, cancelled, waited for.
 
-use super::{Context, Error, Result};
+use super::{Context, Error, Result, gate};
 use crate::cell::{CellCommand, ControllerSource, JobEnd, JobSpec, JobStatus};
 use crate::policy;
 use crate::sim::InitialConditions;
 use crate::storage::jobs::{self, Job, NewJob};
-use crate::storage::policies;
+use crate::storage::{audit, policies};
 use rand::Rng;
+use serde_json::json;
 use std::time::Duration;
 
 /// Largest initial offset and orientation error a job may ask for (the workspace the twin's
@@ -27,7 +28,13 @@ pub struct JobRequest {
     /// Initial offset (mm) and orientation error (deg); none: the cell file's.
     pub initial: Option<(f64, f64)>,
     pub demonstration: bool,
+    /// An admin's reason to run a policy the gate ([`gate`]) refuses; the caller has checked
+    /// the role. Kept in the audit log when the gate was shut.
+    pub override_gate: Option<String>,
 }
+
+/// Longest reason an override may give, characters.
+const MAX_OVERRIDE_REASON: usize = 500;
 
 /// Checks a job, stores it and queues it on the control thread.
 pub async fn create(context: &Context, request: JobRequest, by: &str) -> Result<Job> {
@@ -53,7 +60,26 @@ pub async fn create(context: &Context, request: JobRequest, by: &str) -> Result<
             "{queued} jobs are waiting already (at most {MAX_QUEUED_JOBS}): wait or cancel some"
         )));
     }
-    let (name, source, policy_id) = resolve_controller(context, &request.controller).await?;
+    let reason = match &request.override_gate {
+        None => None,
+        Some(reason) => {
+            let reason = reason.trim();
+            if reason.is_empty() || reason.chars().count() > MAX_OVERRIDE_REASON {
+                return Err(Error::unprocessable(format!(
+                    "override_gate.reason must be 1 to {MAX_OVERRIDE_REASON} characters"
+                )));
+            }
+            Some(reason)
+        }
+    };
+    let resolved = resolve_controller(context, &request.controller).await?;
+    let (name, source, policy_id) = (resolved.name, resolved.source, resolved.policy_id);
+    if let (Some(why), None) = (&resolved.gate_shut, reason) {
+        return Err(Error::conflict(format!(
+            "{why}; until then it may not drive a job (an admin may override: \
+             \"override_gate\": {{\"reason\": \"...\"}})"
+        )));
+    }
     let defaults = InitialConditions::from_cell(&context.cell_config);
     let initial = match request.initial {
         None => defaults,
@@ -80,6 +106,21 @@ pub async fn create(context: &Context, request: JobRequest, by: &str) -> Result<
         },
     )
     .await?;
+    if let (Some(why), Some(reason)) = (&resolved.gate_shut, reason) {
+        audit::record(
+            &context.db,
+            by,
+            "job.override_gate",
+            json!({
+                "job_id": job.id,
+                "policy_id": policy_id,
+                "controller": job.controller,
+                "reason": reason,
+                "gate": why,
+            }),
+        )
+        .await?;
+    }
     let sent = context.cell.send(CellCommand::Enqueue(JobSpec {
         id: job.id,
         controller: source,
@@ -142,20 +183,32 @@ fn check_range(field: &str, value: f64, max: f64) -> Result<()> {
     }
 }
 
-/// The controller a job names, as the name stored with the job, the source the control
-/// thread builds it from, and the policy id when it is a registered policy.
-async fn resolve_controller(
-    context: &Context,
-    requested: &str,
-) -> Result<(String, ControllerSource, Option<i64>)> {
-    let name = if requested == "active" {
+/// The controller a job names, resolved.
+struct Resolved {
+    /// As stored with the job.
+    name: String,
+    /// What the control thread builds it from.
+    source: ControllerSource,
+    /// When it is a registered policy.
+    policy_id: Option<i64>,
+    /// Why the gate refuses that policy, if it does.
+    gate_shut: Option<String>,
+}
+
+/// The controller a job names, with the gate's word on a registered policy: `active` is the
+/// active policy (it passed the gate, or an admin forced it), else `control.active_controller`,
+/// which, naming `policy:<id>`, goes through the gate as a job naming it does.
+async fn resolve_controller(context: &Context, requested: &str) -> Result<Resolved> {
+    let configured = requested == "active";
+    let name = if configured {
         match policies::active(&context.db).await? {
             Some((id, bytes)) => {
-                return Ok((
-                    format!("policy:{id}"),
-                    ControllerSource::Policy { id, bytes },
-                    Some(id),
-                ));
+                return Ok(Resolved {
+                    name: format!("policy:{id}"),
+                    source: ControllerSource::Policy { id, bytes },
+                    policy_id: Some(id),
+                    gate_shut: None,
+                });
             }
             None => context.settings.control.active_controller.clone(),
         }
@@ -166,10 +219,48 @@ async fn resolve_controller(
         let id: i64 = id.parse().map_err(|_| {
             Error::unprocessable(format!("controller `{name}`: `policy:` takes a policy id"))
         })?;
-        let bytes = policies::file(&context.db, id).await?;
-        let bytes = bytes.ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
-        return Ok((name, ControllerSource::Policy { id, bytes }, Some(id)));
+        let policy = policies::get(&context.db, id)
+            .await?
+            .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
+        let gate_shut = gate::may_drive(context, &policy).await?.err().map(|why| {
+            if configured {
+                format!("no policy is active and control.active_controller names {name}: {why}")
+            } else {
+                why
+            }
+        });
+        let bytes = policies::file(&context.db, id)
+            .await?
+            .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
+        return Ok(Resolved {
+            name,
+            source: ControllerSource::Policy { id, bytes },
+            policy_id: Some(id),
+            gate_shut,
+        });
     }
     policy::check_known(&name).map_err(|e| Error::unprocessable(e.to_string()))?;
-    Ok((name.clone(), ControllerSource::Builtin(name), None))
+    Ok(Resolved {
+        name: name.clone(),
+        source: ControllerSource::Builtin(name),
+        policy_id: None,
+        gate_shut: None,
+    })
+}
+
+/// At start: why the gate would refuse the policy `control.active_controller` names, if it
+/// names one and the gate is shut for it now (a job asking for `active` while no policy is
+/// active would be refused for that reason).
+pub async fn configured_policy_refused(context: &Context) -> Result<Option<String>> {
+    let name = &context.settings.control.active_controller;
+    if !name.starts_with("policy:") || policies::active(&context.db).await?.is_some() {
+        return Ok(None);
+    }
+    match resolve_controller(context, "active").await {
+        Ok(resolved) => Ok(resolved.gate_shut),
+        Err(Error::NotFound(why) | Error::Invalid { message: why, .. }) => {
+            Ok(Some(format!("control.active_controller = {name}: {why}")))
+        }
+        Err(other) => Err(other),
+    }
 }

@@ -7,6 +7,7 @@
 
 pub mod cell;
 pub mod demonstrations;
+pub mod gate;
 pub mod jobs;
 pub mod policies;
 pub mod tokens;
@@ -17,7 +18,6 @@ use crate::config::cell::CellConfig;
 use crate::config::service::ServiceConfig;
 use crate::metrics::Metrics;
 use crate::storage::Db;
-use crate::storage::tokens::Caller;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
@@ -44,8 +44,9 @@ pub struct Context {
     pub accepting: Arc<AtomicBool>,
     /// Becomes true at shutdown, so open streams end.
     pub shutdown: watch::Receiver<bool>,
-    /// Callers already looked up, by token hash (tokens are never changed once made).
-    pub known_callers: Arc<RwLock<HashMap<String, Caller>>>,
+    /// Callers already looked up, by token hash; a revocation evicts its token
+    /// ([`tokens::authenticate`] rereads each entry's row after [`tokens::RECHECK`]).
+    pub known_callers: Arc<RwLock<HashMap<String, tokens::KnownCaller>>>,
     /// The training run in progress (one at a time).
     pub training: Arc<Mutex<Option<training::ActiveRun>>>,
     /// Held while the e-stop latch is stored (see [`cell::store_latch`]).

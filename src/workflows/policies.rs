@@ -210,9 +210,9 @@ pub struct Activation {
     pub forced: bool,
 }
 
-/// The gate: a policy drives the robot only after an evaluation on this cell's current
-/// configuration reached `policies.activation_threshold`, unless an admin forces it with a
-/// reason (kept in the audit log).
+/// Activation behind the gate ([`super::gate`]): a policy becomes active only after an
+/// evaluation on this cell's current configuration reached `policies.activation_threshold`,
+/// unless an admin forces it with a reason (kept in the audit log).
 pub async fn activate(
     context: &Context,
     id: i64,
@@ -222,21 +222,7 @@ pub async fn activate(
 ) -> Result<Activation> {
     let policy = find(context, id).await?;
     let reason = reason.map(str::trim).filter(|r| !r.is_empty());
-    let cell_hash = context.cell_config.config_hash();
-    let threshold = context.settings.policies.activation_threshold;
-    let evaluation = policies::latest_evaluation_on(&context.db, id, &cell_hash).await?;
-    let gate = match &evaluation {
-        None => Err(format!(
-            "policy {id} has no finished evaluation on this cell (config {cell_hash}): \
-             POST /api/policies/{id}/evaluate first"
-        )),
-        Some(e) if e.success_rate.unwrap_or(0.0) < threshold => Err(format!(
-            "policy {id} reached success {:.3} over {} episodes on this cell; activation needs ≥ {threshold}",
-            e.success_rate.unwrap_or(0.0),
-            e.episodes
-        )),
-        Some(_) => Ok(()),
-    };
+    let (evaluation, gate) = super::gate::evaluated(context, id, "activation").await?;
     if let Err(why) = &gate {
         match (force, reason) {
             (false, _) => return Err(Error::conflict(why.clone())),
