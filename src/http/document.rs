@@ -23,8 +23,9 @@ pub struct ErrorBody {
 pub struct ErrorDetail {
     /// Stable, for programs: `bad_request`, `invalid`, `unauthorized`, `forbidden`,
     /// `not_found`, `conflict`, `too_large`, `unsupported_media_type`, `method_not_allowed`,
-    /// `unavailable`, `storage_unavailable` (the database takes no writes now: nothing was
-    /// stored), `storage`, `internal`, or a policy file's own check (`missing_tensor`...).
+    /// `too_many_requests`, `unavailable`, `storage_unavailable` (the database takes no writes
+    /// now: nothing was stored), `storage`, `internal`, or a policy file's own check
+    /// (`missing_tensor`...).
     pub code: String,
     /// What is wrong, naming the field, value or limit.
     pub message: String,
