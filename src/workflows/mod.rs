@@ -9,6 +9,7 @@ pub mod cell;
 pub mod demonstrations;
 pub mod jobs;
 pub mod policies;
+pub mod queue;
 pub mod tokens;
 pub mod training;
 
@@ -20,7 +21,7 @@ use crate::storage::Db;
 use crate::storage::tokens::Caller;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, RwLock};
 use tokio::sync::{broadcast, watch};
 
 /// One telemetry event, serialised once for every subscriber.
@@ -46,8 +47,8 @@ pub struct Context {
     pub shutdown: watch::Receiver<bool>,
     /// Callers already looked up, by token hash (tokens are never changed once made).
     pub known_callers: Arc<RwLock<HashMap<String, Caller>>>,
-    /// The training run in progress (one at a time).
-    pub training: Arc<Mutex<Option<training::ActiveRun>>>,
+    /// The one queue evaluations and training runs wait in, and their compute threads.
+    pub work: queue::WorkQueue,
     /// Held while the e-stop latch is stored (see [`cell::store_latch`]).
     pub latch_writes: Arc<tokio::sync::Mutex<()>>,
 }
@@ -83,6 +84,9 @@ pub enum Error {
     /// The service cannot do it at all now (shutting down, the control thread gone).
     #[error("{0}")]
     Unavailable(String),
+    /// Too much is waiting already; worth asking again in about `retry_after_s` seconds.
+    #[error("{message}")]
+    Busy { message: String, retry_after_s: u64 },
     #[error("storage: {0}")]
     Storage(String),
     #[error("{0}")]
@@ -118,6 +122,18 @@ impl Error {
 impl From<sqlx::Error> for Error {
     fn from(error: sqlx::Error) -> Self {
         Error::Storage(error.to_string())
+    }
+}
+
+impl From<queue::QueueError> for Error {
+    fn from(error: queue::QueueError) -> Self {
+        match error {
+            queue::QueueError::Full { retry_after_s, .. } => Error::Busy {
+                message: error.to_string(),
+                retry_after_s,
+            },
+            queue::QueueError::Closed => Error::Unavailable(error.to_string()),
+        }
     }
 }
 
