@@ -9,6 +9,7 @@ use super::error::{ApiResult, Items, Json, Path};
 use crate::learning::run::{TrainingPart, TrainingSettings};
 use crate::storage::tokens::Role;
 use crate::storage::training;
+use crate::workflows::queue::Cancelled;
 use crate::workflows::{self, training::TrainingRequest};
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -119,8 +120,9 @@ async fn read(
 #[derive(Serialize, ToSchema)]
 pub struct Cancelling {
     id: i64,
-    /// `cancelling`: the run stops at its next check (at once if it was queued) and is then
-    /// `cancelled`.
+    /// `cancelled`: it was queued and has left the queue; `cancelling`: it runs, stops at its
+    /// next check and is then `cancelled`.
+    #[schema(pattern = "^(cancelled|cancelling)$")]
     status: &'static str,
 }
 
@@ -135,12 +137,10 @@ async fn cancel(
     Path(id): Path<i64>,
 ) -> ApiResult<(StatusCode, Json<Cancelling>)> {
     let caller = auth.require(Role::Admin)?;
-    workflows::training::cancel(&context, id, &caller.name).await?;
-    Ok((
-        StatusCode::ACCEPTED,
-        Json(Cancelling {
-            id,
-            status: "cancelling",
-        }),
-    ))
+    let cancelled = workflows::training::cancel(&context, id, &caller.name).await?;
+    let status = match cancelled {
+        Cancelled::Dequeued => "cancelled",
+        _ => "cancelling",
+    };
+    Ok((StatusCode::ACCEPTED, Json(Cancelling { id, status })))
 }

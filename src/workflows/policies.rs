@@ -155,6 +155,7 @@ pub async fn spawn_evaluation(
     let bytes = policies::file(&context.db, id)
         .await?
         .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
+    let admitting = context.work.admissions().await;
     let ticket = context.work.reserve()?;
     let evaluation = policies::start_evaluation(
         &context.db,
@@ -168,6 +169,7 @@ pub async fn spawn_evaluation(
     )
     .await?;
     ticket.assign(WorkId::evaluation(evaluation.id));
+    drop(admitting);
     let job = EvaluationJob {
         id: evaluation.id,
         cell,
@@ -191,8 +193,7 @@ struct EvaluationJob {
 }
 
 /// Waits for the evaluation's turn, computes it and stores what came of it; its place in the
-/// queue is freed (the ticket dropped) only once that is stored, so no more than
-/// `work.concurrency` evaluations and runs read as `running` at once.
+/// queue is freed (the ticket dropped) once that is stored, under the queue's admissions lock.
 async fn run_evaluation(context: Context, ticket: Ticket, job: EvaluationJob) {
     let (db, id) = (&context.db, job.id);
     let result = match ticket.turn().await {
@@ -211,10 +212,16 @@ async fn run_evaluation(context: Context, ticket: Ticket, job: EvaluationJob) {
             }
         }
     };
+    let ending = context.work.admissions().await;
+    if context.work.is_closed() {
+        // Stopping: `app` marks what waited or ran, and storage may be closing.
+        return;
+    }
     if let Err(error) = policies::finish_evaluation(db, id, result).await {
         tracing::error!(%error, evaluation_id = id, "could not store an evaluation's result");
     }
     drop(ticket);
+    drop(ending);
 }
 
 /// The evaluation itself, on the calling thread's rayon pool: success rate, mean steps and

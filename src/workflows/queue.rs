@@ -126,6 +126,8 @@ impl State {
 struct Shared {
     state: Mutex<State>,
     changed: Notify,
+    /// See [`WorkQueue::admissions`].
+    admissions: tokio::sync::Mutex<()>,
     concurrency: usize,
     queue_length: usize,
     pool: rayon::ThreadPool,
@@ -180,6 +182,7 @@ impl WorkQueue {
             shared: Arc::new(Shared {
                 state: Mutex::default(),
                 changed: Notify::new(),
+                admissions: tokio::sync::Mutex::new(()),
                 concurrency,
                 queue_length,
                 pool,
@@ -221,6 +224,13 @@ impl WorkQueue {
             seq,
             cancel,
         })
+    }
+
+    /// Held while a piece of work is admitted (its place taken and its record stored) and while
+    /// one ends (its end stored and its place freed): whoever reads that a piece has ended then
+    /// finds its place free, and no more than `concurrency` records read `running` at once.
+    pub async fn admissions(&self) -> tokio::sync::MutexGuard<'_, ()> {
+        self.shared.admissions.lock().await
     }
 
     /// `work`'s place in the queue (1 = next to start), while it waits.

@@ -106,6 +106,7 @@ pub async fn start(
             .map_err(|e| Error::unprocessable(format!("the demonstrations named hold {e}")))?;
     }
 
+    let admitting = context.work.admissions().await;
     let ticket = context.work.reserve()?;
     let run = training::start(
         &context.db,
@@ -116,6 +117,7 @@ pub async fn start(
     )
     .await?;
     ticket.assign(WorkId::training(run.id));
+    drop(admitting);
     let job = RunJob {
         id: run.id,
         settings,
@@ -160,14 +162,19 @@ pub async fn list(context: &Context) -> Result<Vec<training::TrainingRun>> {
     Ok(runs)
 }
 
-/// Cancels a run: a queued one leaves the queue (and ends `cancelled` at once); a running one
-/// is asked to stop at its next check.
-pub async fn cancel(context: &Context, id: i64, by: &str) -> Result<()> {
+/// Cancels a run: a queued one leaves the queue and is `cancelled` before this returns; a
+/// running one is asked to stop at its next check. Says which.
+pub async fn cancel(context: &Context, id: i64, by: &str) -> Result<Cancelled> {
     let run = training::get(&context.db, id)
         .await?
         .ok_or_else(|| Error::not_found(format!("no training run with id {id}")))?;
-    match context.work.cancel(WorkId::training(id)) {
-        Cancelled::Dequeued | Cancelled::Stopping => {}
+    let cancelled = context.work.cancel(WorkId::training(id));
+    match cancelled {
+        Cancelled::Dequeued => {
+            let why = Some("cancelled before it started");
+            training::finish(&context.db, id, "cancelled", None, None, why).await?;
+        }
+        Cancelled::Stopping => {}
         Cancelled::NotHere => {
             return Err(Error::conflict(format!(
                 "training run {id} is {} and can no longer be cancelled",
@@ -182,7 +189,7 @@ pub async fn cancel(context: &Context, id: i64, by: &str) -> Result<()> {
         json!({"training_run_id": id}),
     )
     .await?;
-    Ok(())
+    Ok(cancelled)
 }
 
 struct RunJob {
@@ -204,7 +211,7 @@ struct Live {
 }
 
 /// Waits for the run's turn, runs it to its end and stores what came of it; its place in the
-/// queue is freed (the ticket dropped) only once that is stored.
+/// queue is freed (the ticket dropped) once that is stored, under the queue's admissions lock.
 async fn drive(context: Context, ticket: Ticket, job: RunJob) {
     let db = &context.db;
     let outcome = match ticket.turn().await {
@@ -219,6 +226,11 @@ async fn drive(context: Context, ticket: Ticket, job: RunJob) {
             train(&context, &job).await
         }
     };
+    let ending = context.work.admissions().await;
+    if context.work.is_closed() {
+        // Stopping: `app` marks what waited or ran, and storage may be closing.
+        return;
+    }
     let stored = match outcome {
         Ok((policy_id, figures)) => {
             training::finish(
@@ -231,10 +243,6 @@ async fn drive(context: Context, ticket: Ticket, job: RunJob) {
             )
             .await
         }
-        Err(RunError::Cancelled) if context.work.is_closed() => {
-            let why = "the service stopped during the run";
-            training::finish(db, job.id, "failed", None, None, Some(why)).await
-        }
         Err(RunError::Cancelled) => {
             training::finish(db, job.id, "cancelled", None, None, Some("cancelled")).await
         }
@@ -246,6 +254,7 @@ async fn drive(context: Context, ticket: Ticket, job: RunJob) {
         tracing::error!(%error, run = job.id, "could not store a training run's end");
     }
     drop(ticket);
+    drop(ending);
 }
 
 async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Value), RunError> {
