@@ -2,4 +2,5 @@
 //! access, inputs) against a real server, with its own SQLite file.
 
 mod serve_support;
-#[path = "serve_faults/work.rs"] mod work;
+#[path = "serve_faults/work.rs"]
+mod work;

@@ -632,10 +632,7 @@ mod tests {
                 ("CELLD_MAX_EVALUATION_EPISODES", "500"),
             ]))
             .unwrap();
-        assert_eq!(
-            (config.work.concurrency, config.work.queue_length),
-            (2, 0)
-        );
+        assert_eq!((config.work.concurrency, config.work.queue_length), (2, 0));
         assert_eq!(config.policies.max_evaluation_episodes, 500);
         // The default evaluation (1000 episodes) would be refused by its own bound.
         let error = config.validate().unwrap_err().to_string();
@@ -646,7 +643,10 @@ mod tests {
         config.policies.evaluation_episodes = 500;
         config.validate().unwrap();
         for (key, set) in [
-            ("work.concurrency", (|c: &mut ServiceConfig| c.work.concurrency = 0) as fn(&mut _)),
+            (
+                "work.concurrency",
+                (|c: &mut ServiceConfig| c.work.concurrency = 0) as fn(&mut _),
+            ),
             ("work.concurrency", |c| c.work.concurrency = 65),
             ("work.queue_length", |c| c.work.queue_length = 10_001),
             ("policies.max_evaluation_episodes", |c| {

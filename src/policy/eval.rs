@@ -469,12 +469,19 @@ mod tests {
         let count = |_: &EpisodeReport| {
             ran.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         };
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
         let stop = || ran.load(std::sync::atomic::Ordering::SeqCst) >= 3;
         let stopped =
             pool.install(|| evaluate_until(&cell, None, options, 8, 2, &make, &count, &stop));
         assert!(stopped.is_none());
-        assert_eq!(ran.into_inner(), 3, "one thread: the stop is seen before the fourth");
+        assert_eq!(
+            ran.into_inner(),
+            3,
+            "one thread: the stop is seen before the fourth"
+        );
 
         let whole = evaluate_until(&cell, None, options, 4, 2, &make, &|_| {}, &|| false)
             .unwrap()

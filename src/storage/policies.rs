@@ -485,10 +485,18 @@ mod tests {
             calibration_scale: 3.0,
             fault: Some(crate::sim::Fault::FrozenCamera),
         };
-        let mismatched =
-            start_evaluation(&db, false, id, 10, 1, "cell", &EvaluatedOn::Cell(faulty), "test")
-                .await
-                .unwrap();
+        let mismatched = start_evaluation(
+            &db,
+            false,
+            id,
+            10,
+            1,
+            "cell",
+            &EvaluatedOn::Cell(faulty),
+            "test",
+        )
+        .await
+        .unwrap();
         finish_evaluation(&db, mismatched.id, Ok((0.5, None, json!({}))))
             .await
             .unwrap();

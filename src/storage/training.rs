@@ -253,8 +253,14 @@ mod tests {
 
         let db = Db::open(&path).await.unwrap();
         let kept = get(&db, 3).await.unwrap().unwrap();
-        assert_eq!((kept.status.as_str(), kept.policy_id), ("succeeded", Some(7)));
-        let policy = crate::storage::policies::get(&db, 7).await.unwrap().unwrap();
+        assert_eq!(
+            (kept.status.as_str(), kept.policy_id),
+            ("succeeded", Some(7))
+        );
+        let policy = crate::storage::policies::get(&db, 7)
+            .await
+            .unwrap()
+            .unwrap();
         assert_eq!(policy.training_run_id, Some(3));
         let evaluation = policy.evaluation.unwrap();
         assert_eq!((evaluation.id, evaluation.noise_scale), (5, 2.0));
@@ -265,15 +271,27 @@ mod tests {
             .unwrap();
         assert!(fk.is_empty(), "{fk:?}");
 
-        let queued = start(&db, true, &serde_json::json!({}), &[], "t").await.unwrap();
+        let queued = start(&db, true, &serde_json::json!({}), &[], "t")
+            .await
+            .unwrap();
         assert_eq!(queued.status, "queued");
         run(&db, queued.id).await.unwrap();
-        assert_eq!(get(&db, queued.id).await.unwrap().unwrap().status, "running");
-        let waiting = start(&db, true, &serde_json::json!({}), &[], "t").await.unwrap();
+        assert_eq!(
+            get(&db, queued.id).await.unwrap().unwrap().status,
+            "running"
+        );
+        let waiting = start(&db, true, &serde_json::json!({}), &[], "t")
+            .await
+            .unwrap();
         assert_eq!(fail_unfinished(&db, "stopped").await.unwrap(), 2);
         let read = get(&db, waiting.id).await.unwrap().unwrap();
-        assert_eq!(read.error.as_deref(), Some("stopped before the run started"));
-        finish(&db, waiting.id, "cancelled", None, None, Some("late")).await.unwrap();
+        assert_eq!(
+            read.error.as_deref(),
+            Some("stopped before the run started")
+        );
+        finish(&db, waiting.id, "cancelled", None, None, Some("late"))
+            .await
+            .unwrap();
         let read = get(&db, waiting.id).await.unwrap().unwrap();
         assert_eq!(read.status, "failed", "an ended run stays as it ended");
     }

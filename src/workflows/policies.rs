@@ -3,9 +3,9 @@
 
 use super::queue::{NoTurn, Ticket, WorkId, WorkKind};
 use super::{Context, Error, Result, off_the_runtime};
+use crate::policy::Controller;
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
-use crate::policy::Controller;
 use crate::sim::randomise::CellRanges;
 use crate::sim::{EnvOptions, MAX_MISMATCH_SCALE, Mismatch};
 use crate::storage::policies::{self, EvaluatedOn, Evaluation, NewPolicy, Policy};
@@ -388,7 +388,8 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
             tokio::time::sleep(std::time::Duration::from_millis(200)).await;
             match policies::latest_evaluation(db, policy.id).await {
                 Ok(Some(e))
-                    if e.id == evaluation.id && matches!(e.status.as_str(), "queued" | "running") =>
+                    if e.id == evaluation.id
+                        && matches!(e.status.as_str(), "queued" | "running") =>
                 {
                     continue;
                 }

@@ -440,9 +440,8 @@ mod tests {
         let queue = WorkQueue::new(1, 4).unwrap();
         let running = queue.reserve().unwrap();
         let waiting = queue.reserve().unwrap();
-        let waited = tokio::spawn(async move {
-            waiting.turn().await.map(|()| waiting.is_running())
-        });
+        let waited =
+            tokio::spawn(async move { waiting.turn().await.map(|()| waiting.is_running()) });
         tokio::task::yield_now().await;
         assert!(!waited.is_finished());
         drop(running);
@@ -463,7 +462,11 @@ mod tests {
         assert!(running.cancel_flag().load(Ordering::SeqCst));
         assert_eq!(queue.cancel(WorkId::training(3)), Cancelled::NotHere);
         drop(waiting);
-        assert_eq!(queue.counts(), (1, 0), "a removed ticket frees nothing twice");
+        assert_eq!(
+            queue.counts(),
+            (1, 0),
+            "a removed ticket frees nothing twice"
+        );
     }
 
     #[tokio::test]
@@ -518,7 +521,9 @@ mod tests {
             answer,
             Err("the work thread panicked: the loss is NaN".to_string())
         );
-        let answer = queue.compute(|| -> u8 { std::panic::panic_any(7_u8) }).await;
+        let answer = queue
+            .compute(|| -> u8 { std::panic::panic_any(7_u8) })
+            .await;
         assert_eq!(
             answer,
             Err("the work thread panicked: (no message)".to_string())

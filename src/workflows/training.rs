@@ -268,17 +268,17 @@ async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Val
         episodes = context
             .work
             .compute(move || {
-            demos::record_with(
-                &recorded,
-                EnvOptions::from_cell(&recorded),
-                &demonstrator,
-                count,
-                seed,
-                recording,
-            )
-        })
-        .await
-        .map_err(failed)?;
+                demos::record_with(
+                    &recorded,
+                    EnvOptions::from_cell(&recorded),
+                    &demonstrator,
+                    count,
+                    seed,
+                    recording,
+                )
+            })
+            .await
+            .map_err(failed)?;
         let new = NewDemonstration {
             name: &format!(
                 "training run {} (recorded {}{})",
@@ -313,22 +313,22 @@ async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Val
     let result = context
         .work
         .compute(move || {
-        run::run(
-            &cell,
-            episodes,
-            &settings,
-            &mut |point, progress| {
-                let mut live = shared.lock().expect("live lock");
-                live.stage = point.stage.to_string();
-                live.progress = progress;
-                live.curve.push(point);
-            },
-            &|| cancel.load(Ordering::SeqCst),
-        )
-    })
-    .await
-    .map_err(failed)
-    .and_then(|r| r);
+            run::run(
+                &cell,
+                episodes,
+                &settings,
+                &mut |point, progress| {
+                    let mut live = shared.lock().expect("live lock");
+                    live.stage = point.stage.to_string();
+                    live.progress = progress;
+                    live.curve.push(point);
+                },
+                &|| cancel.load(Ordering::SeqCst),
+            )
+        })
+        .await
+        .map_err(failed)
+        .and_then(|r| r);
     keeper.abort();
     store_progress(&context.db, job.id, &live).await;
     let (file, figures) = result?;

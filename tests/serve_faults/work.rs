@@ -132,7 +132,10 @@ fn a_burst_of_evaluations_waits_in_a_bounded_queue_and_the_estop_still_answers()
         if seed == 3 {
             let (status, _, run) = post(&server, "/api/training", endless_training());
             assert_eq!(status, 202, "{run}");
-            assert_eq!((&run["status"], &run["queue_position"]), (&json!("queued"), &json!(4)));
+            assert_eq!(
+                (&run["status"], &run["queue_position"]),
+                (&json!("queued"), &json!(4))
+            );
             queued_run = run["id"].as_i64();
         }
         let (status, retry_after, answer) = post(
@@ -220,7 +223,10 @@ fn a_burst_of_evaluations_waits_in_a_bounded_queue_and_the_estop_still_answers()
         assert_eq!((status.as_str(), error), ("done", &None), "evaluation {id}");
     }
     let runs = rows.statuses("training_runs");
-    assert!(runs.iter().all(|(_, status, _)| status == "cancelled"), "{runs:?}");
+    assert!(
+        runs.iter().all(|(_, status, _)| status == "cancelled"),
+        "{runs:?}"
+    );
 }
 
 #[test]
@@ -248,14 +254,22 @@ fn sigterm_with_work_running_and_queued_exits_in_time_and_marks_it_failed() {
         "{running_evaluation}"
     );
     let mut queued = Vec::new();
-    for path in ["/api/policies/1/evaluate", "/api/training", "/api/policies/1/evaluate"] {
+    for path in [
+        "/api/policies/1/evaluate",
+        "/api/training",
+        "/api/policies/1/evaluate",
+    ] {
         let body = if path == "/api/training" {
             endless_training()
         } else {
             json!({"episodes": 8})
         };
         let (status, _, answer) = post(&server, path, body);
-        assert_eq!((status, &answer["status"]), (202, &json!("queued")), "{answer}");
+        assert_eq!(
+            (status, &answer["status"]),
+            (202, &json!("queued")),
+            "{answer}"
+        );
         queued.push(answer["id"].as_i64().unwrap());
     }
 
@@ -294,10 +308,7 @@ fn sigterm_with_work_running_and_queued_exits_in_time_and_marks_it_failed() {
 
     // After a restart the API says the same; nothing waits or runs from before.
     let server = Server::start(dir.path(), &[]);
-    let (_, run) = server.get(
-        &format!("/api/training/{}", queued[1]),
-        Some(&server.admin),
-    );
+    let (_, run) = server.get(&format!("/api/training/{}", queued[1]), Some(&server.admin));
     assert_eq!(run["status"], "failed", "{run}");
     assert_eq!(run["queue_position"], Value::Null);
     assert!(run["error"].as_str().unwrap().contains("SIGTERM"), "{run}");
