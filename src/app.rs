@@ -22,6 +22,7 @@ use crate::metrics::Metrics;
 use crate::policy;
 use crate::storage::tokens::{self, Role};
 use crate::storage::{Db, jobs, policies, recorder, training};
+use crate::workflows::queue::WorkQueue;
 use crate::workflows::{self, Context, TelemetryMessage};
 use anyhow::{Context as _, Result, bail};
 use serde_json::json;
@@ -43,10 +44,15 @@ pub fn run(settings: ServiceConfig) -> Result<()> {
         cpu::pin_current_thread(&placement.others)
             .with_context(|| format!("keeping the service on CPUs {:?}", placement.others))?;
     }
-    tokio::runtime::Builder::new_multi_thread()
+    let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
-        .build()?
-        .block_on(serve(settings, placement))
+        .build()?;
+    let served = runtime.block_on(serve(settings, placement));
+    // Dropping a runtime waits for every blocking task; a stopped service must not (a request's
+    // parse, a join that timed out). Work threads hold nothing once `serve` has marked their
+    // work: the process ends with them.
+    runtime.shutdown_timeout(Duration::from_millis(200));
+    served
 }
 
 async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()> {
@@ -67,14 +73,18 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             "jobs left running or queued by the last run are now interrupted"
         );
     }
-    if training::fail_leftovers(&db).await? > 0 {
-        tracing::warn!("a training run left running by the last run is marked failed");
+    let runs = training::fail_leftovers(&db).await?;
+    if runs > 0 {
+        tracing::warn!(
+            runs,
+            "training runs left queued or running by the last run are marked failed"
+        );
     }
     let evaluations = policies::fail_leftover_evaluations(&db).await?;
     if evaluations > 0 {
         tracing::warn!(
             evaluations,
-            "policy evaluations left running by the last run are marked failed"
+            "policy evaluations left queued or running by the last run are marked failed"
         );
     }
     let first_token = if tokens::count(&db).await? == 0 {
@@ -145,13 +155,15 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         accepting: accepting.clone(),
         shutdown: shutdown.clone(),
         known_callers: Default::default(),
-        training: Default::default(),
+        work: WorkQueue::new(settings.work.concurrency, settings.work.queue_length)
+            .context("starting the background work threads")?,
         latch_writes: Default::default(),
     };
     let listener = tokio::net::TcpListener::bind(settings.listen)
         .await
         .with_context(|| format!("cannot listen on {}", settings.listen))?;
     let address = listener.local_addr()?;
+    let work = context.work.clone();
     let mut server_shutdown = shutdown.clone();
     workflows::policies::register_bundled(&context)
         .await
@@ -209,12 +221,16 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     accepting.store(false, Ordering::SeqCst);
     // The control thread holds the robot, closes the running and queued jobs as interrupted,
     // and exits; its event sink closes with it, which lets the storage writer finish.
+    // Meanwhile background work stops: the queue takes no more, its running work is asked to
+    // stop, and what waited or ran is marked failed now rather than at the next start.
     // Each wait is bounded (2 + 1 + 3 + 2 s), so the process is gone within 10 s.
-    let stopped = tokio::time::timeout(
-        Duration::from_secs(2),
-        cell_handle.ask(|reply| CellCommand::Shutdown { reply }),
-    )
-    .await;
+    let (stopped, ()) = tokio::join!(
+        tokio::time::timeout(
+            Duration::from_secs(2),
+            cell_handle.ask(|reply| CellCommand::Shutdown { reply }),
+        ),
+        stop_background_work(&work, &db),
+    );
     if !matches!(stopped, Ok(Ok(()))) {
         tracing::error!("the control thread did not confirm the stop in 2 s");
     }
@@ -237,6 +253,30 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     db.reader.close().await;
     println!("celld: stopped");
     Ok(())
+}
+
+/// At shutdown: closes the work queue (its running work is asked to stop) and marks every
+/// evaluation and training run still queued or running as failed, saying so; bounded by 2 s.
+async fn stop_background_work(work: &WorkQueue, db: &Db) {
+    let (running, waiting) = work.close();
+    if !running.is_empty() || !waiting.is_empty() {
+        tracing::warn!(
+            running = running.len(),
+            waiting = waiting.len(),
+            "stopping background work: it is marked failed"
+        );
+    }
+    let why = "the service was stopped (SIGTERM or SIGINT)";
+    let marked = tokio::time::timeout(Duration::from_secs(2), async {
+        policies::fail_unfinished_evaluations(db, why).await?;
+        training::fail_unfinished(db, why).await
+    })
+    .await;
+    match marked {
+        Ok(Ok(_)) => {}
+        Ok(Err(error)) => tracing::error!(%error, "could not mark the stopped background work"),
+        Err(_) => tracing::error!("marking the stopped background work took over 2 s"),
+    }
 }
 
 /// What the control thread's events turn into: metrics, telemetry, rows.

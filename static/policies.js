@@ -45,7 +45,7 @@ export async function render(page) {
       h('button', { type: 'button', class: 'secondary', text: 'Download', onclick: () => download(`/api/policies/${policy.id}/file`, `${policy.name}.safetensors`).catch((e) => showError(e, 'Downloading')) }),
       h('a', { href: `#/jobs?policy_id=${policy.id}`, text: 'jobs' }));
     if (!may.administer()) return cell;
-    const episodes = h('input', { type: 'number', min: 1, max: 100000, value: 1000, title: 'episodes', style: 'width:6rem' });
+    const episodes = h('input', { type: 'number', min: 1, max: 10000, value: 1000, title: 'episodes', style: 'width:6rem' });
     cell.append(
       episodes,
       h('button', {
@@ -114,7 +114,8 @@ export async function render(page) {
 function evaluationText(evaluation) {
   if (!evaluation) return 'not evaluated';
   if (evaluation.status !== 'done') {
-    return `${evaluation.status}${evaluation.error ? `: ${evaluation.error}` : ''} (${evaluation.episodes} episodes)`;
+    const place = evaluation.queue_position ? ` ${evaluation.queue_position} in the work queue` : '';
+    return `${evaluation.status}${place}${evaluation.error ? `: ${evaluation.error}` : ''} (${evaluation.episodes} episodes)`;
   }
   const failures = Object.entries(evaluation.failures || {}).map(([why, n]) => `${why} ${n}`).join(', ');
   return `success ${percent(evaluation.success_rate)}, ${fmt(evaluation.avg_steps, 1)} steps on average, ${evaluation.episodes} episodes (seed ${evaluation.seed}, ${conditions(evaluation)})${failures ? `; failures: ${failures}` : ''}`;

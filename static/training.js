@@ -115,6 +115,7 @@ async function renderRun(page, id) {
     header.replaceChildren(h('h1', {}, `Training run ${run.id} `, pill(run.status, 'training-status')));
     summary.replaceChildren(facts([
       ['stage', run.stage ?? '–'],
+      ['queue', run.queue_position ? `${run.queue_position} in the work queue (1 = next)` : null],
       ['progress', progressBar(run.progress)],
       ['settings', h('code', { text: JSON.stringify(run.settings) })],
       ['demonstrations', (run.demonstration_ids || []).join(', ') || '–'],
@@ -124,7 +125,8 @@ async function renderRun(page, id) {
       ['started', `${when(run.started_at)} by ${run.created_by}`],
       ['finished', when(run.finished_at)],
     ]));
-    actions.replaceChildren(...(run.status === 'running' && may.administer()
+    const unfinished = ['queued', 'running'].includes(run.status);
+    actions.replaceChildren(...(unfinished && may.administer()
       ? [h('button', {
         type: 'button', class: 'danger', text: 'Cancel run',
         onclick: async () => {
@@ -146,7 +148,7 @@ async function renderRun(page, id) {
       curveChart(lossCanvas, { x: 'epoch', y: 'loss' }, curve.filter((p) => p.stage !== 'td3'), { log: true }),
       curveChart(td3Canvas, { x: 'episode', y: 'return' }, curve.filter((p) => p.stage === 'td3')),
     ];
-    return run.status !== 'running';
+    return !unfinished;
   }
 
   if (!(await refresh())) {

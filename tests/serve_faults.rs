@@ -6,3 +6,5 @@ mod access;
 mod serve_support;
 #[path = "serve_faults/storage.rs"]
 mod storage;
+#[path = "serve_faults/work.rs"]
+mod work;

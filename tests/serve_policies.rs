@@ -24,6 +24,18 @@ fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value
 /// How long an evaluation may take.
 const EVALUATION: Duration = Duration::from_secs(120);
 
+/// Polls policy `id` until its latest evaluation has ended (neither waits in the work queue
+/// nor runs); answers the policy.
+fn evaluation_ended(server: &Server, id: i64) -> Value {
+    let path = format!("/api/policies/{id}");
+    server.poll(&path, "ended its evaluation", EVALUATION, |policy| {
+        !matches!(
+            policy["evaluation"]["status"].as_str(),
+            Some("queued" | "running")
+        )
+    })
+}
+
 fn policy_count(server: &Server) -> usize {
     let (_, list) = server.get("/api/policies", Some(&server.admin));
     list["items"].as_array().unwrap().len()
@@ -75,6 +87,8 @@ fn upload_evaluate_activate_and_roll_back() {
             .contains("no finished evaluation")
     );
 
+    // The bundled policy's evaluation at start ends first: evaluations run one at a time.
+    evaluation_ended(&server, bundled_id);
     let (status, evaluation) = server.post(
         &format!("/api/policies/{bc_id}/evaluate"),
         Some(&admin),
@@ -82,7 +96,8 @@ fn upload_evaluate_activate_and_roll_back() {
     );
     assert_eq!(status, 202, "{evaluation}");
     assert_eq!(evaluation["status"], "running");
-    let evaluated = server.wait_evaluated(bc_id, EVALUATION);
+    assert_eq!(evaluation["queue_position"], Value::Null);
+    let evaluated = evaluation_ended(&server, bc_id);
     let result = &evaluated["evaluation"];
     assert_eq!(result["status"], "done", "{evaluated}");
     assert_eq!(result["episodes"], 10);
@@ -126,7 +141,7 @@ fn upload_evaluate_activate_and_roll_back() {
     assert_eq!(evaluation["noise_scale"], 2.0);
     assert_eq!(evaluation["calibration_scale"], 0.0);
     assert_eq!(evaluation["fault"], "occlusion");
-    let evaluated = server.wait_evaluated(bc_id, EVALUATION);
+    let evaluated = evaluation_ended(&server, bc_id);
     assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
     assert_eq!(evaluated["evaluation"]["fault"], "occlusion");
 
@@ -149,7 +164,7 @@ fn upload_evaluate_activate_and_roll_back() {
     );
     assert_eq!(status, 202, "{evaluation}");
     assert_eq!(evaluation["randomise_cells"], true);
-    let evaluated = server.wait_evaluated(across_id, EVALUATION);
+    let evaluated = evaluation_ended(&server, across_id);
     let result = &evaluated["evaluation"];
     assert_eq!(result["status"], "done", "{evaluated}");
     // The same as `celld eval --randomise-cells` runs on this cell, episode for episode.
@@ -181,7 +196,7 @@ fn upload_evaluate_activate_and_roll_back() {
     assert!(done["steps"].as_i64().unwrap() > 0, "{done}");
 
     // Activate the bundled one (evaluated at start), then roll back to bc.
-    server.wait_evaluated(bundled_id, EVALUATION);
+    evaluation_ended(&server, bundled_id);
     let (status, swapped) = server.post(
         &format!("/api/policies/{bundled_id}/activate"),
         Some(&admin),
@@ -252,7 +267,7 @@ fn a_flat_td3_policy_uploads_evaluates_and_runs() {
         Some(json!({"episodes": 5, "seed": 3})),
     );
     assert_eq!(status, 202, "{evaluation}");
-    let evaluated = server.wait_evaluated(id, EVALUATION);
+    let evaluated = evaluation_ended(&server, id);
     assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
     let (status, activated) =
         server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);
@@ -297,7 +312,7 @@ fn the_gate_holds_unless_forced_with_a_reason() {
         Some(&admin),
         Some(json!({"episodes": 5})),
     );
-    let evaluated = server.wait_evaluated(id, EVALUATION);
+    let evaluated = evaluation_ended(&server, id);
     assert!(evaluated["evaluation"]["success_rate"].as_f64().unwrap() < 0.95);
     let (status, refused) =
         server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);

@@ -1,5 +1,5 @@
-//! Training runs over HTTP: progress and curve while running, one at a time, cancel, and the
-//! lineage demonstrations → run → policy → jobs.
+//! Training runs over HTTP: progress and curve while running, waiting their turn in the work
+//! queue, cancel, and the lineage demonstrations → run → policy → jobs.
 
 mod serve_support;
 
@@ -17,6 +17,11 @@ fn tiny(td3_episodes: usize) -> Value {
                      "lstm_hidden": 8, "lstm_epochs": 3, "eval_every": 0, "eval_episodes": 2,
                      "polish_td3_episodes": td3_episodes}
     })
+}
+
+/// Whether a run has ended (it neither waits nor runs).
+fn ended(run: &Value) -> bool {
+    !matches!(run["status"].as_str(), Some("queued" | "running"))
 }
 
 fn wait(server: &Server, id: i64, what: &str, done: impl Fn(&Value) -> bool) -> Value {
@@ -77,7 +82,8 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
         assert!(message.contains(named), "{message}");
     }
 
-    // A long run: its curve is readable while it runs; a second run must wait; it cancels.
+    // A long run: its curve is readable while it runs; a second run waits its turn in the
+    // work queue (one at a time by default) until cancelled there; the long one cancels.
     let (status, long) = server.post("/api/training", Some(&admin), Some(tiny(100_000)));
     assert_eq!(status, 202, "{long}");
     let long_id = long["id"].as_i64().unwrap();
@@ -85,8 +91,34 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
         r["status"] == "running" && r["curve"].as_array().is_some_and(|c| !c.is_empty())
     });
     assert!(seen["progress"].as_f64().unwrap() > 0.0, "{seen}");
-    let (status, busy) = server.post("/api/training", Some(&admin), Some(tiny(4)));
-    assert_eq!(status, 409, "{busy}");
+    assert_eq!(seen["queue_position"], Value::Null);
+    let (status, second) = server.post("/api/training", Some(&admin), Some(tiny(4)));
+    assert_eq!(status, 202, "{second}");
+    assert_eq!(second["status"], "queued", "{second}");
+    assert_eq!(second["queue_position"], 1, "{second}");
+    let second_id = second["id"].as_i64().unwrap();
+    let (_, listed) = server.get("/api/training", Some(&admin));
+    let entry = listed["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["id"] == second_id)
+        .unwrap()
+        .clone();
+    assert_eq!(
+        (&entry["status"], &entry["queue_position"]),
+        (&json!("queued"), &json!(1))
+    );
+    let (status, answer) = server.post(
+        &format!("/api/training/{second_id}/cancel"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!((status, &answer["status"]), (202, &json!("cancelled")));
+    let (_, dequeued) = server.get(&format!("/api/training/{second_id}"), Some(&admin));
+    assert_eq!(dequeued["status"], "cancelled", "{dequeued}");
+    assert_eq!(dequeued["queue_position"], Value::Null);
+    assert_eq!(dequeued["curve"], json!([]), "it never ran: {dequeued}");
     let (status, _) = server.post(
         &format!("/api/training/{long_id}/cancel"),
         Some(&viewer),
@@ -99,7 +131,7 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
         None,
     );
     assert_eq!(status, 202);
-    let cancelled = wait(&server, long_id, "ended", |r| r["status"] != "running");
+    let cancelled = wait(&server, long_id, "ended", ended);
     assert_eq!(cancelled["status"], "cancelled", "{cancelled}");
     assert_eq!(cancelled["policy_id"], Value::Null);
 
@@ -110,7 +142,7 @@ fn a_training_run_reports_progress_can_be_cancelled_and_leaves_a_candidate_with_
     let (status, short) = server.post("/api/training", Some(&admin), Some(careful));
     assert_eq!(status, 202, "{short}");
     let id = short["id"].as_i64().unwrap();
-    let done = wait(&server, id, "ended", |r| r["status"] != "running");
+    let done = wait(&server, id, "ended", ended);
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!(done["progress"], 1.0);
     let stages: Vec<&str> = done["curve"]
@@ -177,7 +209,7 @@ fn a_run_for_any_cell_learns_cell_scaled_inputs_and_keeps_the_kinds_apart() {
     let (status, started) = server.post("/api/training", Some(&admin), Some(any_cell));
     assert_eq!(status, 202, "{started}");
     let id = started["id"].as_i64().unwrap();
-    let done = wait(&server, id, "ended", |r| r["status"] != "running");
+    let done = wait(&server, id, "ended", ended);
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!(done["settings"]["for_any_cell"], true, "{done}");
 
@@ -248,7 +280,7 @@ fn a_run_with_a_dagger_round_and_the_polish_learns_what_celld_train_policy_learn
     let (status, started) = server.post("/api/training", Some(&admin), Some(recipe));
     assert_eq!(status, 202, "{started}");
     let id = started["id"].as_i64().unwrap();
-    let done = wait(&server, id, "ended", |r| r["status"] != "running");
+    let done = wait(&server, id, "ended", ended);
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!(done["figures"]["dagger"][0]["episodes"], 12, "{done}");
     let lstm: Vec<i64> = done["curve"]

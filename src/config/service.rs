@@ -43,6 +43,8 @@ pub struct ServiceConfig {
     pub control: ControlConfig,
     pub http: HttpConfig,
     pub policies: PolicyConfig,
+    /// Background work (evaluations, training runs): how many at once, how many may wait.
+    pub work: WorkConfig,
     /// The hexapod controller's driver (`twin` or `gcs`).
     pub robot: RobotDriverConfig,
     /// The camera's driver (`twin` or `igtl`).
@@ -167,7 +169,35 @@ pub struct PolicyConfig {
     /// Episodes of an evaluation when the request does not say (and of the bundled policy's
     /// evaluation at first start).
     pub evaluation_episodes: u32,
+    /// Most episodes one evaluation request may ask for (more is 422).
+    pub max_evaluation_episodes: u32,
 }
+
+/// `[work]`: the one queue evaluations and training runs wait in (`workflows::queue`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WorkConfig {
+    /// Pieces of background work computing at once, each on one thread at nice 10.
+    pub concurrency: usize,
+    /// Pieces that may wait behind them; one more is refused (429).
+    pub queue_length: usize,
+}
+
+impl Default for WorkConfig {
+    fn default() -> Self {
+        WorkConfig {
+            concurrency: 1,
+            queue_length: 16,
+        }
+    }
+}
+
+/// Most pieces of background work computing at once (`work.concurrency`).
+pub const MAX_WORK_CONCURRENCY: usize = 64;
+/// Longest work queue (`work.queue_length`).
+pub const MAX_WORK_QUEUE_LENGTH: usize = 10_000;
+/// Highest `policies.max_evaluation_episodes`.
+pub const MAX_EVALUATION_EPISODES: u32 = 1_000_000;
 
 impl Default for PolicyConfig {
     fn default() -> Self {
@@ -175,6 +205,7 @@ impl Default for PolicyConfig {
             max_upload_bytes: 64 << 20,
             activation_threshold: 0.95,
             evaluation_episodes: 1000,
+            max_evaluation_episodes: 10_000,
         }
     }
 }
@@ -189,6 +220,7 @@ impl Default for ServiceConfig {
             control: ControlConfig::default(),
             http: HttpConfig::default(),
             policies: PolicyConfig::default(),
+            work: WorkConfig::default(),
             robot: RobotDriverConfig::default(),
             camera: CameraDriverConfig::default(),
             access: AccessConfig::default(),
@@ -298,6 +330,21 @@ impl ServiceConfig {
                     self.policies.evaluation_episodes = value
                         .parse()
                         .map_err(|_| invalid("CELLD_EVALUATION_EPISODES", "not a whole number"))?
+                }
+                "MAX_EVALUATION_EPISODES" => {
+                    self.policies.max_evaluation_episodes = value.parse().map_err(|_| {
+                        invalid("CELLD_MAX_EVALUATION_EPISODES", "not a whole number")
+                    })?
+                }
+                "WORK_CONCURRENCY" => {
+                    self.work.concurrency = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_WORK_CONCURRENCY", "not a whole number"))?
+                }
+                "WORK_QUEUE_LENGTH" => {
+                    self.work.queue_length = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_WORK_QUEUE_LENGTH", "not a whole number"))?
                 }
                 "ROBOT_DRIVER" => {
                     self.robot.driver = match value.as_str() {
@@ -430,6 +477,38 @@ impl ServiceConfig {
                 "policies.evaluation_episodes",
                 "0".into(),
                 "must be ≥ 1",
+            ));
+        }
+        let (episodes, most) = (
+            self.policies.evaluation_episodes,
+            self.policies.max_evaluation_episodes,
+        );
+        if !(1..=MAX_EVALUATION_EPISODES).contains(&most) {
+            return Err(invalid(
+                "policies.max_evaluation_episodes",
+                most.to_string(),
+                &format!("must lie in 1..={MAX_EVALUATION_EPISODES}"),
+            ));
+        }
+        if episodes > most {
+            return Err(invalid(
+                "policies.evaluation_episodes",
+                episodes.to_string(),
+                &format!("must not exceed policies.max_evaluation_episodes ({most})"),
+            ));
+        }
+        if !(1..=MAX_WORK_CONCURRENCY).contains(&self.work.concurrency) {
+            return Err(invalid(
+                "work.concurrency",
+                self.work.concurrency.to_string(),
+                &format!("must lie in 1..={MAX_WORK_CONCURRENCY}"),
+            ));
+        }
+        if self.work.queue_length > MAX_WORK_QUEUE_LENGTH {
+            return Err(invalid(
+                "work.queue_length",
+                self.work.queue_length.to_string(),
+                &format!("must lie in 0..={MAX_WORK_QUEUE_LENGTH}"),
             ));
         }
         if self.policies.max_upload_bytes == 0 {
@@ -606,5 +685,48 @@ mod tests {
         assert_eq!(config.step_period_s(4.0), Some(0.02));
         config.fast = true;
         assert_eq!(config.step_period_s(4.0), None);
+    }
+
+    #[test]
+    fn background_work_settings_are_read_and_bounded() {
+        let mut config = ServiceConfig::default();
+        config
+            .apply_env(vars(&[
+                ("CELLD_WORK_CONCURRENCY", "2"),
+                ("CELLD_WORK_QUEUE_LENGTH", "0"),
+                ("CELLD_MAX_EVALUATION_EPISODES", "500"),
+            ]))
+            .unwrap();
+        assert_eq!((config.work.concurrency, config.work.queue_length), (2, 0));
+        assert_eq!(config.policies.max_evaluation_episodes, 500);
+        // The default evaluation (1000 episodes) would be refused by its own bound.
+        let error = config.validate().unwrap_err().to_string();
+        assert!(
+            error.contains("policies.evaluation_episodes") && error.contains("(500)"),
+            "{error}"
+        );
+        config.policies.evaluation_episodes = 500;
+        config.validate().unwrap();
+        for (key, set) in [
+            (
+                "work.concurrency",
+                (|c: &mut ServiceConfig| c.work.concurrency = 0) as fn(&mut _),
+            ),
+            ("work.concurrency", |c| c.work.concurrency = 65),
+            ("work.queue_length", |c| c.work.queue_length = 10_001),
+            ("policies.max_evaluation_episodes", |c| {
+                c.policies.max_evaluation_episodes = 0
+            }),
+        ] {
+            let mut bad = config.clone();
+            set(&mut bad);
+            let error = bad.validate().unwrap_err().to_string();
+            assert!(error.contains(key), "{error}");
+        }
+        let error = config
+            .apply_env(vars(&[("CELLD_WORK_QUEUE_LENGTH", "many")]))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("CELLD_WORK_QUEUE_LENGTH"), "{error}");
     }
 }

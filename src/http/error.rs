@@ -15,6 +15,8 @@ pub struct ApiError {
     pub status: StatusCode,
     pub code: &'static str,
     pub message: String,
+    /// Sent as `Retry-After` (seconds) with a 429.
+    pub retry_after_s: Option<u64>,
 }
 
 impl ApiError {
@@ -23,6 +25,7 @@ impl ApiError {
             status,
             code,
             message: message.into(),
+            retry_after_s: None,
         }
     }
 
@@ -61,7 +64,13 @@ impl IntoResponse for ApiError {
             tracing::error!(code = self.code, message = %self.message, "request failed");
         }
         let body = json!({"error": {"code": self.code, "message": self.message}});
-        (self.status, axum::Json(body)).into_response()
+        let mut response = (self.status, axum::Json(body)).into_response();
+        if let Some(seconds) = self.retry_after_s {
+            response
+                .headers_mut()
+                .insert(axum::http::header::RETRY_AFTER, seconds.into());
+        }
+        response
     }
 }
 
@@ -96,6 +105,10 @@ impl From<crate::workflows::Error> for ApiError {
             Error::NotFound(_) => Self::not_found(message),
             Error::Conflict(_) => Self::conflict(message),
             Error::Unavailable(_) => Self::unavailable(message),
+            Error::Busy { retry_after_s, .. } => ApiError {
+                retry_after_s: Some(retry_after_s),
+                ..Self::new(StatusCode::TOO_MANY_REQUESTS, "queue_full", message)
+            },
             Error::Storage(_) => Self::new(StatusCode::INTERNAL_SERVER_ERROR, "storage", message),
             Error::StorageUnavailable(_) => Self::new(
                 StatusCode::SERVICE_UNAVAILABLE,

@@ -71,7 +71,7 @@ async fn upload(
 async fn list(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Items<Policy>>> {
     auth.require(Role::Viewer)?;
     Ok(Json(Items {
-        items: policies::list(&context.db).await?,
+        items: workflows::policies::list(&context).await?,
     }))
 }
 
@@ -126,8 +126,9 @@ fn optional_body<T: serde::de::DeserializeOwned + Default>(bytes: &[u8]) -> ApiR
 #[derive(Debug, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct EvaluateBody {
-    /// Episodes (default: the service's `policies.evaluation_episodes`).
-    #[schema(minimum = 1, maximum = 100_000)]
+    /// Episodes (default: the service's `policies.evaluation_episodes`); at most
+    /// `policies.max_evaluation_episodes` (10,000 unless the service sets another), else 422.
+    #[schema(minimum = 1, maximum = 10_000)]
     #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     episodes: Option<u32>,
     /// The evaluation's seed (default 1).
@@ -163,13 +164,20 @@ fn optional_fault<'de, D: serde::Deserializer<'de>>(
 }
 
 /// Evaluates the policy in the twin of this cell (admin), in the background at low priority;
-/// the answer is the evaluation as it starts. The body may be left out. An evaluation under a
+/// the answer is the evaluation as it is stored: `running`, or `queued` with its
+/// `queue_position` behind other evaluations and training runs (`work.concurrency` compute at
+/// once). Past `work.queue_length` waiting, 429 with `Retry-After`. The body may be left out. An evaluation under a
 /// mismatch (`noise_scale` or `calibration_scale` other than 1, or a `fault`) or on drawn cells
 /// (`randomise_cells`) is stored and shown like any other, but the activation gate reads only
 /// those on this cell without a mismatch.
 #[utoipa::path(post, path = "/api/policies/{id}/evaluate", tag = "policies",
     params(("id" = i64, Path)), request_body(content = Option<EvaluateBody>),
-    responses((status = 202, description = "Started", body = Evaluation)))]
+    responses(
+        (status = 202, description = "Started, or queued", body = Evaluation),
+        (status = 429, description = "The work queue is full (`work.queue_length`)",
+            body = crate::http::document::ErrorBody,
+            headers(("Retry-After" = u64, description = "Seconds worth waiting first"))),
+    ))]
 async fn evaluate(
     State(context): State<Context>,
     auth: Auth,

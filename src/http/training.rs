@@ -5,10 +5,11 @@
 
 use super::Context;
 use super::auth::Auth;
-use super::error::{ApiError, ApiResult, Items, Json, Path};
+use super::error::{ApiResult, Items, Json, Path};
 use crate::learning::run::{TrainingPart, TrainingSettings};
 use crate::storage::tokens::Role;
 use crate::storage::training;
+use crate::workflows::queue::Cancelled;
 use crate::workflows::{self, training::TrainingRequest};
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -63,9 +64,16 @@ fn distinct_ids() -> utoipa::openapi::schema::Array {
 }
 
 /// Starts a training run (admin): demonstrations in, a candidate policy out, on a
-/// low-priority thread beside the cell; one at a time (409 while one runs).
+/// low-priority thread beside the cell. It waits in the work queue with evaluations
+/// (`queued`, with its `queue_position`) while `work.concurrency` pieces of work compute;
+/// past `work.queue_length` waiting, 429 with `Retry-After`.
 #[utoipa::path(post, path = "/api/training", tag = "training", request_body = StartBody,
-    responses((status = 202, description = "Started", body = training::TrainingRun)))]
+    responses(
+        (status = 202, description = "Started, or queued", body = training::TrainingRun),
+        (status = 429, description = "The work queue is full (`work.queue_length`)",
+            body = crate::http::document::ErrorBody,
+            headers(("Retry-After" = u64, description = "Seconds worth waiting first"))),
+    ))]
 async fn start(
     State(context): State<Context>,
     auth: Auth,
@@ -93,7 +101,7 @@ async fn list(
 ) -> ApiResult<Json<Items<training::TrainingRun>>> {
     auth.require(Role::Viewer)?;
     Ok(Json(Items {
-        items: training::list(&context.db).await?,
+        items: workflows::training::list(&context).await?,
     }))
 }
 
@@ -106,20 +114,20 @@ async fn read(
     Path(id): Path<i64>,
 ) -> ApiResult<Json<training::TrainingRun>> {
     auth.require(Role::Viewer)?;
-    training::get(&context.db, id)
-        .await?
-        .map(Json)
-        .ok_or_else(|| ApiError::not_found(format!("no training run with id {id}")))
+    Ok(Json(workflows::training::get(&context, id).await?))
 }
 
 #[derive(Serialize, ToSchema)]
 pub struct Cancelling {
     id: i64,
-    /// `cancelling`: the run stops at its next check and is then `cancelled`.
+    /// `cancelled`: it was queued and has left the queue; `cancelling`: it runs, stops at its
+    /// next check and is then `cancelled`.
+    #[schema(pattern = "^(cancelled|cancelling)$")]
     status: &'static str,
 }
 
-/// Cancels the running training run (admin).
+/// Cancels a training run (admin): a queued one leaves the queue and ends `cancelled`; a
+/// running one stops at its next check.
 #[utoipa::path(post, path = "/api/training/{id}/cancel", tag = "training",
     params(("id" = i64, Path)),
     responses((status = 202, description = "Cancelling", body = Cancelling)))]
@@ -129,12 +137,10 @@ async fn cancel(
     Path(id): Path<i64>,
 ) -> ApiResult<(StatusCode, Json<Cancelling>)> {
     let caller = auth.require(Role::Admin)?;
-    workflows::training::cancel(&context, id, &caller.name).await?;
-    Ok((
-        StatusCode::ACCEPTED,
-        Json(Cancelling {
-            id,
-            status: "cancelling",
-        }),
-    ))
+    let cancelled = workflows::training::cancel(&context, id, &caller.name).await?;
+    let status = match cancelled {
+        Cancelled::Dequeued => "cancelled",
+        _ => "cancelling",
+    };
+    Ok((StatusCode::ACCEPTED, Json(Cancelling { id, status })))
 }

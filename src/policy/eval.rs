@@ -186,7 +186,7 @@ pub fn evaluate(
     make_controller: &(dyn Fn() -> Box<dyn Controller> + Sync),
     on_episode: &(dyn Fn(&EpisodeReport) + Sync),
 ) -> (EvalSummary, Vec<EpisodeReport>) {
-    evaluate_on(
+    evaluate_until(
         cell,
         None,
         options,
@@ -194,7 +194,9 @@ pub fn evaluate(
         seed,
         &|_| make_controller(),
         on_episode,
+        &|| false,
     )
+    .expect("never stopped")
 }
 
 /// [`evaluate`] on cells drawn over `ranges` around `base`, as training with randomised cells
@@ -211,7 +213,7 @@ pub fn evaluate_on_drawn_cells(
     make_controller: &(dyn Fn(&CellConfig) -> Box<dyn Controller> + Sync),
     on_episode: &(dyn Fn(&EpisodeReport) + Sync),
 ) -> (EvalSummary, Vec<EpisodeReport>) {
-    evaluate_on(
+    evaluate_until(
         base,
         Some(ranges),
         options,
@@ -219,10 +221,17 @@ pub fn evaluate_on_drawn_cells(
         seed,
         make_controller,
         on_episode,
+        &|| false,
     )
+    .expect("never stopped")
 }
 
-fn evaluate_on(
+/// [`evaluate`] (no `ranges`) or [`evaluate_on_drawn_cells`] that a caller can stop: `stop` is
+/// asked before each episode, and once it says so the episodes not begun are skipped and the
+/// answer is `None` (a service stopping does not wait for thousands of episodes). Episodes
+/// that run are the same as without it.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_until(
     cell: &CellConfig,
     ranges: Option<&CellRanges>,
     options: EnvOptions,
@@ -230,7 +239,8 @@ fn evaluate_on(
     seed: u64,
     make_controller: &(dyn Fn(&CellConfig) -> Box<dyn Controller> + Sync),
     on_episode: &(dyn Fn(&EpisodeReport) + Sync),
-) -> (EvalSummary, Vec<EpisodeReport>) {
+    stop: &(dyn Fn() -> bool + Sync),
+) -> Option<(EvalSummary, Vec<EpisodeReport>)> {
     let started = Instant::now();
     let name = make_controller(cell).name().to_string();
     let reports = run_all(
@@ -241,7 +251,8 @@ fn evaluate_on(
         seed,
         make_controller,
         on_episode,
-    );
+        stop,
+    )?;
     let mut summary = summarise(
         cell,
         options,
@@ -254,10 +265,12 @@ fn evaluate_on(
         0 => episodes,
         kept => robots_of(kept, episodes),
     });
-    (summary, reports)
+    Some((summary, reports))
 }
 
-/// The episodes of an evaluation, on `cell` or on cells drawn over `ranges` around it.
+/// The episodes of an evaluation, on `cell` or on cells drawn over `ranges` around it; `None`
+/// once `stop` says so.
+#[allow(clippy::too_many_arguments)]
 fn run_all(
     cell: &CellConfig,
     options: EnvOptions,
@@ -266,11 +279,15 @@ fn run_all(
     seed: u64,
     make_controller: &(dyn Fn(&CellConfig) -> Box<dyn Controller> + Sync),
     on_episode: &(dyn Fn(&EpisodeReport) + Sync),
-) -> Vec<EpisodeReport> {
+    stop: &(dyn Fn() -> bool + Sync),
+) -> Option<Vec<EpisodeReport>> {
     let run = |env: &mut AssemblyEnv, controller: &mut Box<dyn Controller>, index: usize| {
+        if stop() {
+            return None;
+        }
         let report = run_episode(env, controller.as_mut(), index, episode_seed(seed, index));
         on_episode(&report);
-        report
+        Some(report)
     };
     if options.kept_robots == 0 {
         return match ranges {
@@ -285,6 +302,9 @@ fn run_all(
             Some(_) => (0..episodes)
                 .into_par_iter()
                 .map(|index| {
+                    if stop() {
+                        return None;
+                    }
                     let (drawn, options) =
                         cell_for(cell, &options, ranges, episode_seed(seed, index));
                     run(
@@ -296,9 +316,12 @@ fn run_all(
                 .collect(),
         };
     }
-    let blocks: Vec<Vec<EpisodeReport>> = robot_blocks(options, episodes, seed)
+    let blocks: Option<Vec<Vec<EpisodeReport>>> = robot_blocks(options, episodes, seed)
         .into_par_iter()
         .map(|(kept, block)| {
+            if stop() {
+                return None;
+            }
             let (cell, kept) = cell_for(cell, &kept, ranges, kept.robot_seed);
             let mut env = AssemblyEnv::new(&cell, kept);
             let mut controller = make_controller(&cell);
@@ -307,7 +330,7 @@ fn run_all(
                 .collect()
         })
         .collect();
-    blocks.into_iter().flatten().collect()
+    Some(blocks?.into_iter().flatten().collect())
 }
 
 fn summarise(
@@ -428,5 +451,45 @@ mod tests {
             (summary.successes, summary.avg_steps_all, summary.avg_reward),
             "the same seed runs the same episodes"
         );
+    }
+
+    /// A stop asked for mid-way skips the episodes not begun and answers nothing; never asked,
+    /// the episodes are those of [`evaluate`].
+    #[test]
+    fn a_stopped_evaluation_runs_no_episode_after_the_stop() {
+        let cell = CellConfig::reference();
+        let options = EnvOptions {
+            kept_robots: 2,
+            ..EnvOptions::from_cell(&cell)
+        };
+        let make = |c: &CellConfig| -> Box<dyn Controller> {
+            Box::new(crate::policy::expert::Expert::new(c))
+        };
+        let ran = std::sync::atomic::AtomicUsize::new(0);
+        let count = |_: &EpisodeReport| {
+            ran.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let stop = || ran.load(std::sync::atomic::Ordering::SeqCst) >= 3;
+        let stopped =
+            pool.install(|| evaluate_until(&cell, None, options, 8, 2, &make, &count, &stop));
+        assert!(stopped.is_none());
+        assert_eq!(
+            ran.into_inner(),
+            3,
+            "one thread: the stop is seen before the fourth"
+        );
+
+        let whole = evaluate_until(&cell, None, options, 4, 2, &make, &|_| {}, &|| false)
+            .unwrap()
+            .1;
+        let plain = evaluate(&cell, options, 4, 2, &|| make(&cell), &|_| {}).1;
+        let outcomes = |r: &[EpisodeReport]| -> Vec<(String, u32)> {
+            r.iter().map(|e| (e.outcome.clone(), e.steps)).collect()
+        };
+        assert_eq!(outcomes(&whole), outcomes(&plain));
     }
 }

@@ -28,7 +28,13 @@ pub struct Policy {
 pub struct Evaluation {
     pub id: i64,
     pub policy_id: i64,
+    /// `queued` (waiting its turn in the work queue), `running`, `done` or `failed`.
+    #[schema(pattern = "^(queued|running|done|failed)$")]
     pub status: String,
+    /// While `queued`: its place in the work queue, shared with training runs (1 = next to
+    /// start); otherwise null.
+    #[schema(minimum = 1)]
+    pub queue_position: Option<usize>,
     pub episodes: i64,
     pub seed: u64,
     pub cell_hash: String,
@@ -47,6 +53,7 @@ pub struct Evaluation {
     pub failures: Value,
     pub error: Option<String>,
     pub requested_by: String,
+    /// When it was asked for, then when it left the queue and started.
     pub started_at: String,
     pub finished_at: Option<String>,
 }
@@ -116,6 +123,8 @@ impl From<EvaluationRow> for Evaluation {
             id: row.id,
             policy_id: row.policy_id,
             status: row.status,
+            // The queue's to say (`workflows::queue`); storage knows only that it waits.
+            queue_position: None,
             episodes: row.episodes,
             // Stored as the same 64 bits in SQLite's signed integer.
             seed: row.seed as u64,
@@ -271,10 +280,13 @@ pub async fn activate_if_none_active(db: &Db, id: i64) -> Result<bool, DbError> 
     Ok(done.rows_affected() == 1)
 }
 
-/// Records an evaluation as it starts: `episodes` under `seed` on the cell with `cell_hash`, its
-/// twin departing from the cell file by `mismatch`.
+/// Records an evaluation as it is asked for (`queued`, or `running` when it starts at once):
+/// `episodes` under `seed` on the cell with `cell_hash`, its twin departing from the cell file
+/// by `mismatch`.
+#[allow(clippy::too_many_arguments)]
 pub async fn start_evaluation(
     db: &Db,
+    queued: bool,
     policy_id: i64,
     episodes: i64,
     seed: u64,
@@ -286,9 +298,10 @@ pub async fn start_evaluation(
     let rows = sqlx::query_as::<_, EvaluationRow>(
         "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, noise_scale,
                 calibration_scale, fault, randomise_cells, requested_by)
-         VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
     )
     .bind(policy_id)
+    .bind(if queued { "queued" } else { "running" })
     .bind(episodes)
     .bind(seed as i64)
     .bind(cell_hash)
@@ -303,7 +316,20 @@ pub async fn start_evaluation(
     Ok(Evaluation::from(row))
 }
 
-/// Stores an evaluation's result (`Ok`: success rate, avg steps, failures) or its error.
+/// A queued evaluation leaves the queue: `running` from now.
+pub async fn run_evaluation(db: &Db, id: i64) -> Result<(), DbError> {
+    sqlx::query(&format!(
+        "UPDATE policy_evaluations SET status = 'running', started_at = {NOW}
+         WHERE id = ? AND status = 'queued'"
+    ))
+    .bind(id)
+    .execute(&db.writer)
+    .await?;
+    Ok(())
+}
+
+/// Stores an evaluation's result (`Ok`: success rate, avg steps, failures) or its error, unless
+/// it has ended already (at shutdown, [`fail_unfinished_evaluations`] may come first).
 pub async fn finish_evaluation(
     db: &Db,
     id: i64,
@@ -321,7 +347,7 @@ pub async fn finish_evaluation(
     };
     sqlx::query(&format!(
         "UPDATE policy_evaluations SET status = ?, success_rate = ?, avg_steps = ?, failures = ?,
-                error = ?, finished_at = {NOW} WHERE id = ?"
+                error = ?, finished_at = {NOW} WHERE id = ? AND status IN ('queued', 'running')"
     ))
     .bind(status)
     .bind(success)
@@ -344,14 +370,24 @@ pub async fn latest_evaluation(db: &Db, policy_id: i64) -> Result<Option<Evaluat
     Ok(row.map(Evaluation::from))
 }
 
-/// At start: every evaluation a previous run left `running` becomes `failed`, so that none
-/// reads as running forever. Returns how many.
+/// At start: every evaluation a previous run left `queued` or `running` becomes `failed`, so that
+/// none reads as waiting or running forever. Returns how many.
 pub async fn fail_leftover_evaluations(db: &Db) -> Result<u64, DbError> {
+    fail_unfinished_evaluations(db, "the service stopped").await
+}
+
+/// Every `queued` or `running` evaluation becomes `failed`, its error saying that `why` happened
+/// before it started or during it (at shutdown, and for what a previous run left). Returns how
+/// many.
+pub async fn fail_unfinished_evaluations(db: &Db, why: &str) -> Result<u64, DbError> {
     let done = sqlx::query(&format!(
-        "UPDATE policy_evaluations SET status = 'failed',
-                error = 'the service stopped during the evaluation', finished_at = {NOW}
-         WHERE status = 'running'"
+        "UPDATE policy_evaluations SET
+                error = ? || CASE status WHEN 'queued' THEN ' before the evaluation started'
+                                         ELSE ' during the evaluation' END,
+                status = 'failed', finished_at = {NOW}
+         WHERE status IN ('queued', 'running')"
     ))
+    .bind(why)
     .execute(&db.writer)
     .await?;
     Ok(done.rows_affected())
@@ -431,6 +467,7 @@ mod tests {
         let id = store(&db, "policy").await;
         let nominal = start_evaluation(
             &db,
+            false,
             id,
             10,
             1,
@@ -450,10 +487,18 @@ mod tests {
             calibration_scale: 3.0,
             fault: Some(crate::sim::Fault::FrozenCamera),
         };
-        let mismatched =
-            start_evaluation(&db, id, 10, 1, "cell", &EvaluatedOn::Cell(faulty), "test")
-                .await
-                .unwrap();
+        let mismatched = start_evaluation(
+            &db,
+            false,
+            id,
+            10,
+            1,
+            "cell",
+            &EvaluatedOn::Cell(faulty),
+            "test",
+        )
+        .await
+        .unwrap();
         finish_evaluation(&db, mismatched.id, Ok((0.5, None, json!({}))))
             .await
             .unwrap();
@@ -463,7 +508,7 @@ mod tests {
         assert_eq!(latest.fault.as_deref(), Some("frozen_camera"));
         assert!(!latest.randomise_cells);
         let drawn = EvaluatedOn::DrawnCells { fault: None };
-        let across = start_evaluation(&db, id, 10, 1, "cell", &drawn, "test")
+        let across = start_evaluation(&db, false, id, 10, 1, "cell", &drawn, "test")
             .await
             .unwrap();
         finish_evaluation(&db, across.id, Ok((1.0, Some(30.0), json!({}))))
@@ -477,5 +522,49 @@ mod tests {
             .unwrap()
             .unwrap();
         assert_eq!(gate.id, nominal.id);
+    }
+
+    /// Queued, then running, then ended once: at shutdown what waits and what runs fail with
+    /// what happened to each, and a result arriving after that changes nothing.
+    #[tokio::test]
+    async fn unfinished_evaluations_fail_once_saying_whether_they_had_started() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = Db::open(&dir.path().join("cell.db")).await.unwrap();
+        let id = store(&db, "policy").await;
+        let on = EvaluatedOn::Cell(Mismatch::NONE);
+        let mut ids = Vec::new();
+        for queued in [true, true, false] {
+            let e = start_evaluation(&db, queued, id, 10, 1, "cell", &on, "test")
+                .await
+                .unwrap();
+            assert_eq!(e.status, if queued { "queued" } else { "running" });
+            ids.push(e.id);
+        }
+        run_evaluation(&db, ids[1]).await.unwrap();
+        let failed = fail_unfinished_evaluations(&db, "the service was stopped")
+            .await
+            .unwrap();
+        assert_eq!(failed, 3);
+        finish_evaluation(&db, ids[2], Ok((1.0, Some(30.0), json!({}))))
+            .await
+            .unwrap();
+        let read = |e: i64| {
+            let db = db.clone();
+            async move {
+                let row: (String, Option<String>) =
+                    sqlx::query_as("SELECT status, error FROM policy_evaluations WHERE id = ?")
+                        .bind(e)
+                        .fetch_one(&db.reader)
+                        .await
+                        .unwrap();
+                row
+            }
+        };
+        let before = "the service was stopped before the evaluation started";
+        let during = "the service was stopped during the evaluation";
+        assert_eq!(read(ids[0]).await, ("failed".into(), Some(before.into())));
+        assert_eq!(read(ids[1]).await, ("failed".into(), Some(during.into())));
+        assert_eq!(read(ids[2]).await, ("failed".into(), Some(during.into())));
+        assert_eq!(fail_leftover_evaluations(&db).await.unwrap(), 0);
     }
 }

@@ -7,7 +7,14 @@ use serde_json::Value;
 #[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct TrainingRun {
     pub id: i64,
+    /// `queued` (waiting its turn in the work queue), `running`, `succeeded`, `failed` or
+    /// `cancelled`.
+    #[schema(pattern = "^(queued|running|succeeded|failed|cancelled)$")]
     pub status: String,
+    /// While `queued`: its place in the work queue, shared with evaluations (1 = next to
+    /// start); otherwise null.
+    #[schema(minimum = 1)]
+    pub queue_position: Option<usize>,
     pub settings: Value,
     pub demonstration_ids: Value,
     pub stage: Option<String>,
@@ -17,6 +24,7 @@ pub struct TrainingRun {
     pub policy_id: Option<i64>,
     pub error: Option<String>,
     pub created_by: String,
+    /// When it was asked for, then when it left the queue and started.
     pub started_at: String,
     pub finished_at: Option<String>,
 }
@@ -44,6 +52,8 @@ impl From<TrainingRunRow> for TrainingRun {
         TrainingRun {
             id: row.id,
             status: row.status,
+            // The queue's to say (`workflows::queue`); storage knows only that it waits.
+            queue_position: None,
             settings: json_column(row.settings),
             demonstration_ids: json_column(row.demonstration_ids),
             stage: row.stage,
@@ -59,16 +69,19 @@ impl From<TrainingRunRow> for TrainingRun {
     }
 }
 
+/// Records a run as it is asked for: `queued`, or `running` when it starts at once.
 pub async fn start(
     db: &Db,
+    queued: bool,
     settings: &Value,
     demonstration_ids: &[i64],
     created_by: &str,
 ) -> Result<TrainingRun, DbError> {
     let rows = sqlx::query_as::<_, TrainingRunRow>(
         "INSERT INTO training_runs (status, settings, demonstration_ids, stage, created_by)
-         VALUES ('running', ?, ?, 'demonstrations', ?) RETURNING *",
+         VALUES (?, ?, ?, 'demonstrations', ?) RETURNING *",
     )
+    .bind(if queued { "queued" } else { "running" })
     .bind(settings.to_string())
     .bind(serde_json::json!(demonstration_ids).to_string())
     .bind(created_by)
@@ -76,6 +89,18 @@ pub async fn start(
     .await;
     let row = db.track(rows.and_then(super::only_row))?;
     Ok(TrainingRun::from(row))
+}
+
+/// A queued run leaves the queue: `running` from now.
+pub async fn run(db: &Db, id: i64) -> Result<(), DbError> {
+    sqlx::query(&format!(
+        "UPDATE training_runs SET status = 'running', started_at = {NOW}
+         WHERE id = ? AND status = 'queued'"
+    ))
+    .bind(id)
+    .execute(&db.writer)
+    .await?;
+    Ok(())
 }
 
 /// Records the demonstrations a run uses once it has them (a run may record its own).
@@ -106,7 +131,8 @@ pub async fn update(
     Ok(())
 }
 
-/// Ends a run: `succeeded` with its policy and figures, or `failed` / `cancelled` with why.
+/// Ends a run: `succeeded` with its policy and figures, or `failed` / `cancelled` with why;
+/// unless it has ended already (at shutdown, [`fail_unfinished`] may come first).
 pub async fn finish(
     db: &Db,
     id: i64,
@@ -119,7 +145,7 @@ pub async fn finish(
     sqlx::query(&format!(
         "UPDATE training_runs SET status = ?, policy_id = ?, figures = ?, error = ?,
                 progress = CASE WHEN ? = 'succeeded' THEN 1 ELSE progress END,
-                finished_at = {NOW} WHERE id = ?"
+                finished_at = {NOW} WHERE id = ? AND status IN ('queued', 'running')"
     ))
     .bind(status)
     .bind(policy_id)
@@ -163,13 +189,111 @@ pub async fn list(db: &Db) -> Result<Vec<TrainingRun>, DbError> {
         .collect())
 }
 
-/// At start: a run the last process left running cannot go on.
+/// At start: a run the last process left queued or running cannot go on.
 pub async fn fail_leftovers(db: &Db) -> Result<u64, DbError> {
+    fail_unfinished(db, "the service stopped").await
+}
+
+/// Every `queued` or `running` run becomes `failed`, its error saying that `why` happened before
+/// it started or during it (at shutdown, and for what a previous run left). Returns how many.
+pub async fn fail_unfinished(db: &Db, why: &str) -> Result<u64, DbError> {
     let done = sqlx::query(&format!(
-        "UPDATE training_runs SET status = 'failed', error = 'the service stopped during the run',
-                finished_at = {NOW} WHERE status = 'running'"
+        "UPDATE training_runs SET
+                error = ? || CASE status WHEN 'queued' THEN ' before the run started'
+                                         ELSE ' during the run' END,
+                status = 'failed', finished_at = {NOW}
+         WHERE status IN ('queued', 'running')"
     ))
+    .bind(why)
     .execute(&db.writer)
     .await?;
     Ok(done.rows_affected())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sqlx::sqlite::{SqliteConnectOptions, SqlitePoolOptions};
+
+    /// The migration that lets runs and evaluations be `queued` makes both tables again: every
+    /// row and every link (policy → run, run → policy) comes through, and the new status holds.
+    #[tokio::test]
+    async fn queued_work_migration_keeps_rows_and_lineage() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cell.db");
+        let options = SqliteConnectOptions::new()
+            .filename(&path)
+            .foreign_keys(true)
+            .create_if_missing(true);
+        let before = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options)
+            .await
+            .unwrap();
+        let mut migrator = sqlx::migrate!();
+        migrator.migrations = migrator
+            .migrations
+            .iter()
+            .filter(|m| m.version < 11)
+            .cloned()
+            .collect::<Vec<_>>()
+            .into();
+        migrator.run(&before).await.unwrap();
+        for statement in [
+            "INSERT INTO policies (id, name, sha256, file, metadata, shapes, uploaded_by)
+             VALUES (7, 'p', 'abc', x'00', '{}', '{}', 't')",
+            "INSERT INTO training_runs (id, status, settings, demonstration_ids, policy_id,
+                    created_by) VALUES (3, 'succeeded', '{}', '[1]', 7, 't')",
+            "UPDATE policies SET training_run_id = 3 WHERE id = 7",
+            "INSERT INTO policy_evaluations (id, policy_id, status, episodes, seed, cell_hash,
+                    requested_by, noise_scale, fault) VALUES (5, 7, 'done', 10, 1, 'h', 't', 2, 'occlusion')",
+        ] {
+            sqlx::query(statement).execute(&before).await.unwrap();
+        }
+        before.close().await;
+
+        let db = Db::open(&path).await.unwrap();
+        let kept = get(&db, 3).await.unwrap().unwrap();
+        assert_eq!(
+            (kept.status.as_str(), kept.policy_id),
+            ("succeeded", Some(7))
+        );
+        let policy = crate::storage::policies::get(&db, 7)
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(policy.training_run_id, Some(3));
+        let evaluation = policy.evaluation.unwrap();
+        assert_eq!((evaluation.id, evaluation.noise_scale), (5, 2.0));
+        assert_eq!(evaluation.fault.as_deref(), Some("occlusion"));
+        let fk: Vec<(String,)> = sqlx::query_as("SELECT \"table\" FROM pragma_foreign_key_check")
+            .fetch_all(&db.reader)
+            .await
+            .unwrap();
+        assert!(fk.is_empty(), "{fk:?}");
+
+        let queued = start(&db, true, &serde_json::json!({}), &[], "t")
+            .await
+            .unwrap();
+        assert_eq!(queued.status, "queued");
+        run(&db, queued.id).await.unwrap();
+        assert_eq!(
+            get(&db, queued.id).await.unwrap().unwrap().status,
+            "running"
+        );
+        let waiting = start(&db, true, &serde_json::json!({}), &[], "t")
+            .await
+            .unwrap();
+        assert_eq!(fail_unfinished(&db, "stopped").await.unwrap(), 2);
+        let read = get(&db, waiting.id).await.unwrap().unwrap();
+        assert_eq!(
+            read.error.as_deref(),
+            Some("stopped before the run started")
+        );
+        finish(&db, waiting.id, "cancelled", None, None, Some("late"))
+            .await
+            .unwrap();
+        let read = get(&db, waiting.id).await.unwrap().unwrap();
+        assert_eq!(read.status, "failed", "an ended run stays as it ended");
+    }
 }

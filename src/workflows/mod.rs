@@ -10,6 +10,7 @@ pub mod demonstrations;
 pub mod gate;
 pub mod jobs;
 pub mod policies;
+pub mod queue;
 pub mod tokens;
 pub mod training;
 
@@ -20,7 +21,7 @@ use crate::metrics::Metrics;
 use crate::storage::Db;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, RwLock};
 use tokio::sync::{broadcast, watch};
 
 /// One telemetry event, serialised once for every subscriber.
@@ -47,8 +48,8 @@ pub struct Context {
     /// Callers already looked up, by token hash; a revocation evicts its token
     /// ([`tokens::authenticate`] rereads each entry's row after [`tokens::RECHECK`]).
     pub known_callers: Arc<RwLock<HashMap<String, tokens::KnownCaller>>>,
-    /// The training run in progress (one at a time).
-    pub training: Arc<Mutex<Option<training::ActiveRun>>>,
+    /// The one queue evaluations and training runs wait in, and their compute threads.
+    pub work: queue::WorkQueue,
     /// Held while the e-stop latch is stored (see [`cell::store_latch`]).
     pub latch_writes: Arc<tokio::sync::Mutex<()>>,
 }
@@ -84,6 +85,9 @@ pub enum Error {
     /// The service cannot do it at all now (shutting down, the control thread gone).
     #[error("{0}")]
     Unavailable(String),
+    /// Too much is waiting already; worth asking again in about `retry_after_s` seconds.
+    #[error("{message}")]
+    Busy { message: String, retry_after_s: u64 },
     #[error("storage: {0}")]
     Storage(String),
     /// The database takes no writes now (a full disk, an I/O error): nothing was stored; the
@@ -126,6 +130,18 @@ impl From<sqlx::Error> for Error {
             Error::StorageUnavailable(crate::storage::unavailable_message(&error))
         } else {
             Error::Storage(error.to_string())
+        }
+    }
+}
+
+impl From<queue::QueueError> for Error {
+    fn from(error: queue::QueueError) -> Self {
+        match error {
+            queue::QueueError::Full { retry_after_s, .. } => Error::Busy {
+                message: error.to_string(),
+                retry_after_s,
+            },
+            queue::QueueError::Closed => Error::Unavailable(error.to_string()),
         }
     }
 }

@@ -1,16 +1,18 @@
 //! Policies: registered after the file checks, evaluated in the twin in the background,
 //! activated behind the evaluation gate; the bundled policy registered and evaluated at start.
 
+use super::queue::{NoTurn, Ticket, WorkId, WorkKind};
 use super::{Context, Error, Result, off_the_runtime};
+use crate::policy::Controller;
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
-use crate::policy::{Controller, ControllerFactory};
 use crate::sim::randomise::CellRanges;
 use crate::sim::{EnvOptions, MAX_MISMATCH_SCALE, Mismatch};
 use crate::storage::policies::{self, EvaluatedOn, Evaluation, NewPolicy, Policy};
 use crate::storage::{Db, audit, tokens};
 use serde_json::{Value, json};
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 
 /// Checks a policy file (hierarchical or flat, by its `format` metadata) as an upload is checked,
 /// and stores it (or finds the same bytes).
@@ -48,8 +50,24 @@ pub async fn register(db: &Db, name: &str, bytes: Vec<u8>, by: &str) -> Result<(
     .await?)
 }
 
-/// Most episodes one evaluation may ask for.
-const MAX_EVALUATION_EPISODES: u32 = 100_000;
+/// Every policy, newest first, each with its latest evaluation and that evaluation's place in
+/// the work queue while it waits.
+pub async fn list(context: &Context) -> Result<Vec<Policy>> {
+    let mut listed = policies::list(&context.db).await?;
+    let positions = context.work.positions(WorkKind::Evaluation);
+    for policy in &mut listed {
+        if let Some(evaluation) = &mut policy.evaluation {
+            evaluation.queue_position = positions.get(&evaluation.id).copied();
+        }
+    }
+    Ok(listed)
+}
+
+/// `evaluation` with its place in the work queue while it waits.
+fn placed(context: &Context, mut evaluation: Evaluation) -> Evaluation {
+    evaluation.queue_position = context.work.position(WorkId::evaluation(evaluation.id));
+    evaluation
+}
 
 /// An upload: [`register`]ed, and audited when the bytes are new; says whether they were.
 pub async fn upload(
@@ -58,7 +76,8 @@ pub async fn upload(
     bytes: Vec<u8>,
     by: &str,
 ) -> Result<(Policy, bool)> {
-    let (policy, created) = register(&context.db, name, bytes, by).await?;
+    let (mut policy, created) = register(&context.db, name, bytes, by).await?;
+    policy.evaluation = policy.evaluation.map(|e| placed(context, e));
     if created {
         audit::record(
             &context.db,
@@ -71,9 +90,10 @@ pub async fn upload(
     Ok((policy, created))
 }
 
-/// An evaluation an admin asked for: `episodes` (default: `policies.evaluation_episodes`),
-/// `seed` (default 1) and what it runs on (on this cell, the twin's mismatch: noise and
-/// calibration scales in 0..=[`MAX_MISMATCH_SCALE`]) checked, the evaluation started and audited.
+/// An evaluation an admin asked for: `episodes` (default: `policies.evaluation_episodes`, at
+/// most `policies.max_evaluation_episodes`), `seed` (default 1) and what it runs on (on this
+/// cell, the twin's mismatch: noise and calibration scales in 0..=[`MAX_MISMATCH_SCALE`])
+/// checked, the evaluation queued (or started) and audited.
 pub async fn evaluate(
     context: &Context,
     id: i64,
@@ -84,9 +104,10 @@ pub async fn evaluate(
 ) -> Result<Evaluation> {
     find(context, id).await?;
     let episodes = episodes.unwrap_or(context.settings.policies.evaluation_episodes);
-    if !(1..=MAX_EVALUATION_EPISODES).contains(&episodes) {
+    let most = context.settings.policies.max_evaluation_episodes;
+    if !(1..=most).contains(&episodes) {
         return Err(Error::unprocessable(format!(
-            "episodes = {episodes} is outside 1..={MAX_EVALUATION_EPISODES}"
+            "episodes = {episodes} is outside 1..={most} (policies.max_evaluation_episodes)"
         )));
     }
     let mismatch = on.mismatch();
@@ -117,9 +138,11 @@ pub async fn evaluate(
     Ok(evaluation)
 }
 
-/// Starts an evaluation of policy `id` on the cell's twin, departing from the cell file by a
-/// mismatch, or on cells drawn around it, in the background and returns its record. It runs on
-/// one low-priority thread of its own, so a running job keeps its timing.
+/// Queues an evaluation of policy `id` on the cell's twin, departing from the cell file by a
+/// mismatch, or on cells drawn around it, and returns its record: `running` when a place in the
+/// work queue was free, else `queued` with its position. It computes on one of the queue's
+/// low-priority threads, so a running job keeps its timing; a full queue refuses it
+/// ([`Error::Busy`]) before anything is stored.
 pub async fn spawn_evaluation(
     context: &Context,
     id: i64,
@@ -129,8 +152,14 @@ pub async fn spawn_evaluation(
     requested_by: &str,
 ) -> Result<Evaluation> {
     let cell = context.cell_config.clone();
+    let bytes = policies::file(&context.db, id)
+        .await?
+        .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
+    let admitting = context.work.admissions().await;
+    let ticket = context.work.reserve()?;
     let evaluation = policies::start_evaluation(
         &context.db,
+        !ticket.is_running(),
         id,
         i64::from(episodes),
         seed,
@@ -139,66 +168,107 @@ pub async fn spawn_evaluation(
         requested_by,
     )
     .await?;
-    let bytes = policies::file(&context.db, id)
-        .await?
-        .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
-    let db = context.db.clone();
-    let evaluation_id = evaluation.id;
-    tokio::spawn(async move {
-        let work = tokio::task::spawn_blocking(move || -> std::result::Result<_, String> {
-            let file = LearnedPolicyFile::from_bytes(&bytes).map_err(|e| e.to_string())?;
-            let policy = LearnedPolicy::from_file(&file).map_err(|e| e.to_string())?;
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(1)
-                .start_handler(|_| crate::cell::task::lower_priority())
-                .build()
-                .map_err(|e| e.to_string())?;
-            let (summary, _) = pool.install(|| {
-                // Kept robots, as `celld eval` by default: the cell remembers each one's drift.
-                let kept = EnvOptions {
-                    kept_robots: eval::DEFAULT_KEPT_ROBOTS,
-                    ..EnvOptions::from_cell(&cell)
-                };
-                match on {
-                    EvaluatedOn::Cell(mismatch) => {
-                        let factory: ControllerFactory =
-                            Box::new(move || Box::new(policy.clone()) as Box<dyn Controller>);
-                        eval::evaluate(
-                            &cell,
-                            mismatch.apply(kept),
-                            episodes as usize,
-                            seed,
-                            &factory,
-                            &|_| {},
-                        )
-                    }
-                    // A learned policy reads each drawn cell from its observations.
-                    EvaluatedOn::DrawnCells { fault } => eval::evaluate_on_drawn_cells(
-                        &cell,
-                        &CellRanges::default(),
-                        EnvOptions { fault, ..kept },
-                        episodes as usize,
-                        seed,
-                        &|_| Box::new(policy.clone()) as Box<dyn Controller>,
-                        &|_| {},
-                    ),
-                }
-            });
-            Ok((
-                summary.success_rate,
-                summary.avg_steps,
-                json!(summary.failures),
-            ))
-        });
-        let result = match work.await {
-            Ok(result) => result,
-            Err(panic) => Err(format!("the evaluation stopped: {panic}")),
-        };
-        if let Err(error) = policies::finish_evaluation(&db, evaluation_id, result).await {
-            tracing::error!(%error, evaluation_id, "could not store an evaluation's result");
+    ticket.assign(WorkId::evaluation(evaluation.id));
+    drop(admitting);
+    let job = EvaluationJob {
+        id: evaluation.id,
+        cell,
+        bytes,
+        episodes,
+        seed,
+        on,
+    };
+    tokio::spawn(run_evaluation(context.clone(), ticket, job));
+    Ok(placed(context, evaluation))
+}
+
+/// What one evaluation computes.
+struct EvaluationJob {
+    id: i64,
+    cell: Arc<crate::config::cell::CellConfig>,
+    bytes: Vec<u8>,
+    episodes: u32,
+    seed: u64,
+    on: EvaluatedOn,
+}
+
+/// Waits for the evaluation's turn, computes it and stores what came of it; its place in the
+/// queue is freed (the ticket dropped) once that is stored, under the queue's admissions lock.
+async fn run_evaluation(context: Context, ticket: Ticket, job: EvaluationJob) {
+    let (db, id) = (&context.db, job.id);
+    let result = match ticket.turn().await {
+        Err(NoTurn::Closed) => Err("the service stopped before the evaluation started".into()),
+        Err(NoTurn::Removed) => Err("taken out of the work queue".into()),
+        Ok(()) => {
+            if let Err(error) = policies::run_evaluation(db, id).await {
+                tracing::warn!(%error, evaluation_id = id, "could not store an evaluation's start");
+            }
+            let stop = ticket.cancel_flag();
+            let work = move || evaluate_now(&job, &|| stop.load(Ordering::SeqCst));
+            match context.work.compute(work).await {
+                Ok(Ok(Some(figures))) => Ok(figures),
+                Ok(Ok(None)) => Err("the service stopped during the evaluation".into()),
+                Ok(Err(error)) | Err(error) => Err(error),
+            }
         }
-    });
-    Ok(evaluation)
+    };
+    let ending = context.work.admissions().await;
+    if context.work.is_closed() {
+        // Stopping: `app` marks what waited or ran, and storage may be closing.
+        return;
+    }
+    if let Err(error) = policies::finish_evaluation(db, id, result).await {
+        tracing::error!(%error, evaluation_id = id, "could not store an evaluation's result");
+    }
+    drop(ticket);
+    drop(ending);
+}
+
+/// The evaluation itself, on the calling thread's rayon pool: success rate, mean steps and
+/// failures by reason; `None` once `stop` says so.
+fn evaluate_now(
+    job: &EvaluationJob,
+    stop: &(dyn Fn() -> bool + Sync),
+) -> std::result::Result<Option<(f64, Option<f64>, Value)>, String> {
+    let file = LearnedPolicyFile::from_bytes(&job.bytes).map_err(|e| e.to_string())?;
+    let policy = LearnedPolicy::from_file(&file).map_err(|e| e.to_string())?;
+    let cell = &job.cell;
+    // Kept robots, as `celld eval` by default: the cell remembers each one's drift.
+    let kept = EnvOptions {
+        kept_robots: eval::DEFAULT_KEPT_ROBOTS,
+        ..EnvOptions::from_cell(cell)
+    };
+    let (episodes, seed) = (job.episodes as usize, job.seed);
+    let summary = match job.on {
+        EvaluatedOn::Cell(mismatch) => eval::evaluate_until(
+            cell,
+            None,
+            mismatch.apply(kept),
+            episodes,
+            seed,
+            &|_| Box::new(policy.clone()) as Box<dyn Controller>,
+            &|_| {},
+            stop,
+        ),
+        // A learned policy reads each drawn cell from its observations.
+        EvaluatedOn::DrawnCells { fault } => eval::evaluate_until(
+            cell,
+            Some(&CellRanges::default()),
+            EnvOptions { fault, ..kept },
+            episodes,
+            seed,
+            &|_| Box::new(policy.clone()) as Box<dyn Controller>,
+            &|_| {},
+            stop,
+        ),
+    };
+    Ok(summary.map(|(summary, _)| {
+        (
+            summary.success_rate,
+            summary.avg_steps,
+            json!(summary.failures),
+        )
+    }))
 }
 
 /// What an activation did.
@@ -259,11 +329,14 @@ pub async fn activate(
     })
 }
 
-/// The policy with `id`, or [`Error::NotFound`].
+/// The policy with `id` (its latest evaluation with its place in the work queue while it
+/// waits), or [`Error::NotFound`].
 pub async fn find(context: &Context, id: i64) -> Result<Policy> {
-    policies::get(&context.db, id)
+    let mut policy = policies::get(&context.db, id)
         .await?
-        .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))
+        .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
+    policy.evaluation = policy.evaluation.map(|e| placed(context, e));
+    Ok(policy)
 }
 
 /// Registers the bundled default policy (idempotent, by its bytes). Until it has a finished
@@ -300,7 +373,12 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
         loop {
             tokio::time::sleep(std::time::Duration::from_millis(200)).await;
             match policies::latest_evaluation(db, policy.id).await {
-                Ok(Some(e)) if e.id == evaluation.id && e.status == "running" => continue,
+                Ok(Some(e))
+                    if e.id == evaluation.id
+                        && matches!(e.status.as_str(), "queued" | "running") =>
+                {
+                    continue;
+                }
                 Ok(Some(e)) if e.success_rate.unwrap_or(0.0) >= threshold => {
                     if let Ok(true) = policies::activate_if_none_active(db, policy.id).await {
                         let _ = audit::record(

@@ -1,8 +1,10 @@
-//! Training runs: one at a time, on a thread of its own at low priority so a running job keeps
-//! its timing; the demonstrations named are read and checked before the run starts, or the
-//! demonstrator is recorded in the twin; the result is registered as a `candidate` policy
-//! linked to the run, and the run to the demonstrations it learned from.
+//! Training runs: they wait their turn in the work queue beside evaluations (`queue`) and
+//! compute on one of its threads at low priority, so a running job keeps its timing; the
+//! demonstrations named are read and checked before the run is queued, or the demonstrator is
+//! recorded in the twin; the result is registered as a `candidate` policy linked to the run,
+//! and the run to the demonstrations it learned from.
 
+use super::queue::{Cancelled, NoTurn, Ticket, WorkId, WorkKind};
 use super::{Context, Error, Result, off_the_runtime};
 use crate::learning::demos::{self, DemoEpisode};
 use crate::learning::run::{self, CurvePoint, RunError, TrainingPart, TrainingSettings};
@@ -13,13 +15,6 @@ use serde_json::{Value, json};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-
-/// The run in progress, if any.
-#[derive(Clone)]
-pub struct ActiveRun {
-    pub id: i64,
-    pub cancel: Arc<AtomicBool>,
-}
 
 const DEFAULT_RECORDED_EPISODES: usize = 400;
 const MAX_RECORDED_EPISODES: usize = 100_000;
@@ -40,7 +35,9 @@ pub struct TrainingRequest {
     pub record: Option<usize>,
 }
 
-/// Checks a run, stores it and starts it in the background; answers with the run as it starts.
+/// Checks a run, stores it and queues it (it starts at once when a place is free); answers with
+/// the run as it is stored, `queued` with its position or `running`. A full queue refuses it
+/// ([`Error::Busy`]) before anything is stored.
 pub async fn start(
     context: &Context,
     request: TrainingRequest,
@@ -109,28 +106,28 @@ pub async fn start(
             .map_err(|e| Error::unprocessable(format!("the demonstrations named hold {e}")))?;
     }
 
-    let cancel = Arc::new(AtomicBool::new(false));
-    reserve(context, &cancel)?;
-    let run = match training::start(&context.db, &json!(settings), &ids, by).await {
-        Ok(run) => run,
-        Err(error) => {
-            *context.training.lock().expect("training lock") = None;
-            return Err(error.into());
-        }
-    };
-    if let Some(active) = context.training.lock().expect("training lock").as_mut() {
-        active.id = run.id;
-    }
+    let admitting = context.work.admissions().await;
+    let ticket = context.work.reserve()?;
+    let run = training::start(
+        &context.db,
+        !ticket.is_running(),
+        &json!(settings),
+        &ids,
+        by,
+    )
+    .await?;
+    ticket.assign(WorkId::training(run.id));
+    drop(admitting);
     let job = RunJob {
         id: run.id,
         settings,
         episodes,
         record: ids.is_empty().then_some(record),
-        cancel,
+        cancel: ticket.cancel_flag(),
         by: by.to_string(),
     };
-    tokio::spawn(drive(context.clone(), job));
-    // After the spawn: the slot is freed by the run's end whatever happens here.
+    tokio::spawn(drive(context.clone(), ticket, job));
+    // After the spawn: the place is freed by the run's end whatever happens here.
     audit::record(
         &context.db,
         by,
@@ -138,18 +135,47 @@ pub async fn start(
         json!({"training_run_id": run.id, "settings": run.settings, "demonstrations": ids}),
     )
     .await?;
-    Ok(run)
+    Ok(placed(context, run))
 }
 
-/// Asks the running training run to stop at its next check.
-pub async fn cancel(context: &Context, id: i64, by: &str) -> Result<()> {
+/// `run` with its place in the work queue while it waits.
+fn placed(context: &Context, mut run: training::TrainingRun) -> training::TrainingRun {
+    run.queue_position = context.work.position(WorkId::training(run.id));
+    run
+}
+
+/// One run, with its place in the work queue while it waits.
+pub async fn get(context: &Context, id: i64) -> Result<training::TrainingRun> {
     let run = training::get(&context.db, id)
         .await?
         .ok_or_else(|| Error::not_found(format!("no training run with id {id}")))?;
-    let active = context.training.lock().expect("training lock").clone();
-    match active {
-        Some(active) if active.id == id => active.cancel.store(true, Ordering::SeqCst),
-        _ => {
+    Ok(placed(context, run))
+}
+
+/// Every run, newest first, without their curves, with their places in the work queue.
+pub async fn list(context: &Context) -> Result<Vec<training::TrainingRun>> {
+    let mut runs = training::list(&context.db).await?;
+    let positions = context.work.positions(WorkKind::Training);
+    for run in &mut runs {
+        run.queue_position = positions.get(&run.id).copied();
+    }
+    Ok(runs)
+}
+
+/// Cancels a run: a queued one leaves the queue and is `cancelled` before this returns; a
+/// running one is asked to stop at its next check. Says which.
+pub async fn cancel(context: &Context, id: i64, by: &str) -> Result<Cancelled> {
+    let run = training::get(&context.db, id)
+        .await?
+        .ok_or_else(|| Error::not_found(format!("no training run with id {id}")))?;
+    let cancelled = context.work.cancel(WorkId::training(id));
+    match cancelled {
+        Cancelled::Dequeued => {
+            let why = Some("cancelled before it started");
+            training::finish(&context.db, id, "cancelled", None, None, why).await?;
+        }
+        Cancelled::Stopping => {}
+        Cancelled::NotHere => {
             return Err(Error::conflict(format!(
                 "training run {id} is {} and can no longer be cancelled",
                 run.status
@@ -163,24 +189,7 @@ pub async fn cancel(context: &Context, id: i64, by: &str) -> Result<()> {
         json!({"training_run_id": id}),
     )
     .await?;
-    Ok(())
-}
-
-/// Takes the one training slot, or says which run holds it.
-fn reserve(context: &Context, cancel: &Arc<AtomicBool>) -> Result<()> {
-    let mut active = context.training.lock().expect("training lock");
-    if let Some(running) = active.as_ref() {
-        return Err(Error::conflict(format!(
-            "training run {} is running; one at a time",
-            running.id
-        )));
-    }
-    // Held from here, so two requests cannot both start; the id follows once stored.
-    *active = Some(ActiveRun {
-        id: 0,
-        cancel: cancel.clone(),
-    });
-    Ok(())
+    Ok(cancelled)
 }
 
 struct RunJob {
@@ -201,10 +210,27 @@ struct Live {
     curve: Vec<CurvePoint>,
 }
 
-/// Runs a training job to its end and stores what came of it.
-async fn drive(context: Context, job: RunJob) {
-    let outcome = train(&context, &job).await;
+/// Waits for the run's turn, runs it to its end and stores what came of it; its place in the
+/// queue is freed (the ticket dropped) once that is stored, under the queue's admissions lock.
+async fn drive(context: Context, ticket: Ticket, job: RunJob) {
     let db = &context.db;
+    let outcome = match ticket.turn().await {
+        Err(NoTurn::Removed) => Err(RunError::Cancelled),
+        Err(NoTurn::Closed) => Err(RunError::Training(
+            "the service stopped before the run started".into(),
+        )),
+        Ok(()) => {
+            if let Err(error) = training::run(db, job.id).await {
+                tracing::warn!(%error, run = job.id, "could not store a training run's start");
+            }
+            train(&context, &job).await
+        }
+    };
+    let ending = context.work.admissions().await;
+    if context.work.is_closed() {
+        // Stopping: `app` marks what waited or ran, and storage may be closing.
+        return;
+    }
     let stored = match outcome {
         Ok((policy_id, figures)) => {
             training::finish(
@@ -227,7 +253,8 @@ async fn drive(context: Context, job: RunJob) {
     if let Err(error) = stored {
         tracing::error!(%error, run = job.id, "could not store a training run's end");
     }
-    *context.training.lock().expect("training lock") = None;
+    drop(ticket);
+    drop(ending);
 }
 
 async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Value), RunError> {
@@ -238,18 +265,20 @@ async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Val
         let (recorded, seed) = (cell.clone(), job.settings.seed);
         let demonstrator = job.settings.demonstrator.clone();
         let recording = job.settings.recording();
-        episodes = on_training_thread(move || {
-            demos::record_with(
-                &recorded,
-                EnvOptions::from_cell(&recorded),
-                &demonstrator,
-                count,
-                seed,
-                recording,
-            )
-        })
-        .await
-        .map_err(failed)?;
+        episodes = context
+            .work
+            .compute(move || {
+                demos::record_with(
+                    &recorded,
+                    EnvOptions::from_cell(&recorded),
+                    &demonstrator,
+                    count,
+                    seed,
+                    recording,
+                )
+            })
+            .await
+            .map_err(failed)?;
         let new = NewDemonstration {
             name: &format!(
                 "training run {} (recorded {}{})",
@@ -281,23 +310,25 @@ async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Val
     let live = Arc::new(Mutex::new(Live::default()));
     let keeper = tokio::spawn(keep_progress(context.db.clone(), job.id, live.clone()));
     let (settings, cancel, shared) = (job.settings.clone(), job.cancel.clone(), live.clone());
-    let result = on_training_thread(move || {
-        run::run(
-            &cell,
-            episodes,
-            &settings,
-            &mut |point, progress| {
-                let mut live = shared.lock().expect("live lock");
-                live.stage = point.stage.to_string();
-                live.progress = progress;
-                live.curve.push(point);
-            },
-            &|| cancel.load(Ordering::SeqCst),
-        )
-    })
-    .await
-    .map_err(failed)
-    .and_then(|r| r);
+    let result = context
+        .work
+        .compute(move || {
+            run::run(
+                &cell,
+                episodes,
+                &settings,
+                &mut |point, progress| {
+                    let mut live = shared.lock().expect("live lock");
+                    live.stage = point.stage.to_string();
+                    live.progress = progress;
+                    live.curve.push(point);
+                },
+                &|| cancel.load(Ordering::SeqCst),
+            )
+        })
+        .await
+        .map_err(failed)
+        .and_then(|r| r);
     keeper.abort();
     store_progress(&context.db, job.id, &live).await;
     let (file, figures) = result?;
@@ -310,46 +341,6 @@ async fn train(context: &Context, job: &RunJob) -> std::result::Result<(i64, Val
     .await
     .map_err(|e| failed(e.to_string()))?;
     Ok((policy.id, figures))
-}
-
-/// Runs `work` on a thread of its own at low priority with a one-thread rayon pool, so
-/// training never takes the cores a running job needs.
-async fn on_training_thread<T: Send + 'static>(
-    work: impl FnOnce() -> T + Send + 'static,
-) -> std::result::Result<T, String> {
-    let (reply, answer) = tokio::sync::oneshot::channel();
-    std::thread::Builder::new()
-        .name("celld-training".into())
-        .spawn(move || {
-            crate::cell::task::lower_priority();
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(1)
-                .start_handler(|_| crate::cell::task::lower_priority())
-                .build();
-            let result = match pool {
-                Ok(pool) => {
-                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pool.install(work)))
-                        .map_err(|panic| {
-                            format!("the training thread panicked: {}", panic_text(&*panic))
-                        })
-                }
-                Err(error) => Err(error.to_string()),
-            };
-            let _ = reply.send(result);
-        })
-        .map_err(|e| e.to_string())?;
-    answer
-        .await
-        .map_err(|_| "the training thread stopped".to_string())?
-}
-
-/// A panic's message (a `&str` or a `String` payload; anything else is unnamed).
-fn panic_text(panic: &(dyn std::any::Any + Send)) -> &str {
-    panic
-        .downcast_ref::<&str>()
-        .copied()
-        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
-        .unwrap_or("(no message)")
 }
 
 /// Stores the live progress every half second while the run lasts, when it has moved.
@@ -381,25 +372,5 @@ async fn store_progress(db: &Db, id: i64, live: &Mutex<Live>) {
     let curve = json!(curve);
     if let Err(error) = training::update(db, id, &stage, progress, &curve).await {
         tracing::warn!(%error, run = id, "could not store training progress");
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[tokio::test]
-    async fn a_panic_on_the_training_thread_is_reported_with_its_message() {
-        let answer = on_training_thread(|| -> u8 { panic!("the loss is {}", f64::NAN) }).await;
-        assert_eq!(
-            answer,
-            Err("the training thread panicked: the loss is NaN".to_string())
-        );
-        let answer = on_training_thread(|| -> u8 { std::panic::panic_any(7_u8) }).await;
-        assert_eq!(
-            answer,
-            Err("the training thread panicked: (no message)".to_string())
-        );
-        assert_eq!(on_training_thread(|| 3_u8).await, Ok(3));
     }
 }
