@@ -145,17 +145,16 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         .await
         .with_context(|| format!("cannot listen on {}", settings.listen))?;
     let address = listener.local_addr()?;
-    let mut server_shutdown = shutdown.clone();
+    let server_shutdown = shutdown.clone();
     workflows::policies::register_bundled(&context)
         .await
         .context("registering the bundled policy")?;
-    let server = tokio::spawn(
-        axum::serve(listener, http::router(context))
-            .with_graceful_shutdown(async move {
-                let _ = server_shutdown.wait_for(|stop| *stop).await;
-            })
-            .into_future(),
-    );
+    let server = tokio::spawn(http::server::serve(
+        listener,
+        http::router(context),
+        (&settings.http).into(),
+        server_shutdown,
+    )?);
     println!(
         "celld: cell `{}` on the {} backend{}, database {}",
         cell.name,

@@ -2,3 +2,4 @@
 //! access, inputs) against a real server, with its own SQLite file.
 
 mod serve_support;
+mod connections;
