@@ -1,5 +1,6 @@
 //! `celld serve` under faults and abuse: each module takes one kind (storage, work, connections,
 //! access, inputs) against a real server, with its own SQLite file.
 
-mod serve_support;
+#[path = "serve_faults/connections.rs"]
 mod connections;
+mod serve_support;

@@ -596,9 +596,17 @@ mod tests {
             .to_string();
         assert!(error.contains("CELLD_IDLE_TIMEOUT_S"), "{error}");
         for (setting, value, apply) in [
-            ("http.max_connections", "1", (|c: &mut ServiceConfig| c.http.max_connections = 1) as fn(&mut ServiceConfig)),
-            ("http.header_timeout_ms", "0", |c| c.http.header_timeout_ms = 0),
-            ("http.idle_timeout_s", "86401", |c| c.http.idle_timeout_s = 86_401),
+            (
+                "http.max_connections",
+                "1",
+                (|c: &mut ServiceConfig| c.http.max_connections = 1) as fn(&mut ServiceConfig),
+            ),
+            ("http.header_timeout_ms", "0", |c| {
+                c.http.header_timeout_ms = 0
+            }),
+            ("http.idle_timeout_s", "86401", |c| {
+                c.http.idle_timeout_s = 86_401
+            }),
         ] {
             let mut config = ServiceConfig::default();
             apply(&mut config);

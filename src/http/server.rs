@@ -584,7 +584,11 @@ mod tests {
         let at = |s: f64| epoch + Duration::from_secs_f64(s);
         let limits = limits();
         let tracker = Arc::new(Tracker::new(epoch, at(1.0)));
-        assert_eq!(tracker.deadline(&limits), Some(at(11.0)), "idle from the accept");
+        assert_eq!(
+            tracker.deadline(&limits),
+            Some(at(11.0)),
+            "idle from the accept"
+        );
         tracker.bytes_arrived(at(4.0));
         assert_eq!(tracker.deadline(&limits), Some(at(5.0)), "1 s for the head");
         tracker.bytes_arrived(at(4.5));

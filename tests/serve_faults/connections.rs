@@ -93,9 +93,6 @@ struct Telemetry {
 impl Telemetry {
     fn open(address: &str, token: &str) -> Telemetry {
         let mut stream = TcpStream::connect(address).unwrap();
-        stream
-            .set_read_timeout(Some(Duration::from_secs(20)))
-            .unwrap();
         write!(
             stream,
             "GET /api/telemetry?access_token={token} HTTP/1.1\r\nHost: {address}\r\n\r\n"
@@ -109,17 +106,26 @@ impl Telemetry {
         telemetry
     }
 
-    /// Reads until `needle` has come (fails if the stream ends or stays silent 20 s first).
+    /// Reads until `needle` has come (fails if the stream ends or 20 s pass first; the
+    /// stream's keep-alive comments do not count).
     fn wait_for(&mut self, needle: &str) {
         let mut buffer = [0u8; 4096];
-        while !self.seen.contains(needle) {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            if let Some(at) = self.seen.find(needle) {
+                // What came after it is kept for the next wait.
+                self.seen.drain(..at + needle.len());
+                return;
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            assert!(!left.is_zero(), "no `{needle}` in 20 s: {}", self.seen);
+            self.stream.set_read_timeout(Some(left)).unwrap();
             let n = self.stream.read(&mut buffer).unwrap_or_else(|e| {
                 panic!("telemetry: {e} before `{needle}`; so far: {}", self.seen)
             });
             assert!(n > 0, "telemetry ended before `{needle}`: {}", self.seen);
             self.seen.push_str(&String::from_utf8_lossy(&buffer[..n]));
         }
-        self.seen.clear();
     }
 }
 
@@ -219,9 +225,17 @@ fn a_flood_of_idle_and_slow_clients_cannot_keep_out_a_new_one() {
     let (status, health) = request(&address, "GET", "/api/health", None);
     assert_eq!(status, 200, "{health}");
     let (status, cell) = request(&address, "POST", "/api/cell/estop", Some(&operator));
-    assert_eq!((status, &cell["estop_latched"]), (200, &Value::Bool(true)), "{cell}");
+    assert_eq!(
+        (status, &cell["estop_latched"]),
+        (200, &Value::Bool(true)),
+        "{cell}"
+    );
     let (status, cell) = request(&address, "POST", "/api/cell/reset", Some(&operator));
-    assert_eq!((status, &cell["estop_latched"]), (200, &Value::Bool(false)), "{cell}");
+    assert_eq!(
+        (status, &cell["estop_latched"]),
+        (200, &Value::Bool(false)),
+        "{cell}"
+    );
 
     // The stream saw both: it was not evicted, though it is the oldest.
     telemetry.wait_for("\"estop_latched\":true");
@@ -236,8 +250,14 @@ fn a_flood_of_idle_and_slow_clients_cannot_keep_out_a_new_one() {
         (1..=64).contains(&still_open),
         "{still_open} of 200 idle connections open with a cap of 64"
     );
-    let last_closed = closed_at.iter().rposition(Option::is_some).expect("some closed");
-    let first_open = closed_at.iter().position(Option::is_none).expect("some open");
+    let last_closed = closed_at
+        .iter()
+        .rposition(Option::is_some)
+        .expect("some closed");
+    let first_open = closed_at
+        .iter()
+        .position(Option::is_none)
+        .expect("some open");
     assert!(
         last_closed < first_open,
         "the oldest idle connections go first: #{last_closed} closed, #{first_open} open"
@@ -287,7 +307,9 @@ fn idle_and_slow_connections_are_closed_after_their_timeouts_and_streams_are_not
     let slowloris = Slowloris::start(&address, Duration::from_millis(300));
 
     let mut streams = [silent, kept];
-    let closed_at = wait_closed(&mut streams, start, Duration::from_secs(30), |c| open(c) == 0);
+    let closed_at = wait_closed(&mut streams, start, Duration::from_secs(30), |c| {
+        open(c) == 0
+    });
     let slow_closed = slowloris.finish().expect("the slow client is closed");
     assert!(
         slow_closed >= Duration::from_secs(1) && slow_closed <= Duration::from_millis(4500),
@@ -306,7 +328,10 @@ fn idle_and_slow_connections_are_closed_after_their_timeouts_and_streams_are_not
     );
 
     // The stream, open all along, is not idle: it still delivers.
-    assert!(!closed(&mut telemetry.stream), "the telemetry stream was closed");
+    assert!(
+        !closed(&mut telemetry.stream),
+        "the telemetry stream was closed"
+    );
     let (status, cell) = request(&address, "POST", "/api/cell/estop", Some(&operator));
     assert_eq!(status, 200, "{cell}");
     telemetry.wait_for("\"estop_latched\":true");
