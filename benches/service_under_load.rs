@@ -130,7 +130,7 @@ fn raise_fd_limit() -> u64 {
             libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit);
         }
     }
-    limit.rlim_cur as u64
+    limit.rlim_cur
 }
 
 /// The clients share this machine's cores with the server; in a plant they run elsewhere.
@@ -223,16 +223,20 @@ impl Holder {
 
 #[derive(Clone)]
 struct Server {
-    child: Arc<ChildGuard>,
+    /// Kills the server when the last clone goes.
+    _child: Arc<ChildGuard>,
     address: SocketAddr,
     token: String,
 }
 
-struct ChildGuard(std::sync::Mutex<Child>, tempfile::TempDir);
+struct ChildGuard {
+    child: std::sync::Mutex<Child>,
+    _dir: tempfile::TempDir,
+}
 
 impl Drop for ChildGuard {
     fn drop(&mut self) {
-        let mut child = self.0.lock().unwrap();
+        let mut child = self.child.lock().unwrap();
         let _ = child.kill();
         let _ = child.wait();
     }
@@ -263,7 +267,10 @@ fn start_server() -> Server {
         .trim()
         .to_string();
     Server {
-        child: Arc::new(ChildGuard(std::sync::Mutex::new(child), dir)),
+        _child: Arc::new(ChildGuard {
+            child: std::sync::Mutex::new(child),
+            _dir: dir,
+        }),
         address,
         token,
     }
@@ -293,7 +300,7 @@ impl Row {
     }
 
     fn print(mut self) {
-        let mut p = |values: &mut Vec<f64>, q: f64| {
+        let p = |values: &mut Vec<f64>, q: f64| {
             if values.is_empty() {
                 "–".to_string()
             } else {

@@ -112,7 +112,7 @@ pub fn raise_fd_limit() -> io::Result<(u64, u64)> {
             limit.rlim_cur = limit.rlim_max;
         }
     }
-    Ok((limit.rlim_cur as u64, limit.rlim_max as u64))
+    Ok((limit.rlim_cur, limit.rlim_max))
 }
 
 /// Serves `router` on `listener` until `shutdown` turns true (or its sender is dropped):
