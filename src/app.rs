@@ -164,7 +164,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         .with_context(|| format!("cannot listen on {}", settings.listen))?;
     let address = listener.local_addr()?;
     let work = context.work.clone();
-    let mut server_shutdown = shutdown.clone();
+    let server_shutdown = shutdown.clone();
     workflows::policies::register_bundled(&context)
         .await
         .context("registering the bundled policy")?;
@@ -173,16 +173,12 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         // is activated); the service itself runs.
         tracing::warn!(%why, "control.active_controller names a policy the gate refuses");
     }
-    let server = tokio::spawn(
-        axum::serve(
-            listener,
-            http::router(context).into_make_service_with_connect_info::<std::net::SocketAddr>(),
-        )
-        .with_graceful_shutdown(async move {
-            let _ = server_shutdown.wait_for(|stop| *stop).await;
-        })
-        .into_future(),
-    );
+    let server = tokio::spawn(http::server::serve(
+        listener,
+        http::router(context),
+        (&settings.http).into(),
+        server_shutdown,
+    )?);
     println!(
         "celld: cell `{}` on the {} backend{}, database {}",
         cell.name,

@@ -3,6 +3,8 @@
 
 #[path = "serve_faults/access.rs"]
 mod access;
+#[path = "serve_faults/connections.rs"]
+mod connections;
 mod serve_support;
 #[path = "serve_faults/storage.rs"]
 mod storage;

@@ -157,6 +157,14 @@ impl<'de> Deserialize<'de> for ControlCpu {
 pub struct HttpConfig {
     /// Largest request body accepted, bytes (larger is 413).
     pub body_limit_bytes: usize,
+    /// Open connections at most; at the cap the oldest one without a request in progress is
+    /// closed for a new one (`http::server`).
+    pub max_connections: usize,
+    /// From a request's first byte to its complete head, ms; a slower client is closed.
+    pub header_timeout_ms: u64,
+    /// A connection with no request in progress and no byte of the next is closed after
+    /// this, s.
+    pub idle_timeout_s: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -246,6 +254,9 @@ impl Default for HttpConfig {
     fn default() -> Self {
         HttpConfig {
             body_limit_bytes: 1 << 20,
+            max_connections: 1024,
+            header_timeout_ms: 10_000,
+            idle_timeout_s: 30,
         }
     }
 }
@@ -315,6 +326,21 @@ impl ServiceConfig {
                     self.http.body_limit_bytes = value
                         .parse()
                         .map_err(|_| invalid("CELLD_BODY_LIMIT_BYTES", "not a whole number"))?
+                }
+                "MAX_CONNECTIONS" => {
+                    self.http.max_connections = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_MAX_CONNECTIONS", "not a whole number"))?
+                }
+                "HEADER_TIMEOUT_MS" => {
+                    self.http.header_timeout_ms = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_HEADER_TIMEOUT_MS", "not a whole number"))?
+                }
+                "IDLE_TIMEOUT_S" => {
+                    self.http.idle_timeout_s = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_IDLE_TIMEOUT_S", "not a whole number"))?
                 }
                 "MAX_POLICY_BYTES" => {
                     self.policies.max_upload_bytes = value
@@ -546,6 +572,27 @@ impl ServiceConfig {
                 "must be at most 86400 (a day)",
             ));
         }
+        if self.http.max_connections < 2 {
+            return Err(invalid(
+                "http.max_connections",
+                self.http.max_connections.to_string(),
+                "must be ≥ 2",
+            ));
+        }
+        if !(1..=600_000).contains(&self.http.header_timeout_ms) {
+            return Err(invalid(
+                "http.header_timeout_ms",
+                self.http.header_timeout_ms.to_string(),
+                "must lie in 1..=600000 (10 min)",
+            ));
+        }
+        if !(1..=86_400).contains(&self.http.idle_timeout_s) {
+            return Err(invalid(
+                "http.idle_timeout_s",
+                self.http.idle_timeout_s.to_string(),
+                "must lie in 1..=86400 (a day)",
+            ));
+        }
         Ok(())
     }
 
@@ -666,6 +713,53 @@ mod tests {
                 .to_string()
                 .contains("deadline_ms")
         );
+    }
+
+    #[test]
+    fn connection_settings_come_from_the_environment_and_are_checked() {
+        let mut config = ServiceConfig::default();
+        config
+            .apply_env(vars(&[
+                ("CELLD_MAX_CONNECTIONS", "64"),
+                ("CELLD_HEADER_TIMEOUT_MS", "1500"),
+                ("CELLD_IDLE_TIMEOUT_S", "2"),
+            ]))
+            .unwrap();
+        assert_eq!(
+            (
+                config.http.max_connections,
+                config.http.header_timeout_ms,
+                config.http.idle_timeout_s
+            ),
+            (64, 1500, 2)
+        );
+        config.validate().unwrap();
+        let error = ServiceConfig::default()
+            .apply_env(vars(&[("CELLD_IDLE_TIMEOUT_S", "1.5")]))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("CELLD_IDLE_TIMEOUT_S"), "{error}");
+        for (setting, value, apply) in [
+            (
+                "http.max_connections",
+                "1",
+                (|c: &mut ServiceConfig| c.http.max_connections = 1) as fn(&mut ServiceConfig),
+            ),
+            ("http.header_timeout_ms", "0", |c| {
+                c.http.header_timeout_ms = 0
+            }),
+            ("http.idle_timeout_s", "86401", |c| {
+                c.http.idle_timeout_s = 86_401
+            }),
+        ] {
+            let mut config = ServiceConfig::default();
+            apply(&mut config);
+            let error = config.validate().unwrap_err().to_string();
+            assert!(
+                error.contains(setting) && error.contains(&format!("`{value}`")),
+                "{error}"
+            );
+        }
     }
 
     #[test]

@@ -14,6 +14,7 @@ pub mod error;
 pub mod jobs;
 pub mod meta;
 pub mod policies;
+pub mod server;
 pub mod stats;
 pub mod telemetry;
 pub mod tokens;
