@@ -115,7 +115,7 @@ async fn a_write_on_a_full_disk_fails_and_the_writer_recovers_when_there_is_room
             }
         }
         next += 200;
-        if let Ok(token) = tokens::create(&db, tokens::Role::Viewer, "full", "test").await {
+        if let Ok(token) = tokens::create(&db, tokens::Role::Viewer, "full", "test", None).await {
             tokens_made.push(token.token);
         }
         if failures >= 2 {
@@ -134,7 +134,7 @@ async fn a_write_on_a_full_disk_fails_and_the_writer_recovers_when_there_is_room
         None,
         "a write committed: the fault clears"
     );
-    let after = tokens::create(&db, tokens::Role::Viewer, "after", "test")
+    let after = tokens::create(&db, tokens::Role::Viewer, "after", "test", None)
         .await
         .unwrap();
     tokens_made.push(after.token);

@@ -56,11 +56,11 @@ pub fn judge(
     latest: Option<&Evaluation>,
 ) -> std::result::Result<i64, String> {
     let running = latest
-        .filter(|e| e.status == "running" && nominal_on(e, cell_hash))
+        .filter(|e| matches!(e.status.as_str(), "queued" | "running") && nominal_on(e, cell_hash))
         .map(|e| {
             format!(
-                "evaluation {} ({} episodes) is still running",
-                e.id, e.episodes
+                "evaluation {} ({} episodes) is still {}",
+                e.id, e.episodes, e.status
             )
         });
     match finished {
@@ -151,6 +151,7 @@ mod tests {
             requested_by: "test".to_string(),
             started_at: String::new(),
             finished_at: None,
+            queue_position: None,
         }
     }
 
