@@ -30,13 +30,16 @@ fn schemathesis_finds_nothing_against_the_described_api() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    // Jobs run as fast as the twin can, so the queue drains while requests arrive.
+    // Jobs run as fast as the twin can, so the queue drains while requests arrive. The work
+    // queue holds every evaluation and training run the run asks for (its 429 when full is
+    // `tests/serve_faults/work.rs`'s to check), so each schema-valid request is accepted.
     // Its checks send many refused tokens from one address: no 429 may stand in for the 401s
     // and the admin's answers it expects.
     let server = Server::start(
         dir.path(),
         &[
             ("CELLD_FAST", "true"),
+            ("CELLD_WORK_QUEUE_LENGTH", "10000"),
             ("CELLD_AUTH_FAILURE_LIMIT", "1000000"),
         ],
     );
