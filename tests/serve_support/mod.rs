@@ -227,12 +227,15 @@ impl Server {
         }
     }
 
-    /// Polls policy `id` until its evaluation is no longer running (up to `limit`); answers
-    /// the policy.
+    /// Polls policy `id` until its evaluation is neither queued nor running (up to `limit`);
+    /// answers the policy.
     pub fn wait_evaluated(&self, id: i64, limit: Duration) -> Value {
         let path = format!("/api/policies/{id}");
         self.poll(&path, "ended its evaluation", limit, |policy| {
-            policy["evaluation"]["status"] != "running"
+            !matches!(
+                policy["evaluation"]["status"].as_str(),
+                Some("queued" | "running")
+            )
         })
     }
 
