@@ -17,9 +17,9 @@ pub fn without_backtrace(text: &str) -> String {
             "stack backtrace:" | "backtrace:"
         );
         let frame = line.len() > trimmed.len()
-            && trimmed
-                .split_once(':')
-                .is_some_and(|(number, _)| !number.is_empty() && number.bytes().all(|b| b.is_ascii_digit()));
+            && trimmed.split_once(':').is_some_and(|(number, _)| {
+                !number.is_empty() && number.bytes().all(|b| b.is_ascii_digit())
+            });
         let location = in_frames && trimmed.starts_with("at ");
         let note = in_frames && trimmed.starts_with("note: Some details are omitted");
         // A backtrace's text ends with a line break of its own.
@@ -33,7 +33,6 @@ pub fn without_backtrace(text: &str) -> String {
     }
     kept.join("\n").trim_end().to_string()
 }
-
 
 #[cfg(test)]
 mod tests {

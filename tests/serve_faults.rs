@@ -2,3 +2,6 @@
 //! access, inputs) against a real server, with its own SQLite file.
 
 mod serve_support;
+
+#[path = "serve_faults/inputs.rs"]
+mod inputs;

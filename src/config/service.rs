@@ -285,9 +285,9 @@ impl ServiceConfig {
                         .map_err(|_| invalid("CELLD_ACTIVATION_THRESHOLD", "not a number"))?
                 }
                 "MAX_POLICY_PARAMETERS" => {
-                    self.policies.max_parameters = value.parse().map_err(|_| {
-                        invalid("CELLD_MAX_POLICY_PARAMETERS", "not a whole number")
-                    })?
+                    self.policies.max_parameters = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_MAX_POLICY_PARAMETERS", "not a whole number"))?
                 }
                 "EVALUATION_EPISODES" => {
                     self.policies.evaluation_episodes = value
@@ -549,9 +549,21 @@ mod tests {
             ("CELLD_DEADLINE_MS", "1e308", "control.deadline_ms"),
             ("CELLD_STEP_PERIOD_MS", "-1", "control.step_period_ms"),
             ("CELLD_STEP_PERIOD_MS", "1e30", "control.step_period_ms"),
-            ("CELLD_ACTIVATION_THRESHOLD", "NaN", "policies.activation_threshold"),
-            ("CELLD_EVALUATION_EPISODES", "1000000", "policies.evaluation_episodes"),
-            ("CELLD_MAX_POLICY_PARAMETERS", "0", "policies.max_parameters"),
+            (
+                "CELLD_ACTIVATION_THRESHOLD",
+                "NaN",
+                "policies.activation_threshold",
+            ),
+            (
+                "CELLD_EVALUATION_EPISODES",
+                "1000000",
+                "policies.evaluation_episodes",
+            ),
+            (
+                "CELLD_MAX_POLICY_PARAMETERS",
+                "0",
+                "policies.max_parameters",
+            ),
         ] {
             let mut config = ServiceConfig::default();
             config.apply_env(vars(&[(variable, value)])).unwrap();

@@ -255,7 +255,12 @@ mod tests {
             .to_string();
         assert!(error.contains("step 2: state[4] (A5)"), "{error}");
         let error = check_bounds(
-            &[episode(vec![step(2, 3, state, [0.0, 0.0, 5.1, 0.0, 0.0, 0.0])])],
+            &[episode(vec![step(
+                2,
+                3,
+                state,
+                [0.0, 0.0, 5.1, 0.0, 0.0, 0.0],
+            )])],
             &bounds,
         )
         .unwrap_err()

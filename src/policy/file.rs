@@ -20,11 +20,11 @@ use std::path::Path;
 mod checks;
 mod size;
 use checks::parse;
-pub use size::check_parameter_count;
 pub(crate) use checks::{
     Checked, check_bytes, check_in_memory, encode, expect_shapes, read_path, standard_metadata,
     write_path, wrong_shape,
 };
+pub use size::check_parameter_count;
 
 /// `__metadata__["format"]` of every hierarchical policy file.
 pub const FORMAT: &str = "assembly-cell/hierarchical-policy";

@@ -48,7 +48,12 @@ mod tests {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("policies");
         let hierarchical = std::fs::read(dir.join("default.safetensors")).unwrap();
         // LSTM 4H×12, 4H×64, 2×4H; head 3×64+3; two actors 64×12+64, 64×64+64, 3×64+3; 2×12.
-        let by_hand = 256 * 12 + 256 * 64 + 2 * 256 + 3 * 64 + 3 + 2 * (64 * 12 + 64)
+        let by_hand = 256 * 12
+            + 256 * 64
+            + 2 * 256
+            + 3 * 64
+            + 3
+            + 2 * (64 * 12 + 64)
             + 2 * (64 * 64 + 64)
             + 2 * (3 * 64 + 3)
             + 2 * 12;
