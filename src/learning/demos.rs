@@ -109,7 +109,7 @@ pub fn check_bounds(episodes: &[DemoEpisode], bounds: &DemoBounds) -> Result<(),
             (format!("action[{i}]"), value, limit, 1.0 + 1e-9, unit, MOVE)
         });
         for (field, value, limit, tolerance, unit, why) in state.chain(action) {
-            if !(value.abs() <= limit * tolerance) {
+            if value.is_nan() || value.abs() > limit * tolerance {
                 return Err(DemoError::OutOfBounds {
                     episode: step.episode,
                     step: step.step,
