@@ -12,6 +12,7 @@ pub mod cell;
 pub mod collision;
 pub mod config;
 pub mod drivers;
+pub mod error_text;
 pub mod files;
 pub mod geometry;
 pub mod http;

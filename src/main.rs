@@ -176,7 +176,11 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            // `{:#}`: the causes, no backtrace; and none a library wrote into its message.
+            eprintln!(
+                "error: {}",
+                assembly_cell::error_text::without_backtrace(&format!("{error:#}"))
+            );
             ExitCode::FAILURE
         }
     }

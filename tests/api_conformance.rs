@@ -1,6 +1,6 @@
 //! The API does what its description says: schemathesis (PyPI, an independent fuzzer) reads
 //! `/api/openapi.json` from a running `celld serve` and sends it schema-valid and schema-invalid
-//! requests, with every check it has and at least 100 examples per operation
+//! requests, with every check it has and at least 200 examples per operation
 //! (`tests/conformance/schemathesis.toml`); it must find nothing.
 //!
 //! `.ci/run` installs schemathesis. Elsewhere, without it, this test says so and passes; with

@@ -179,6 +179,9 @@ pub struct PolicyConfig {
     pub evaluation_episodes: u32,
     /// Most episodes one evaluation request may ask for (more is 422).
     pub max_evaluation_episodes: u32,
+    /// Most numbers (parameters) an uploaded policy file may hold; more is 422. A queued job
+    /// keeps its policy's parameters in memory (4 bytes each) until it ends.
+    pub max_parameters: usize,
 }
 
 /// `[work]`: the one queue evaluations and training runs wait in (`workflows::queue`).
@@ -214,9 +217,18 @@ impl Default for PolicyConfig {
             activation_threshold: 0.95,
             evaluation_episodes: 1000,
             max_evaluation_episodes: 10_000,
+            max_parameters: DEFAULT_MAX_POLICY_PARAMETERS,
         }
     }
 }
+
+/// `policies.max_parameters` by default: a million, 14 times the largest bundled policy (the
+/// flat TD3 baseline, 70,686; the hierarchical ones hold 30,561).
+pub const DEFAULT_MAX_POLICY_PARAMETERS: usize = 1_000_000;
+
+/// The longest `control.deadline_ms` and `control.step_period_ms`: a minute. A control step
+/// is a camera cycle (250 ms at 4 Hz); one that may take a minute has stopped being control.
+pub const MAX_CONTROL_MS: f64 = 60_000.0;
 
 impl Default for ServiceConfig {
     fn default() -> Self {
@@ -352,6 +364,11 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|_| invalid("CELLD_ACTIVATION_THRESHOLD", "not a number"))?
                 }
+                "MAX_POLICY_PARAMETERS" => {
+                    self.policies.max_parameters = value
+                        .parse()
+                        .map_err(|_| invalid("CELLD_MAX_POLICY_PARAMETERS", "not a whole number"))?
+                }
                 "EVALUATION_EPISODES" => {
                     self.policies.evaluation_episodes = value
                         .parse()
@@ -449,19 +466,20 @@ impl ServiceConfig {
                 reason: reason.to_string(),
             };
         if let Some(period) = self.control.step_period_ms
-            && !(period.is_finite() && period >= 0.0)
+            && !(period.is_finite() && (0.0..=MAX_CONTROL_MS).contains(&period))
         {
             return Err(invalid(
                 "control.step_period_ms",
-                period.to_string(),
-                "must be a number ≥ 0",
+                format!("{period:?}"),
+                &format!("must be a number in [0, {MAX_CONTROL_MS}] ms"),
             ));
         }
-        if !(self.control.deadline_ms.is_finite() && self.control.deadline_ms > 0.0) {
+        let deadline = self.control.deadline_ms;
+        if !(deadline.is_finite() && deadline > 0.0 && deadline <= MAX_CONTROL_MS) {
             return Err(invalid(
                 "control.deadline_ms",
-                self.control.deadline_ms.to_string(),
-                "must be > 0",
+                format!("{deadline:?}"),
+                &format!("must be > 0 and at most {MAX_CONTROL_MS} ms"),
             ));
         }
         if self.control.step_batch == 0 {
@@ -498,9 +516,9 @@ impl ServiceConfig {
                 "must lie in [0, 1]",
             ));
         }
-        if self.policies.evaluation_episodes == 0 {
+        if self.policies.max_parameters == 0 {
             return Err(invalid(
-                "policies.evaluation_episodes",
+                "policies.max_parameters",
                 "0".into(),
                 "must be ≥ 1",
             ));
@@ -514,6 +532,13 @@ impl ServiceConfig {
                 "policies.max_evaluation_episodes",
                 most.to_string(),
                 &format!("must lie in 1..={MAX_EVALUATION_EPISODES}"),
+            ));
+        }
+        if episodes == 0 {
+            return Err(invalid(
+                "policies.evaluation_episodes",
+                "0".into(),
+                "must be ≥ 1",
             ));
         }
         if episodes > most {
@@ -703,6 +728,40 @@ mod tests {
         config.camera.frame_timeout_ms = 0;
         let error = config.validate().unwrap_err().to_string();
         assert!(error.contains("camera.frame_timeout_ms"), "{error}");
+
+        // Numbers no cell can use are refused with their key: non-finite, absurd or zero.
+        for (variable, value, key) in [
+            ("CELLD_DEADLINE_MS", "NaN", "control.deadline_ms"),
+            ("CELLD_DEADLINE_MS", "inf", "control.deadline_ms"),
+            ("CELLD_DEADLINE_MS", "1e308", "control.deadline_ms"),
+            ("CELLD_STEP_PERIOD_MS", "-1", "control.step_period_ms"),
+            ("CELLD_STEP_PERIOD_MS", "1e30", "control.step_period_ms"),
+            (
+                "CELLD_ACTIVATION_THRESHOLD",
+                "NaN",
+                "policies.activation_threshold",
+            ),
+            (
+                "CELLD_EVALUATION_EPISODES",
+                "1000000",
+                "policies.evaluation_episodes",
+            ),
+            (
+                "CELLD_MAX_POLICY_PARAMETERS",
+                "0",
+                "policies.max_parameters",
+            ),
+        ] {
+            let mut config = ServiceConfig::default();
+            config.apply_env(vars(&[(variable, value)])).unwrap();
+            let error = config.validate().unwrap_err().to_string();
+            assert!(error.contains(key) && error.contains(value), "{error}");
+        }
+        let error = ServiceConfig::default()
+            .apply_env(vars(&[("CELLD_MAX_POLICY_PARAMETERS", "-5")]))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("CELLD_MAX_POLICY_PARAMETERS"), "{error}");
 
         config = ServiceConfig::default();
         config.control.deadline_ms = 0.0;

@@ -86,3 +86,31 @@ impl FromRequestParts<Context> for StreamCaller {
         )))
     }
 }
+
+/// A caller with the operator role or above, checked from the headers alone: as an extractor
+/// before the body's, a caller without the role is refused (403) before the body is read, so
+/// what it sent cannot change the answer.
+pub struct Operator(pub Caller);
+
+impl FromRequestParts<Context> for Operator {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, context: &Context) -> Result<Self, ApiError> {
+        let auth = Auth::from_request_parts(parts, context).await?;
+        auth.require(Role::Operator)?;
+        Ok(Operator(auth.0))
+    }
+}
+
+/// A caller with the admin role, checked from the headers alone, as [`Operator`].
+pub struct Admin(pub Caller);
+
+impl FromRequestParts<Context> for Admin {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, context: &Context) -> Result<Self, ApiError> {
+        let auth = Auth::from_request_parts(parts, context).await?;
+        auth.require(Role::Admin)?;
+        Ok(Admin(auth.0))
+    }
+}

@@ -1,7 +1,7 @@
 //! `/api/cell`: the cell's state (viewer), e-stop and reset (operator).
 
 use super::Context;
-use super::auth::Auth;
+use super::auth::{Auth, Operator};
 use super::error::{ApiResult, Json};
 use crate::cell::CellStatus;
 use crate::storage::tokens::Role;
@@ -59,8 +59,10 @@ async fn read(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cell
 /// queued jobs are cancelled. Stays latched (across restarts too) until a reset.
 #[utoipa::path(post, path = "/api/cell/estop", tag = "cell",
     responses((status = 200, description = "Stopped and latched", body = CellView)))]
-async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
-    let caller = auth.require(Role::Operator)?;
+async fn estop(
+    State(context): State<Context>,
+    Operator(caller): Operator,
+) -> ApiResult<Json<CellView>> {
     workflows::cell::estop(&context, &caller.name).await?;
     Ok(Json(view(&context)))
 }
@@ -74,8 +76,10 @@ async fn estop(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Cel
         (status = 503, description = "The hardware is not ready (unreachable, not referenced, \
             moved): both latches stay; the body says why"),
     ))]
-async fn reset(State(context): State<Context>, auth: Auth) -> ApiResult<Json<CellView>> {
-    let caller = auth.require(Role::Operator)?;
+async fn reset(
+    State(context): State<Context>,
+    Operator(caller): Operator,
+) -> ApiResult<Json<CellView>> {
     workflows::cell::reset(&context, &caller.name).await?;
     Ok(Json(view(&context)))
 }

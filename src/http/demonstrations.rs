@@ -3,7 +3,7 @@
 //! Lines, one step a line, which `celld train --demos-file` reads too.
 
 use super::Context;
-use super::auth::Auth;
+use super::auth::{Admin, Auth};
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
 use crate::storage::demonstrations::{self, Demonstration};
 use crate::storage::tokens::Role;
@@ -40,11 +40,10 @@ pub struct ImportQuery {
     responses((status = 201, description = "Stored", body = Demonstration)))]
 async fn import(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Query(query): Query<ImportQuery>,
     body: Result<Bytes, BytesRejection>,
 ) -> ApiResult<(StatusCode, Json<Demonstration>)> {
-    let caller = auth.require(Role::Admin)?;
     let body = body?;
     let name = query.name.as_deref().map(str::trim).unwrap_or("imported");
     let stored =
@@ -85,10 +84,9 @@ async fn export(
     responses((status = 204, description = "Deleted")))]
 async fn remove(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Path(id): Path<i64>,
 ) -> ApiResult<StatusCode> {
-    let caller = auth.require(Role::Admin)?;
     workflows::demonstrations::delete(&context, id, &caller.name).await?;
     Ok(StatusCode::NO_CONTENT)
 }

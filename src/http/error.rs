@@ -63,7 +63,9 @@ impl IntoResponse for ApiError {
         if self.status.is_server_error() {
             tracing::error!(code = self.code, message = %self.message, "request failed");
         }
-        let body = json!({"error": {"code": self.code, "message": self.message}});
+        // A library's message may carry the backtrace where it arose: not for the caller.
+        let message = crate::error_text::without_backtrace(&self.message);
+        let body = json!({"error": {"code": self.code, "message": message}});
         let mut response = (self.status, axum::Json(body)).into_response();
         if let Some(seconds) = self.retry_after_s {
             response

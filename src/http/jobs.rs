@@ -2,7 +2,7 @@
 //! stored steps as JSON or CSV.
 
 use super::Context;
-use super::auth::Auth;
+use super::auth::{Auth, Operator};
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
 use super::stats::check_time_range;
 use crate::cell::JobStatus;
@@ -35,7 +35,8 @@ pub struct CreateJob {
         pattern = "^(active|expert|expert-state-only|expert-careful|expert-swift|visual-servo|spiral|da-dmp|hierarchical|bc|td3|hierarchical-cells|hierarchical-swift|hierarchical-swift-cells|policy:[0-9]{1,18})$"
     )]
     controller: String,
-    /// The episode's seed (default: a random one, stored with the job).
+    /// The episode's seed, any u64 (default: a random one, stored with the job).
+    #[schema(minimum = 0, maximum = 18_446_744_073_709_551_615_u64)]
     #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
     /// Initial offset and orientation error (default: the cell file's).
@@ -74,10 +75,9 @@ pub struct InitialBody {
     responses((status = 201, description = "Queued", body = Job)))]
 async fn create(
     State(context): State<Context>,
-    auth: Auth,
+    Operator(caller): Operator,
     Json(body): Json<CreateJob>,
 ) -> ApiResult<(StatusCode, Json<Job>)> {
-    let caller = auth.require(Role::Operator)?;
     if body.override_gate.is_some() && caller.role < Role::Admin {
         return Err(ApiError::forbidden(format!(
             "override_gate needs the admin role; token `{}` is {}",
@@ -196,10 +196,9 @@ async fn read(
     responses((status = 200, description = "The job, cancelled", body = Job)))]
 async fn cancel(
     State(context): State<Context>,
-    auth: Auth,
+    _: Operator,
     Path(id): Path<i64>,
 ) -> ApiResult<Json<Job>> {
-    auth.require(Role::Operator)?;
     Ok(Json(workflows::jobs::cancel(&context, id).await?))
 }
 

@@ -192,10 +192,9 @@ pub struct Page {
     responses((status = 200, description = "A page of the audit log", body = Items<AuditEntry>)))]
 async fn read_audit(
     State(context): State<Context>,
-    auth: Auth,
+    _: super::auth::Admin,
     Query(page): Query<Page>,
 ) -> ApiResult<Json<Items<AuditEntry>>> {
-    auth.require(Role::Admin)?;
     let limit = page.limit.unwrap_or(100).clamp(1, 1000);
     let offset = page.offset.unwrap_or(0).max(0);
     let items = audit::list(&context.db, limit, offset).await?;

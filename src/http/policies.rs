@@ -2,7 +2,7 @@
 //! activate behind the evaluation gate (admin).
 
 use super::Context;
-use super::auth::Auth;
+use super::auth::{Admin, Auth};
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
 use crate::sim::{Fault, Mismatch, UnknownFault};
 use crate::storage::policies::{self, EvaluatedOn, Evaluation, Policy};
@@ -46,11 +46,10 @@ pub struct UploadQuery {
     ))]
 async fn upload(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Query(query): Query<UploadQuery>,
     body: Result<Bytes, BytesRejection>,
 ) -> ApiResult<(StatusCode, Json<Policy>)> {
-    let caller = auth.require(Role::Admin)?;
     let name = Some(query.name.trim())
         .filter(|n| !n.is_empty() && n.chars().count() <= 100)
         .ok_or_else(|| ApiError::bad_request("`?name=` (1 to 100 characters) names the policy"))?;
@@ -131,7 +130,8 @@ pub struct EvaluateBody {
     #[schema(minimum = 1, maximum = 10_000)]
     #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     episodes: Option<u32>,
-    /// The evaluation's seed (default 1).
+    /// The evaluation's seed, any u64 (default 1).
+    #[schema(minimum = 0, maximum = 18_446_744_073_709_551_615_u64)]
     #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
     /// Multiplies the camera's point noise (default 1, the spec; 0 noiseless).
@@ -149,6 +149,84 @@ pub struct EvaluateBody {
     /// calibration error drawn too, so `noise_scale` and `calibration_scale` must be left out
     /// (default false).
     randomise_cells: Option<bool>,
+}
+
+/// `EvaluateBody` as described: one of two shapes, so that no request the description allows
+/// is refused. On this cell (`randomise_cells` false, null or left out) every field may be
+/// given; on drawn cells (`randomise_cells: true`) `noise_scale` and `calibration_scale` may
+/// only be null or left out, each drawn cell bringing its own camera noise and calibration
+/// error.
+struct EvaluateRequest;
+
+impl utoipa::PartialSchema for EvaluateRequest {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::RefOr;
+        use utoipa::openapi::schema::{ObjectBuilder, OneOfBuilder, Schema, Type};
+        let RefOr::T(Schema::Object(fields)) = <EvaluateBody as utoipa::PartialSchema>::schema()
+        else {
+            unreachable!("EvaluateBody derives an object schema")
+        };
+        let mut on_cell = fields.clone();
+        on_cell.properties.insert(
+            "randomise_cells".into(),
+            ObjectBuilder::new()
+                .schema_type(utoipa::openapi::schema::SchemaType::from_iter([
+                    Type::Boolean,
+                    Type::Null,
+                ]))
+                .enum_values(Some([serde_json::json!(false), serde_json::Value::Null]))
+                .description(Some("False or left out: on this cell."))
+                .into(),
+        );
+        on_cell.description = Some("On this cell, under an optional mismatch.".into());
+        let mut drawn = fields;
+        drawn.properties.insert(
+            "randomise_cells".into(),
+            ObjectBuilder::new()
+                .schema_type(Type::Boolean)
+                .enum_values(Some([true]))
+                .description(Some(
+                    "On cells drawn around this one, as `celld eval --randomise-cells`.",
+                ))
+                .into(),
+        );
+        for drawn_per_cell in ["noise_scale", "calibration_scale"] {
+            drawn.properties.insert(
+                drawn_per_cell.into(),
+                ObjectBuilder::new()
+                    .schema_type(Type::Null)
+                    .description(Some("Drawn for each cell: null or left out."))
+                    .into(),
+            );
+        }
+        drawn.required.push("randomise_cells".into());
+        drawn.description = Some("On drawn cells, each with its own noise and calibration.".into());
+        OneOfBuilder::new()
+            .item(on_cell)
+            .item(drawn)
+            .description(Some(
+                "What the evaluation runs on: this cell (under an optional mismatch) or cells \
+                 drawn around it (`randomise_cells: true`, which draws each cell's camera \
+                 noise and calibration error, so `noise_scale` and `calibration_scale` stay \
+                 out).",
+            ))
+            .into()
+    }
+}
+
+impl ToSchema for EvaluateRequest {
+    fn name() -> std::borrow::Cow<'static, str> {
+        "EvaluateBody".into()
+    }
+
+    fn schemas(
+        schemas: &mut Vec<(
+            String,
+            utoipa::openapi::RefOr<utoipa::openapi::schema::Schema>,
+        )>,
+    ) {
+        <EvaluateBody as ToSchema>::schemas(schemas);
+    }
 }
 
 /// A fault by name; an unknown one is refused naming the field and the names there are.
@@ -171,7 +249,7 @@ fn optional_fault<'de, D: serde::Deserializer<'de>>(
 /// (`randomise_cells`) is stored and shown like any other, but the activation gate reads only
 /// those on this cell without a mismatch.
 #[utoipa::path(post, path = "/api/policies/{id}/evaluate", tag = "policies",
-    params(("id" = i64, Path)), request_body(content = Option<EvaluateBody>),
+    params(("id" = i64, Path)), request_body(content = Option<EvaluateRequest>),
     responses(
         (status = 202, description = "Started, or queued", body = Evaluation),
         (status = 429, description = "The work queue is full (`work.queue_length`)",
@@ -180,11 +258,10 @@ fn optional_fault<'de, D: serde::Deserializer<'de>>(
     ))]
 async fn evaluate(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Path(id): Path<i64>,
     body: Bytes,
 ) -> ApiResult<(StatusCode, Json<Evaluation>)> {
-    let caller = auth.require(Role::Admin)?;
     let body: EvaluateBody = optional_body(&body)?;
     let on = if body.randomise_cells.unwrap_or(false) {
         if body.noise_scale.is_some() || body.calibration_scale.is_some() {
@@ -233,11 +310,10 @@ pub struct Activated {
     responses((status = 200, description = "Active", body = Activated)))]
 async fn activate(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Path(id): Path<i64>,
     body: Bytes,
 ) -> ApiResult<Json<Activated>> {
-    let caller = auth.require(Role::Admin)?;
     let body: ActivateBody = optional_body(&body)?;
     let gate = workflows::policies::activate(
         &context,

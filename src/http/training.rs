@@ -4,8 +4,8 @@
 //! demonstrations it learned from.
 
 use super::Context;
-use super::auth::Auth;
-use super::error::{ApiResult, Items, Json, Path};
+use super::auth::{Admin, Auth};
+use super::error::{ApiError, ApiResult, Items, Json, Path};
 use crate::learning::run::{TrainingPart, TrainingSettings};
 use crate::storage::tokens::Role;
 use crate::storage::training;
@@ -30,7 +30,8 @@ pub fn router() -> OpenApiRouter<Context> {
 pub struct StartBody {
     /// Overrides `settings.part`.
     part: Option<TrainingPart>,
-    /// Overrides `settings.seed`.
+    /// Overrides `settings.seed`; any u64.
+    #[schema(minimum = 0, maximum = 18_446_744_073_709_551_615_u64)]
     #[serde(default, deserialize_with = "crate::integer::optional_integer")]
     seed: Option<u64>,
     /// TD3 episodes (overrides `settings.td3_episodes`).
@@ -76,10 +77,9 @@ fn distinct_ids() -> utoipa::openapi::schema::Array {
     ))]
 async fn start(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Json(body): Json<StartBody>,
 ) -> ApiResult<(StatusCode, Json<training::TrainingRun>)> {
-    let caller = auth.require(Role::Admin)?;
     let request = TrainingRequest {
         settings: body.settings,
         part: body.part,
@@ -133,10 +133,9 @@ pub struct Cancelling {
     responses((status = 202, description = "Cancelling", body = Cancelling)))]
 async fn cancel(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Path(id): Path<i64>,
 ) -> ApiResult<(StatusCode, Json<Cancelling>)> {
-    let caller = auth.require(Role::Admin)?;
     let cancelled = workflows::training::cancel(&context, id, &caller.name).await?;
     let status = match cancelled {
         Cancelled::Dequeued => "cancelled",

@@ -100,6 +100,8 @@ pub const POLISH: Polish = Polish {
 #[serde(default, deny_unknown_fields)]
 pub struct TrainingSettings {
     pub part: TrainingPart,
+    /// Any u64 (JSON numbers above 2^53 are read exactly).
+    #[schema(minimum = 0, maximum = 18_446_744_073_709_551_615_u64)]
     #[serde(deserialize_with = "crate::integer::integer")]
     pub seed: u64,
     #[schema(minimum = 1, maximum = 1024)]

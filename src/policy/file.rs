@@ -18,11 +18,13 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 mod checks;
+mod size;
 use checks::parse;
 pub(crate) use checks::{
     Checked, check_bytes, check_in_memory, encode, expect_shapes, read_path, standard_metadata,
     write_path, wrong_shape,
 };
+pub use size::check_parameter_count;
 
 /// `__metadata__["format"]` of every hierarchical policy file.
 pub const FORMAT: &str = "assembly-cell/hierarchical-policy";
@@ -173,6 +175,16 @@ pub enum PolicyFileError {
         value: f32,
         reason: String,
     },
+    #[error(
+        "the policy holds {parameters} parameters, more than policies.max_parameters = {limit} \
+         (the largest tensor is `{name}`, {shape:?})"
+    )]
+    TooManyParameters {
+        parameters: usize,
+        limit: usize,
+        name: String,
+        shape: Vec<usize>,
+    },
     #[error("metadata `{key}` is missing (expected {expected})")]
     MissingMetadata { key: String, expected: String },
     #[error("metadata `{key}` is {value}: {reason}")]
@@ -197,6 +209,7 @@ impl PolicyFileError {
             PolicyFileError::WrongShape { .. } => "wrong_shape",
             PolicyFileError::NonFinite { .. } => "non_finite",
             PolicyFileError::BadValue { .. } => "bad_value",
+            PolicyFileError::TooManyParameters { .. } => "too_many_parameters",
             PolicyFileError::MissingMetadata { .. } => "missing_metadata",
             PolicyFileError::BadMetadata { .. } => "bad_metadata",
         }
@@ -210,7 +223,8 @@ impl PolicyFileError {
             | PolicyFileError::WrongDtype { name, .. }
             | PolicyFileError::WrongShape { name, .. }
             | PolicyFileError::NonFinite { name, .. }
-            | PolicyFileError::BadValue { name, .. } => Some(name),
+            | PolicyFileError::BadValue { name, .. }
+            | PolicyFileError::TooManyParameters { name, .. } => Some(name),
             PolicyFileError::MissingMetadata { key, .. }
             | PolicyFileError::BadMetadata { key, .. } => Some(key),
             _ => None,

@@ -343,7 +343,14 @@ pub async fn finish_evaluation(
             Some(failures.to_string()),
             None,
         ),
-        Err(error) => ("failed", None, None, None, Some(error)),
+        // Stored for people to read: no backtrace a library put in its message.
+        Err(error) => (
+            "failed",
+            None,
+            None,
+            None,
+            Some(crate::error_text::without_backtrace(&error)),
+        ),
     };
     sqlx::query(&format!(
         "UPDATE policy_evaluations SET status = ?, success_rate = ?, avg_steps = ?, failures = ?,

@@ -150,7 +150,8 @@ pub async fn finish(
     .bind(status)
     .bind(policy_id)
     .bind(figures.map(Value::to_string))
-    .bind(error)
+    // Stored for people to read: no backtrace a library put in its message.
+    .bind(error.map(crate::error_text::without_backtrace))
     .bind(status)
     .bind(id)
     .execute(&mut *tx)

@@ -18,11 +18,15 @@ pub async fn import(
     if name.is_empty() || name.chars().count() > 100 {
         return Err(Error::bad_request("name must be 1 to 100 characters"));
     }
+    // Imported steps are the paper's state on this cell: each number within what it can hold.
+    let bounds = demos::DemoBounds::for_cell(&context.cell_config);
     let episodes = off_the_runtime(move || {
-        demos::read_jsonl(&body[..]).map_err(|e| match e {
-            DemoError::BadLine { .. } => Error::unprocessable(format!("nothing imported: {e}")),
-            DemoError::Io(_) => Error::bad_request(format!("nothing imported: {e}")),
-        })
+        demos::read_jsonl(&body[..])
+            .and_then(|episodes| demos::check_bounds(&episodes, &bounds).map(|()| episodes))
+            .map_err(|e| match e {
+                DemoError::Io(_) => Error::bad_request(format!("nothing imported: {e}")),
+                _ => Error::unprocessable(format!("nothing imported: {e}")),
+            })
     })
     .await?;
     if episodes.is_empty() {

@@ -76,6 +76,12 @@ pub async fn upload(
     bytes: Vec<u8>,
     by: &str,
 ) -> Result<(Policy, bool)> {
+    // From the header alone, before the values are read: a queued job holds them all.
+    crate::policy::file::check_parameter_count(&bytes, context.settings.policies.max_parameters)
+        .map_err(|e| Error::Invalid {
+            code: e.code(),
+            message: e.to_string(),
+        })?;
     let (mut policy, created) = register(&context.db, name, bytes, by).await?;
     policy.evaluation = policy.evaluation.map(|e| placed(context, e));
     if created {
