@@ -2,7 +2,7 @@
 //! (any role), tokens and the audit log (admin).
 
 use super::Context;
-use super::auth::Auth;
+use super::auth::{Admin, Auth};
 use super::error::{ApiResult, Items, Json, Query};
 use crate::storage::audit::{self, AuditEntry};
 use crate::storage::health::WriteFault;
@@ -162,10 +162,9 @@ pub struct CreateToken {
     responses((status = 201, description = "The new token, with its secret", body = NewToken)))]
 async fn create_token(
     State(context): State<Context>,
-    auth: Auth,
+    Admin(caller): Admin,
     Json(body): Json<CreateToken>,
 ) -> ApiResult<(StatusCode, Json<NewToken>)> {
-    let caller = auth.require(Role::Admin)?;
     let token = crate::workflows::tokens::create(
         &context.db,
         body.role,

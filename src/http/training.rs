@@ -5,7 +5,7 @@
 
 use super::Context;
 use super::auth::{Admin, Auth};
-use super::error::{ApiError, ApiResult, Items, Json, Path};
+use super::error::{ApiResult, Items, Json, Path};
 use crate::learning::run::{TrainingPart, TrainingSettings};
 use crate::storage::tokens::Role;
 use crate::storage::training;
