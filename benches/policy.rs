@@ -24,7 +24,7 @@ use std::time::Instant;
 const PASSES: usize = 4;
 
 fn main() {
-    hierarchical::init_cpu_threads();
+    assembly_cell::threads::init_cpu_threads();
     let args: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| a != "--bench")

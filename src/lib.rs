@@ -24,4 +24,5 @@ pub mod policy;
 pub mod robot;
 pub mod sim;
 pub mod storage;
+pub mod threads;
 pub mod workflows;

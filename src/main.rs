@@ -156,7 +156,7 @@ impl Imperfection {
 
 fn main() -> ExitCode {
     // candle 0.11 re-reads the CPU count on every matmul unless RAYON_NUM_THREADS is set.
-    hierarchical::init_cpu_threads();
+    assembly_cell::threads::init_cpu_threads();
     let command = Cli::parse()
         .command
         .unwrap_or_else(|| Command::Serve(Default::default()));
@@ -248,7 +248,8 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let factory: policy::ControllerFactory = match &policy_file {
         Some(path) => {
             let loaded = LearnedPolicy::from_path(path)
-                .with_context(|| format!("--controller {}", path.display()))?;
+                .with_context(|| format!("--controller {}", path.display()))?
+                .with_rules(&cell.rules);
             Box::new(move || Box::new(loaded.clone()))
         }
         None => policy::builtin_factory(&args.controller, &cell).context("--controller")?,

@@ -5,8 +5,9 @@
 
 use assembly_cell::policy::Actor;
 use assembly_cell::policy::file::{PolicyFile, PolicyFileError};
-use assembly_cell::policy::hierarchical::{HierarchicalPolicy, PolicyOutput, init_cpu_threads};
+use assembly_cell::policy::hierarchical::{HierarchicalPolicy, PolicyOutput};
 use assembly_cell::policy::run::run_states;
+use assembly_cell::threads::init_cpu_threads;
 use serde_json::{Map, Value, json};
 use std::path::PathBuf;
 

@@ -33,8 +33,9 @@ impl ControllerSource {
             ControllerSource::Policy { id, bytes } => {
                 let file = LearnedPolicyFile::from_bytes(bytes)
                     .map_err(|e| format!("policy {id}: {e}"))?;
-                let policy =
-                    LearnedPolicy::from_file(&file).map_err(|e| format!("policy {id}: {e}"))?;
+                let policy = LearnedPolicy::from_file(&file)
+                    .map_err(|e| format!("policy {id}: {e}"))?
+                    .with_rules(&cell.rules);
                 Ok(Box::new(policy.with_name(format!("policy:{id}"))))
             }
         }

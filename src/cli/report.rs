@@ -91,8 +91,8 @@ fn learned(label: String, path: PathBuf) -> Result<Controller> {
         .with_name(label.clone());
     Ok(Controller {
         label,
-        factory: Box::new(move |_| {
-            let loaded = loaded.clone();
+        factory: Box::new(move |cell| {
+            let loaded = loaded.clone().with_rules(&cell.rules);
             Ok(Box::new(move || Box::new(loaded.clone())))
         }),
     })

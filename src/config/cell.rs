@@ -6,6 +6,7 @@
 //! back to the shoulder, so that {M} = {F} when the parts are docked.
 
 use super::fixture_layout::{FixtureLayout, LayoutError};
+pub use crate::policy::shield::RulesConfig;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -55,6 +56,11 @@ pub struct CellConfig {
     /// The collision supervisor's settings; a cell file without the section gets no margin.
     #[serde(default)]
     pub supervisor: SupervisorConfig,
+    /// The rules between a learned policy's proposal and the supervisor
+    /// (docs/policy-rules.md); a cell file without the section runs every rule. Left out of the
+    /// serialised config (and so of its hash) while it is today's default.
+    #[serde(default, skip_serializing_if = "RulesConfig::is_default")]
+    pub rules: RulesConfig,
 }
 
 /// The few numbers of a cell that a policy trained across cells reads beside the pose
@@ -428,6 +434,9 @@ impl CellConfig {
             value: value.to_string(),
             reason: reason.to_string(),
         };
+        if let Some((key, value, range)) = self.rules.invalid() {
+            return Err(invalid(key, value, &format!("must be {range}")));
+        }
         let positive: [(&'static str, f64); 22] = [
             ("shaft.diameter_mm", self.shaft.diameter_mm),
             ("shaft.engaged_length_mm", self.shaft.engaged_length_mm),

@@ -22,14 +22,18 @@
 //!
 //! The 0.9 keeps the labels off tanh's and the sigmoid's asymptotes, where a squared loss cannot
 //! get to them; a full 5 mm step comes back as 0.95 · 0.98 · 5 = 4.66 mm, which the policy reads
-//! as the full step (`policy::hierarchical::full_step`). With the direction's limit at 0.98 and
+//! as the full step (the shield's `full_step` rule). With the direction's limit at 0.98 and
 //! the scale's at 0.995, the policy stalled on the approach and at the bottom (success 0.953 in
 //! 64 steps against 0.988 in 48.7; docs/learning.md).
 
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
-use crate::policy::hierarchical::{MAX_DIRECTION_LABEL, MAX_SCALE_LABEL};
 use crate::policy::inputs::PolicyInputs;
+
+/// Ceiling of the step-size label (the target of sigmoid(ω3)) behaviour cloning gives a move.
+pub const MAX_SCALE_LABEL: f64 = 0.98;
+/// Ceiling of each component of the direction label (the target of an actor's tanh output).
+pub const MAX_DIRECTION_LABEL: f64 = 0.95;
 
 /// Smallest scale label of a position move: moves below 0.2 · 0.9 · limit are the actor's to
 /// size.
@@ -297,8 +301,9 @@ mod tests {
     /// the labels' move is read back as the full step.
     #[test]
     fn a_full_steps_labels_come_back_as_the_full_step() {
-        use crate::policy::hierarchical::full_step;
+        use crate::policy::shield::{FULL_STEP_LABEL_SHARE, FullStep};
         use nalgebra::Vector3;
+        assert_eq!(FULL_STEP_LABEL_SHARE, MAX_SCALE_LABEL * MAX_DIRECTION_LABEL);
         for action in [
             [0.0, 0.0, -5.0, 0.0, 0.0, 0.0],
             [5.0, -5.0, 0.0, 0.0, 0.0, 0.0],
@@ -306,7 +311,7 @@ mod tests {
             let labels = StepLabels::of(&step(Actor::Position, action), &LIMITS);
             let back = labels.to_action(&[0.0; 12], &LIMITS);
             assert!(back[0..3].iter().all(|v| v.abs() < 4.7), "{back:?}");
-            let read = full_step(Vector3::new(back[0], back[1], back[2]), 5.0);
+            let read = FullStep::default().stretched(Vector3::new(back[0], back[1], back[2]), 5.0);
             assert!((read - Vector3::new(action[0], action[1], action[2])).norm() < 1e-9);
         }
     }

@@ -335,9 +335,8 @@ impl FlatTraining {
     /// Evaluates the current policy on the validation episodes (all cores) and keeps it if it
     /// is the best so far.
     pub fn validate(&mut self) -> candle_core::Result<FlatValidation> {
-        // As the policy runs once deployed, with the rules `LearnedPolicy` adds (the steering
-        // against the learned drift, the full step after a refusal as uncertain).
-        let policy = LearnedPolicy::flat(self.policy()?);
+        // As the policy runs once deployed, with every rule of the cell's (docs/policy-rules.md).
+        let policy = LearnedPolicy::flat(self.policy()?).with_rules(&self.cell.rules);
         let factory: ControllerFactory = Box::new(move || Box::new(policy.clone()));
         let (summary, _) = eval::evaluate(
             &self.cell,

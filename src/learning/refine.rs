@@ -614,9 +614,9 @@ pub fn evaluate_vars(
     episodes: usize,
     seed: u64,
 ) -> candle_core::Result<EvalSummary> {
-    // As the policy runs once deployed, with the rules `LearnedPolicy` adds (the steering
-    // against the learned drift, the full step after a refusal as uncertain).
-    let policy = LearnedPolicy::hierarchical(policy_from_vars(vars, config)?);
+    // As the policy runs once deployed, with every rule of the cell's (docs/policy-rules.md).
+    let policy =
+        LearnedPolicy::hierarchical(policy_from_vars(vars, config)?).with_rules(&cell.rules);
     let factory: crate::policy::ControllerFactory = Box::new(move || Box::new(policy.clone()));
     Ok(eval::evaluate(cell, options, episodes, seed, &factory, &|_| {}).0)
 }
@@ -746,7 +746,8 @@ mod tests {
         };
         let deployed = LearnedPolicy::from_bytes(bytes).unwrap();
         let as_deployed = score(Box::new(move || Box::new(deployed.clone())));
-        let bare = HierarchicalPolicy::from_file(&file).unwrap();
+        let bare = LearnedPolicy::hierarchical(HierarchicalPolicy::from_file(&file).unwrap())
+            .with_rules(&cell.rules.in_training());
         let as_bare = score(Box::new(move || Box::new(bare.clone())));
         assert_eq!((validated.success_rate, validated.avg_steps), as_deployed);
         // The steering changes the episodes, so the check can tell the two apart.

@@ -15,6 +15,7 @@ use crate::config::cell::CellConfig;
 use crate::policy::file::PolicyFile;
 use crate::policy::hierarchical::HierarchicalPolicy;
 use crate::policy::inputs::PolicyInputs;
+use crate::policy::learned::LearnedPolicy;
 use crate::policy::{Actor, Controller};
 use crate::sim::EnvOptions;
 use crate::sim::randomise::CellRanges;
@@ -336,7 +337,9 @@ pub fn run(
     let mut rounds = Vec::new();
     for round in 1..=settings.dagger_rounds {
         progress.check()?;
-        let driver = HierarchicalPolicy::from_file(&file).map_err(failed)?;
+        let driver =
+            LearnedPolicy::hierarchical(HierarchicalPolicy::from_file(&file).map_err(failed)?)
+                .with_rules(&cell.rules.in_training());
         let make = || Box::new(driver.clone()) as Box<dyn Controller>;
         let driven = dagger::rollouts(
             cell,

@@ -284,6 +284,7 @@ impl Expert {
                 },
                 actor: Some(Actor::Orientation),
                 scale: Some(theta.amax() / self.limit_deg),
+                shield: None,
             };
         }
         let off_axis = engaged_middle_off_axis_mm(p, o, self.shaft_length_mm, self.limit_mm);
@@ -302,6 +303,7 @@ impl Expert {
                         action: Move::default(),
                         actor: Some(Actor::Position),
                         scale: Some(0.0),
+                        shield: None,
                     };
                 }
                 self.holds >= holds
@@ -371,6 +373,7 @@ impl Expert {
             },
             actor: Some(Actor::Position),
             scale: Some(delta.amax() / self.limit_mm),
+            shield: None,
         }
     }
 }

@@ -225,6 +225,11 @@ impl FlatPolicy {
         self.step_limit_mm
     }
 
+    /// The longest turn about any axis of {M} (deg).
+    pub fn step_limit_deg(&self) -> f64 {
+        self.step_limit_deg
+    }
+
     /// The policy of a checked flat policy file (named "td3").
     pub fn from_file(file: &FlatPolicyFile) -> Self {
         let d = file.width();

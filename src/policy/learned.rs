@@ -4,39 +4,18 @@
 //! and a bundled policy load as. A file whose format is not the flat one is checked as a
 //! hierarchical policy file, with that loader's messages.
 //!
-//! As it runs, a learned policy's translation is steered against the sideways drift the cell's
-//! state filter has learned of its robot ([`super::steered_against_drift`]), as `expert` steers
-//! its own: the network says where {M} should go, the cell makes the robot go there. The
-//! demonstrators the policies learn from decide on the state alone and do not steer, so
-//! training (behaviour cloning, DAgger's episodes, TD3's episodes) runs the bare policy and the
-//! steering is added here, where a policy is run (decision 0026); TD3's validations run the
-//! policy as it is deployed, through this type (decision 0029). With a camera three times
-//! noisier than its data sheet or more, a position move down the bore is made as the
-//! demonstrators make it instead: their exact centring, not steered
-//! ([`super::hierarchical::descends_as_the_demonstrators`], decision 0034), and over the first
-//! 35 mm no longer than `expert-careful`'s step ([`no_longer_than_the_careful_step_mm`],
-//! decision 0047). Right after a move refused as uncertain, a move down the bore asks the full
-//! step ([`FullStepAfterUncertainty`], decision 0040). While the state filter is unsure
-//! sideways by more than the cell's clearance, a move down stops at the demonstrators' standoff
-//! above the entrance ([`no_nearer_than_the_standoff_mm`], decision 0043).
+//! As it runs, a learned policy's proposal goes through the shield ([`super::shield`]): the
+//! rules between the networks and the supervisor, built from the cell file's `[rules]`, each
+//! recorded where it changes the move (docs/policy-rules.md).
 
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
-use super::hierarchical::{
-    DESCENT_AS_DEMONSTRATED_FROM_MM, HierarchicalPolicy, centres_after_a_refusal,
-    demonstrators_centring_mm, descends_as_the_demonstrators,
-};
-use super::{Controller, Decision, clamp_components, steered_against_drift};
-use crate::collision::supervisor::VetoReason;
+use super::hierarchical::HierarchicalPolicy;
+use super::shield::{RuleContext, RuleId, RuleSet, RulesConfig, Shaped, Shield, ShieldTrace};
+use super::{Controller, Decision};
 use crate::sim::Observation;
-use nalgebra::Vector3;
 use std::collections::BTreeMap;
 use std::path::Path;
-
-mod careful_descent;
-mod standoff;
-pub use careful_descent::no_longer_than_the_careful_step_mm;
-pub use standoff::no_nearer_than_the_standoff_mm;
 
 /// A checked policy file of either kind.
 #[derive(Debug, Clone, PartialEq)]
@@ -99,47 +78,51 @@ pub enum LearnedNetwork {
     Flat(Box<FlatPolicy>),
 }
 
-/// A runnable learned policy: its network and the rules the cell adds where it runs.
+/// A runnable learned policy: its network and the shield of rules the cell runs it with.
 #[derive(Debug, Clone)]
 pub struct LearnedPolicy {
     network: LearnedNetwork,
-    /// None where switched off, to measure the policy without it.
-    after_uncertainty: Option<FullStepAfterUncertainty>,
-    /// [`no_nearer_than_the_standoff_mm`] applies (false to measure the policy without it).
-    standoff_while_unsure: bool,
+    shield: Shield,
 }
 
 impl LearnedPolicy {
-    /// `network` run as deployed.
+    /// `network` run with every rule, today's parameters.
     fn new(network: LearnedNetwork) -> Self {
         Self {
             network,
-            after_uncertainty: Some(FullStepAfterUncertainty::default()),
-            standoff_while_unsure: true,
+            shield: Shield::default(),
         }
     }
 
-    /// The policy without [`FullStepAfterUncertainty`]: its moves after a refusal as uncertain
-    /// as the network asks them (to measure what the rule is worth).
-    pub fn without_full_step_after_uncertainty(mut self) -> Self {
-        self.after_uncertainty = None;
-        self
+    /// The policy run with the rules of `rules` (a cell file's `[rules]`, or a selection of
+    /// them).
+    pub fn with_rules(self, rules: &RulesConfig) -> Self {
+        Self {
+            shield: Shield::new(rules),
+            ..self
+        }
     }
 
-    /// The policy without [`no_nearer_than_the_standoff_mm`]: its moves down to the entrance
-    /// as the network asks them, however unsure the estimate (to measure what the rule is
-    /// worth).
-    pub fn without_standoff_while_unsure(mut self) -> Self {
-        self.standoff_while_unsure = false;
-        self
+    /// The policy without rule `rule` (to measure what the rule is worth).
+    pub fn without(self, rule: RuleId) -> Self {
+        let mut on = self.shield.rules();
+        let mut rules = RulesConfig::default();
+        on = on.iter().filter(|id| *id != rule).collect();
+        rules = rules.selected(&super::shield::RuleSelection::Only(on));
+        self.with_rules(&rules)
     }
 
-    /// A hierarchical policy run as deployed.
+    /// The rules this policy runs with.
+    pub fn rules(&self) -> RuleSet {
+        self.shield.rules()
+    }
+
+    /// A hierarchical policy run with every rule.
     pub fn hierarchical(policy: HierarchicalPolicy) -> Self {
         Self::new(LearnedNetwork::Hierarchical(Box::new(policy)))
     }
 
-    /// A flat policy run as deployed.
+    /// A flat policy run with every rule.
     pub fn flat(policy: FlatPolicy) -> Self {
         Self::new(LearnedNetwork::Flat(Box::new(policy)))
     }
@@ -186,6 +169,37 @@ impl LearnedPolicy {
             LearnedNetwork::Flat(_) => PolicyKind::Flat,
         }
     }
+
+    /// The network's proposal, the move of the actor that acts (where the shield's rule 1
+    /// chose another than the selector) and the step limits (mm, deg). A step that fails or
+    /// is not finite holds still, as does a step without a fresh frame (the LSTM then does not
+    /// advance: the demonstrations have no such steps).
+    fn propose(&mut self, observation: &Observation) -> (Decision, Decision, f64, f64) {
+        match &mut self.network {
+            LearnedNetwork::Hierarchical(p) => {
+                let (limit_mm, limit_deg) = (p.config().step_limit_mm, p.config().step_limit_deg);
+                if !observation.measurement_fresh {
+                    return (Decision::hold(), Decision::hold(), limit_mm, limit_deg);
+                }
+                let inputs = p.config().inputs.of(observation);
+                let shield = &self.shield;
+                let choose = |selected| shield.choose_actor(observation, selected);
+                match p.propose(&inputs, &choose) {
+                    Ok(proposal) if proposal.is_finite() => (
+                        proposal.selected.to_decision(),
+                        proposal.acting.to_decision(),
+                        limit_mm,
+                        limit_deg,
+                    ),
+                    _ => (Decision::hold(), Decision::hold(), limit_mm, limit_deg),
+                }
+            }
+            LearnedNetwork::Flat(p) => {
+                let decision = p.act(observation);
+                (decision, decision, p.step_limit_mm(), p.step_limit_deg())
+            }
+        }
+    }
 }
 
 impl Controller for LearnedPolicy {
@@ -197,100 +211,50 @@ impl Controller for LearnedPolicy {
     }
 
     fn reset(&mut self, seed: u64) {
-        if let Some(rule) = self.after_uncertainty.as_mut() {
-            *rule = FullStepAfterUncertainty::default();
-        }
+        self.shield.reset();
         match &mut self.network {
-            LearnedNetwork::Hierarchical(p) => Controller::reset(p.as_mut(), seed),
+            LearnedNetwork::Hierarchical(p) => p.reset(),
             LearnedNetwork::Flat(p) => p.reset(seed),
         }
     }
 
+    /// The network's proposal through the shield; the decision carries the proposal and the
+    /// rules that changed it.
     fn act(&mut self, observation: &Observation) -> Decision {
-        let (mut decision, step_limit_mm) = match &mut self.network {
-            LearnedNetwork::Hierarchical(p) => (p.act(observation), p.config().step_limit_mm),
-            LearnedNetwork::Flat(p) => (p.act(observation), p.step_limit_mm()),
+        let (proposed, acting, step_limit_mm, step_limit_deg) = self.propose(observation);
+        let mut fired = RuleSet::default();
+        if acting.actor != proposed.actor {
+            fired.insert(RuleId::ActorWithWork);
+        }
+        let mut shaped = Shaped {
+            actor: acting.actor,
+            action: acting.action,
+            exact_sideways: false,
         };
-        let mut wanted_mm = decision.action.translation_mm;
-        let noisy_descent = descends_as_the_demonstrators(observation, &decision);
-        if noisy_descent {
-            wanted_mm.z = no_longer_than_the_careful_step_mm(observation, wanted_mm.z);
-        }
-        let mut command_mm = if noisy_descent || centres_after_a_refusal(observation, &decision) {
-            let centring = demonstrators_centring_mm(observation, step_limit_mm);
-            Vector3::new(centring.x, centring.y, wanted_mm.z)
-        } else {
-            steered_against_drift(&observation.estimate.drift(), wanted_mm)
+        let context = RuleContext {
+            observation,
+            step_limit_mm,
+            step_limit_deg,
         };
-        if let Some(rule) = self.after_uncertainty.as_mut()
-            && rule.step(observation, wanted_mm.z, step_limit_mm)
-        {
-            command_mm.z = -step_limit_mm;
+        self.shield.shape(&context, &mut shaped, &mut fired);
+        Decision {
+            action: shaped.action,
+            shield: Some(ShieldTrace {
+                proposed: proposed.action,
+                proposed_actor: proposed.actor,
+                fired,
+            }),
+            ..acting
         }
-        if self.standoff_while_unsure {
-            command_mm.z = no_nearer_than_the_standoff_mm(observation, command_mm.z);
-        }
-        decision.action.translation_mm = clamp_components(command_mm, step_limit_mm);
-        decision
-    }
-}
-
-/// How far short of the seat (mm, by the estimate) the full step of
-/// [`FullStepAfterUncertainty`] still leaves the tip.
-pub const FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM: f64 = 1.0;
-
-/// Right after a move refused as uncertain (the supervisor found no share of it sure enough),
-/// a move down the bore asks the full step, with the tip more than
-/// [`DESCENT_AS_DEMONSTRATED_FROM_MM`] past the entrance and a full step and
-/// [`FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM`] short of the seat: the cell then tries shares of it
-/// down to a quarter, and a move down that no share of is sure enough is made as its sideways
-/// part. Not after a refusal for the wall margin or a predicted contact until a move is made:
-/// the full step's centring was refused for the wall in turn with refusals as uncertain until
-/// 20 refusals ended the episode.
-///
-/// At twice the camera's noise the policies learnt from `expert-careful` asked moves of about
-/// 2 mm there, refused as uncertain under a camera shift suspected by chance, and ended
-/// episodes on the step limit; with the full step they fail about as often as `expert`
-/// (decision 0040).
-#[derive(Debug, Clone, Copy, Default)]
-pub struct FullStepAfterUncertainty {
-    /// A move was refused for the wall margin or a predicted contact and none made since.
-    refused_near_the_wall: bool,
-}
-
-impl FullStepAfterUncertainty {
-    /// Whether the tip, `inserted_mm` past the entrance of a bore `depth_mm` deep, is where
-    /// the rule asks the full step (`step_limit_mm`): more than
-    /// [`DESCENT_AS_DEMONSTRATED_FROM_MM`] in, and more than the full step and
-    /// [`FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM`] short of the seat.
-    pub fn applies_at(inserted_mm: f64, depth_mm: f64, step_limit_mm: f64) -> bool {
-        let deepest_start_mm = depth_mm - step_limit_mm - FULL_STEP_ENDS_SHORT_OF_THE_SEAT_MM;
-        inserted_mm > DESCENT_AS_DEMONSTRATED_FROM_MM && inserted_mm < deepest_start_mm
-    }
-
-    /// Whether the move down the bore asked now (`asked_z_mm`, negative is deeper) is made
-    /// the full step (`step_limit_mm`) instead.
-    pub fn step(&mut self, observation: &Observation, asked_z_mm: f64, step_limit_mm: f64) -> bool {
-        match &observation.last_veto {
-            Some(veto) if veto.is_about_contact() => self.refused_near_the_wall = true,
-            None => self.refused_near_the_wall = false,
-            Some(_) => {}
-        }
-        matches!(observation.last_veto, Some(VetoReason::Uncertain { .. }))
-            && !self.refused_near_the_wall
-            && asked_z_mm < 0.0
-            && Self::applies_at(
-                observation.insertion_mm(),
-                observation.cell.bore_depth_mm,
-                step_limit_mm,
-            )
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::collision::supervisor::VetoReason;
     use crate::policy::flat::TENSOR_NAMES;
+    use crate::policy::shield::{FullStepAfterUncertainty, demonstrators_centring_mm};
 
     fn flat_bytes() -> Vec<u8> {
         let tensors = TENSOR_NAMES
@@ -376,7 +340,13 @@ mod tests {
         observation
     }
 
-    /// The bundled hierarchical policy `name`, bare (without the rules `LearnedPolicy` adds).
+    /// A hierarchical policy with the rules training runs it with (1–8), not those of the cell
+    /// where it runs.
+    fn as_trained(policy: HierarchicalPolicy) -> LearnedPolicy {
+        LearnedPolicy::hierarchical(policy).with_rules(&RulesConfig::default().in_training())
+    }
+
+    /// The bundled hierarchical policy `name`'s network.
     fn bundled_hierarchical(name: &str) -> HierarchicalPolicy {
         let bytes = crate::policy::bundled_policy(name).unwrap();
         let LearnedNetwork::Hierarchical(bare) = LearnedPolicy::from_bytes(bytes).unwrap().network
@@ -397,7 +367,10 @@ mod tests {
         let observation = observed_with_drift([3.0, -2.0, -80.0], per_mm, 1e-3);
         let drift = observation.estimate.drift();
         let bare = bundled_hierarchical("hierarchical");
-        let wanted = bare.clone().act(&observation).action.translation_mm;
+        let wanted = as_trained(bare.clone())
+            .act(&observation)
+            .action
+            .translation_mm;
         let mut steered = LearnedPolicy::hierarchical(bare);
         let command = steered.act(&observation).action.translation_mm;
         assert!(wanted.norm() > 1.0, "{wanted}");
@@ -420,7 +393,6 @@ mod tests {
     fn after_a_refusal_for_the_wall_margin_the_move_is_the_demonstrators_centring() {
         use crate::collision::supervisor::VetoReason;
         use crate::policy::Actor;
-        use crate::policy::hierarchical::demonstrators_centring_mm;
         use nalgebra::Vector6;
         let per_mm = Vector6::new(0.2, 0.0, 0.01, 0.0, 0.2, -0.008);
         let mut observation = observed_with_drift([0.02, -0.01, -50.0], per_mm, 1e-4);
@@ -431,7 +403,10 @@ mod tests {
         });
         let bare = bundled_hierarchical("hierarchical-cells");
         let centring = demonstrators_centring_mm(&observation, bare.config().step_limit_mm);
-        let asked = bare.clone().act(&observation).action.translation_mm;
+        let asked = as_trained(bare.clone())
+            .act(&observation)
+            .action
+            .translation_mm;
         assert!(asked.xy() != nalgebra::Vector2::zeros(), "{asked}");
         let made = LearnedPolicy::hierarchical(bare).act(&observation);
         assert_eq!(made.actor, Some(Actor::Position), "{made:?}");
@@ -447,7 +422,6 @@ mod tests {
     #[test]
     fn under_a_noisy_camera_a_move_down_the_bore_is_the_demonstrators() {
         use crate::policy::Actor;
-        use crate::policy::hierarchical::demonstrators_centring_mm;
         use nalgebra::{Vector2, Vector6};
         let per_mm = Vector6::new(0.0, 0.0, 0.01, 0.0, 0.0, -0.008);
         let observation = observed_with_drift([0.02, -0.01, -50.0], per_mm, 1e-4);
@@ -456,7 +430,7 @@ mod tests {
         let act = |noise_scale: f64| {
             let mut observation = observation.clone();
             observation.estimate.set_noise_scale(noise_scale);
-            let asked = bare.clone().act(&observation);
+            let asked = as_trained(bare.clone()).act(&observation);
             let made = LearnedPolicy::hierarchical(bare.clone()).act(&observation);
             (asked, made)
         };
@@ -497,7 +471,7 @@ mod tests {
             observation.estimate.set_noise_scale(noise_scale);
             // A fresh selector opens with the orientation actor (no move, the shaft level);
             // its second decision is the position actor's.
-            let mut network = bare.clone();
+            let mut network = as_trained(bare.clone());
             let mut policy = LearnedPolicy::hierarchical(bare.clone());
             network.act(&observation);
             policy.act(&observation);
@@ -586,7 +560,7 @@ mod tests {
         assert!(sd_mm > observation.cell.radial_clearance_mm, "σ {sd_mm} mm");
         let bare = bundled_hierarchical("hierarchical-cells");
         let own = LearnedPolicy::hierarchical(bare.clone())
-            .without_standoff_while_unsure()
+            .without(RuleId::StandoffWhileUnsure)
             .act(&observation);
         let held = LearnedPolicy::hierarchical(bare).act(&observation);
         assert!(own.action.translation_mm.z < -1.0, "{own:?}");
@@ -619,7 +593,7 @@ mod tests {
         );
         assert_eq!(after.action.rotation_deg, own.action.rotation_deg);
         let switched_off = LearnedPolicy::hierarchical(bare_again)
-            .without_full_step_after_uncertainty()
+            .without(RuleId::FullStepAfterUncertainty)
             .act(&in_the_bore(-50.0, Some(uncertain())));
         assert_eq!(switched_off, own);
     }

@@ -15,6 +15,7 @@ pub mod mlp;
 pub mod paired;
 pub mod record;
 pub mod run;
+pub mod shield;
 pub mod spiral;
 pub mod visual_servo;
 
@@ -32,12 +33,15 @@ pub enum Actor {
 }
 
 /// One decision: the move, and when the controller has them, the actor it chose and the step
-/// scale in [0, 1] (ω3 after its sigmoid) — the labels the LSTM selector learns from.
+/// scale in [0, 1] (ω3 after its sigmoid) — the labels the LSTM selector learns from — and,
+/// for a learned policy, what its rules did ([`shield::ShieldTrace`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Decision {
     pub action: Move,
     pub actor: Option<Actor>,
     pub scale: Option<f64>,
+    /// The network's proposal and the rules that changed it (learned policies only).
+    pub shield: Option<shield::ShieldTrace>,
 }
 
 impl Decision {
@@ -47,6 +51,7 @@ impl Decision {
             action,
             actor: None,
             scale: None,
+            shield: None,
         }
     }
 
@@ -113,11 +118,12 @@ pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
     }
 }
 
-fn load_bundled(name: &str) -> Option<learned::LearnedPolicy> {
+/// The bundled policy `name`, run with `cell`'s rules.
+fn load_bundled(name: &str, cell: &CellConfig) -> Option<learned::LearnedPolicy> {
     let bytes = bundled_policy(name)?;
     let file = learned::LearnedPolicyFile::from_bytes(bytes).expect("bundled policies are valid");
     let policy = learned::LearnedPolicy::from_file(&file).expect("bundled policy loads");
-    Some(policy.with_name(name))
+    Some(policy.with_name(name).with_rules(&cell.rules))
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -130,7 +136,7 @@ pub struct UnknownController {
 /// Builds a built-in controller for `cell` by name.
 pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, UnknownController> {
     check_known(name)?;
-    if let Some(policy) = load_bundled(name) {
+    if let Some(policy) = load_bundled(name, cell) {
         return Ok(Box::new(policy));
     }
     match name {
@@ -175,7 +181,7 @@ pub fn builtin_factory(
         let fitted = dmp::default_dmp(cell);
         return Ok(Box::new(move || Box::new(fitted.clone())));
     }
-    if let Some(policy) = load_bundled(name) {
+    if let Some(policy) = load_bundled(name, cell) {
         return Ok(Box::new(move || Box::new(policy.clone())));
     }
     let (name, cell) = (name.to_string(), cell.clone());

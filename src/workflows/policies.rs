@@ -237,8 +237,10 @@ fn evaluate_now(
     stop: &(dyn Fn() -> bool + Sync),
 ) -> std::result::Result<Option<(f64, Option<f64>, Value)>, String> {
     let file = LearnedPolicyFile::from_bytes(&job.bytes).map_err(|e| e.to_string())?;
-    let policy = LearnedPolicy::from_file(&file).map_err(|e| e.to_string())?;
     let cell = &job.cell;
+    let policy = LearnedPolicy::from_file(&file)
+        .map_err(|e| e.to_string())?
+        .with_rules(&cell.rules);
     // Kept robots, as `celld eval` by default: the cell remembers each one's drift.
     let kept = EnvOptions {
         kept_robots: eval::DEFAULT_KEPT_ROBOTS,

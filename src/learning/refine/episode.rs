@@ -14,8 +14,9 @@ use crate::learning::pipeline::{normaliser_of, step_limits};
 use crate::learning::td3::Transition;
 use crate::policy::Actor;
 use crate::policy::eval::episode_seed;
-use crate::policy::hierarchical::{HierarchicalPolicy, asked_move, limit_move};
+use crate::policy::hierarchical::HierarchicalPolicy;
 use crate::policy::record::demonstrator_seed;
+use crate::policy::shield::{RuleContext, RuleSet, Shaped, Shield};
 use crate::sim::randomise::cell_for;
 use crate::sim::{AssemblyEnv, Observation, Outcome};
 use rand::{Rng, SeedableRng};
@@ -128,6 +129,8 @@ impl Refinement {
             }
         };
         let inputs = self.config.inputs;
+        // The policy's moves go through the cell's rules as training runs them.
+        let mut shield = Shield::new(&env.cell().rules.in_training());
         let limits = step_limits(&self.cell, inputs);
         let asymmetric = self.config.asymmetric;
         // What each agent's critics read at the current step beside the actor's inputs.
@@ -177,7 +180,8 @@ impl Refinement {
                 let coarse = is_coarse(&observation);
                 let chosen = match &mut explorer {
                     Some((policy, noise)) => {
-                        let out = policy.step_to_act(&read, &observation)?;
+                        let choose = |selected| shield.choose_actor(&observation, selected);
+                        let out = policy.propose(&read, &choose)?.acting;
                         if !out.is_finite() {
                             candle_core::bail!(
                                 "the policy's output is not finite at episode {index}"
@@ -228,20 +232,32 @@ impl Refinement {
                             let noise: f64 = noise.sample(StandardNormal);
                             (clean + sigma * noise).clamp(-1.0, 1.0) as f32
                         });
-                        // As the policy acts as a controller (`asked_move`, on the move in
-                        // mm and degrees): the actor's output is what the limited move asks,
-                        // and the move made is the one the deployed policy makes of it.
+                        // Through the shield, on the move in mm and degrees: the actor's output
+                        // is what the move its limiting rules leave asks, and the move made is
+                        // the one the rules make of it.
                         action = [0.0; 6];
                         for i in 0..3 {
                             action[offset + i] = f64::from(a[i]) * span;
                         }
-                        let asked = Move::from_array(inputs.move_from_units(&read, action));
-                        let limited = limit_move(&observation, actor, asked).to_array();
+                        let asked = Shaped {
+                            actor: Some(actor),
+                            action: Move::from_array(inputs.move_from_units(&read, action)),
+                            exact_sideways: false,
+                        };
+                        let context = RuleContext {
+                            observation: &observation,
+                            step_limit_mm: policy.config().step_limit_mm,
+                            step_limit_deg: policy.config().step_limit_deg,
+                        };
+                        let mut limited = asked;
+                        shield.limit(&context, &mut limited);
                         if span > 0.0 {
-                            let in_units = inputs.move_in_units(&read, limited);
+                            let in_units = inputs.move_in_units(&read, limited.action.to_array());
                             a = std::array::from_fn(|i| (in_units[offset + i] / span) as f32);
                         }
-                        action = asked_move(&observation, policy.config(), actor, asked).to_array();
+                        let mut made = asked;
+                        shield.shape(&context, &mut made, &mut RuleSet::default());
+                        action = made.action.to_array();
                         Some((actor, a))
                     }
                     // The demonstrator's move as behaviour cloning labels it: the direction

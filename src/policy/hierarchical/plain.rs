@@ -113,15 +113,26 @@ impl PlainNet {
         }
         let mut omega = [0f32; 3];
         self.head.forward(h_out, &mut omega);
-        let (selected, scale) = select(omega);
-        let x = &s.xh[..STATE_DIM];
-        let actor = choose(selected);
+        let (selected, _) = select(omega);
+        Ok(self.actor_output(state, s, omega, choose(selected)))
+    }
+
+    /// The output with `actor` acting, for the step whose normalised input `s` holds (the last
+    /// [`PlainNet::step`] on `state`) and whose head gave `omega`.
+    pub(super) fn actor_output(
+        &self,
+        state: &[f64; 12],
+        s: &mut Scratch,
+        omega: [f32; 3],
+        actor: Actor,
+    ) -> PolicyOutput {
+        let (_, scale) = select(omega);
         let actor_net = match actor {
             Actor::Position => &self.pos,
             Actor::Orientation => &self.ori,
         };
         let mut a = [0f32; ACTOR_DIM];
-        actor_net.forward(x, &mut s.s1, &mut s.s2, &mut a);
-        Ok(compose(&self.config, state, omega, actor, scale, a))
+        actor_net.forward(&s.xh[..STATE_DIM], &mut s.s1, &mut s.s2, &mut a);
+        compose(&self.config, state, omega, actor, scale, a)
     }
 }

@@ -1,21 +1,23 @@
-//! While the state filter is unsure sideways by more than the cell's radial clearance, a
-//! learned policy's move down stops at the demonstrators' standoff above the bore's entrance
+//! Rule 14: while the state filter is unsure sideways by more than the cell's radial
+//! clearance, a move down stops at the demonstrators' standoff above the bore's entrance
 //! (decision 0043).
 //!
-//! With the camera four times as noisy as its data sheet and knocked early in the episode, the
-//! frames since the knock pull the estimate off by more than its covariance says, and the
-//! shift watch only suspects it: the covariance of Segment II is widened and the sideways σ
-//! grows to 0.03–0.18 mm, where a centred shaft has 0.05 mm of clearance. `expert` holds at
-//! the standoff until the σ is 0.009 mm and never comes nearer; the learned policies, which do
-//! not see the σ, went on down in the shares the supervisor let through and touched the
-//! entrance's edge in 23–120 of 4000 such episodes where `expert` did once; with the rule, in
-//! 1–7. Without a knock the σ as the tip comes within the standoff is 0.024–0.039 mm at four
-//! times the noise, so the rule waits only where going in would be a gamble on the clearance:
-//! it changed no outcome at the data sheet's or twice its noise, and none measurably at four
-//! times (docs/decisions/0043).
+//! Prevents: with the camera four times as noisy as its data sheet and knocked early in the
+//! episode, the frames since the knock pull the estimate off by more than its covariance says,
+//! and the sideways σ grows to 0.03–0.18 mm where a centred shaft has 0.05 mm of clearance.
+//! `expert` holds at the standoff until the σ is 0.009 mm; the learned policies, which do not
+//! see the σ, went on down and touched the entrance's edge in 23–120 of 4000 such episodes
+//! where `expert` did once; with the rule, in 1–7. Without a knock it changed no outcome at the
+//! data sheet's or twice its noise, and none measurably at four times.
 
+use super::{RuleContext, Shaped};
 use crate::policy::expert::{STANDOFF_MM, tip_in_bore};
 use crate::sim::Observation;
+
+pub(super) fn apply(context: &RuleContext<'_>, shaped: &mut Shaped) {
+    let z = &mut shaped.action.translation_mm.z;
+    *z = no_nearer_than_the_standoff_mm(context.observation, *z);
+}
 
 /// The move along the bore's axis (Δz, mm in {M}, negative is deeper) that `asked_z_mm`
 /// becomes: with the tip above the entrance and the sideways σ above the cell's radial
