@@ -2,7 +2,8 @@
 
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
-use assembly_cell::policy::hierarchical::{self, HierarchicalPolicy};
+use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::policy::shield::{RuleId, RuleSelection};
 use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{self, eval};
 use assembly_cell::sim::randomise::CellRanges;
@@ -117,6 +118,11 @@ struct EvalArgs {
     /// this multiple (default 2, as training draws it; at most 16).
     #[arg(long, value_name = "SCALE", requires = "randomise_cells")]
     randomise_noise_up_to: Option<f64>,
+    /// The rules between a learned policy's proposal and the supervisor to run with
+    /// (docs/policy-rules.md): all (the cell file's `[rules]`), none (the networks' own moves),
+    /// or a comma-separated list of rule names (only those).
+    #[arg(long, default_value = "all", value_name = "all|none|LIST")]
+    rules: RuleSelection,
     /// Print the summary as one JSON object on the last line.
     #[arg(long)]
     json: bool,
@@ -207,6 +213,7 @@ fn load_cell(path: Option<&PathBuf>) -> Result<CellConfig> {
 
 fn run_eval(args: EvalArgs) -> Result<()> {
     let mut cell = load_cell(args.cell.as_ref())?;
+    cell.rules = cell.rules.selected(&args.rules);
     for imperfection in &args.without {
         imperfection.switch_off(&mut cell);
     }
@@ -339,6 +346,21 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     );
     for (reason, count) in &summary.failures {
         println!("  failed: {reason} × {count}");
+    }
+    if let Some(rules) = &summary.rules {
+        let fired: Vec<String> = RuleId::ALL
+            .into_iter()
+            .filter(|id| rules.by_rule[*id as usize] > 0)
+            .map(|id| format!("{id} {:.1} %", 100.0 * rules.share(id)))
+            .collect();
+        println!(
+            "  rules {}: changed {:.1} % of {} decisions{}{}",
+            args.rules.label(),
+            100.0 * rules.changed_share(),
+            rules.decisions,
+            if fired.is_empty() { "" } else { ": " },
+            fired.join(", ")
+        );
     }
     println!("  wall {:.3} s", summary.wall_s);
     if args.json {

@@ -4,6 +4,7 @@
 use super::Context;
 use super::auth::{Admin, Auth};
 use super::error::{ApiError, ApiResult, Items, Json, Path, Query};
+use crate::policy::shield::{RuleId, RuleSelection};
 use crate::sim::{Fault, Mismatch, UnknownFault};
 use crate::storage::policies::{self, EvaluatedOn, Evaluation, Policy};
 use crate::storage::tokens::Role;
@@ -149,6 +150,35 @@ pub struct EvaluateBody {
     /// calibration error drawn too, so `noise_scale` and `calibration_scale` must be left out
     /// (default false).
     randomise_cells: Option<bool>,
+    /// The rules between the policy's proposal and the supervisor to run with
+    /// (docs/policy-rules.md): `"all"` (the cell file's, the default), `"none"`, or only those
+    /// named, as a list or a comma-separated string. Only an evaluation with `"all"` counts for
+    /// the activation gate.
+    #[schema(schema_with = rule_selection)]
+    #[serde(default)]
+    rules: Option<RuleSelection>,
+}
+
+/// `rules`' schema: null, `all`, `none` or rule names comma-separated, or a list of names.
+fn rule_selection() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, OneOfBuilder, Type};
+    let names: Vec<&str> = RuleId::ALL.iter().map(|id| id.name()).collect();
+    let one = names.join("|");
+    OneOfBuilder::new()
+        .item(ObjectBuilder::new().schema_type(Type::Null))
+        .item(
+            ObjectBuilder::new()
+                .schema_type(Type::String)
+                .pattern(Some(format!("^(all|none|({one})(,({one}))*)$"))),
+        )
+        .item(
+            ArrayBuilder::new().items(
+                ObjectBuilder::new()
+                    .schema_type(Type::String)
+                    .enum_values(Some(names)),
+            ),
+        )
+        .into()
 }
 
 /// `EvaluateBody` as described: one of two shapes, so that no request the description allows
@@ -279,8 +309,16 @@ async fn evaluate(
         })
     };
     let evaluation =
-        workflows::policies::evaluate(&context, id, body.episodes, body.seed, on, &caller.name)
-            .await?;
+        workflows::policies::evaluate(
+            &context,
+            id,
+            body.episodes,
+            body.seed,
+            on,
+            body.rules.unwrap_or_default(),
+            &caller.name,
+        )
+        .await?;
     Ok((StatusCode::ACCEPTED, Json(evaluation)))
 }
 

@@ -1,5 +1,6 @@
 //! Evaluating a controller in the twin: many seeded episodes on all cores, summarised.
 
+use super::shield::{RuleId, ShieldTrace};
 use super::{Controller, Decision};
 use crate::config::cell::CellConfig;
 use crate::sim::randomise::{CellRanges, cell_for};
@@ -20,6 +21,9 @@ pub struct EpisodeReport {
     pub reward: f64,
     pub vetoes: u32,
     pub final_errors: PoseErrors,
+    /// What the shield's rules did to a learned policy's decisions (empty for other
+    /// controllers).
+    pub rules: RuleUse,
 }
 
 impl EpisodeReport {
@@ -54,12 +58,72 @@ pub struct EvalSummary {
     pub avg_vetoes: f64,
     /// Failures counted by reason.
     pub failures: BTreeMap<String, usize>,
+    /// How often the shield's rules changed a learned policy's decisions (absent for a
+    /// controller without rules).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rules: Option<RuleUse>,
     /// Cells drawn around `cell` when the episodes ran on drawn cells
     /// ([`evaluate_on_drawn_cells`]); each cell's noise and calibration scales were drawn
     /// with it, and `noise_scale` and `calibration_scale` above were not used.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub drawn_cells: Option<usize>,
     pub wall_s: f64,
+}
+
+/// How often the shield's rules changed a learned policy's decisions: over its decisions with
+/// a [`ShieldTrace`], how many any rule changed and how many each rule did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RuleUse {
+    pub decisions: u64,
+    pub changed: u64,
+    /// By rule, in [`RuleId::ALL`]'s order.
+    pub by_rule: [u64; RuleId::ALL.len()],
+}
+
+impl RuleUse {
+    /// Counts one decision's trace.
+    pub fn add(&mut self, trace: &ShieldTrace) {
+        self.decisions += 1;
+        self.changed += u64::from(!trace.fired.is_empty());
+        for id in trace.fired.iter() {
+            self.by_rule[id as usize] += 1;
+        }
+    }
+
+    /// Adds another count to this one.
+    pub fn merge(&mut self, other: &RuleUse) {
+        self.decisions += other.decisions;
+        self.changed += other.changed;
+        for (mine, theirs) in self.by_rule.iter_mut().zip(other.by_rule) {
+            *mine += theirs;
+        }
+    }
+
+    /// The share of decisions rule `id` changed (0 without decisions).
+    pub fn share(&self, id: RuleId) -> f64 {
+        self.by_rule[id as usize] as f64 / self.decisions.max(1) as f64
+    }
+
+    /// The share of decisions any rule changed.
+    pub fn changed_share(&self) -> f64 {
+        self.changed as f64 / self.decisions.max(1) as f64
+    }
+}
+
+/// `{"decisions", "changed", "by_rule": {name: count}}`.
+impl Serialize for RuleUse {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeStruct;
+        let by_rule: BTreeMap<&str, u64> = RuleId::ALL
+            .into_iter()
+            .map(|id| (id.name(), self.by_rule[id as usize]))
+            .collect();
+        let mut out = serializer.serialize_struct("RuleUse", 3)?;
+        out.serialize_field("decisions", &self.decisions)?;
+        out.serialize_field("changed", &self.changed)?;
+        out.serialize_field("by_rule", &by_rule)?;
+        out.end()
+    }
 }
 
 /// The seed of episode `index` of an evaluation seeded with `seed` (SplitMix64), so that an
@@ -102,13 +166,18 @@ pub fn run_episode_watched(
                 reward: 0.0,
                 vetoes: 0,
                 final_errors: PoseErrors::default(),
+                rules: RuleUse::default(),
             };
         }
     };
     let mut reward = 0.0;
     let mut vetoes = 0;
+    let mut rules = RuleUse::default();
     loop {
         let decision = controller.act(&observation);
+        if let Some(trace) = &decision.shield {
+            rules.add(trace);
+        }
         let result = env
             .step(&decision.action)
             .expect("the loop stops when the episode ends");
@@ -128,6 +197,7 @@ pub fn run_episode_watched(
                 reward,
                 vetoes,
                 final_errors: result.true_errors,
+                rules,
             };
         }
     }
@@ -367,6 +437,11 @@ fn summarise(
         avg_reward: reports.iter().map(|r| r.reward).sum::<f64>() / n,
         avg_vetoes: reports.iter().map(|r| f64::from(r.vetoes)).sum::<f64>() / n,
         failures,
+        rules: reports.iter().any(|r| r.rules.decisions > 0).then(|| {
+            let mut total = RuleUse::default();
+            reports.iter().for_each(|r| total.merge(&r.rules));
+            total
+        }),
         drawn_cells: None,
         wall_s,
     }

@@ -135,6 +135,7 @@ mod tests {
             reward: 0.0,
             vetoes: 0,
             final_errors: PoseErrors::default(),
+            rules: Default::default(),
         }
     }
 

@@ -48,6 +48,9 @@ pub struct Evaluation {
     /// Run on cells drawn around this cell (each kept robot on its own, its noise and
     /// calibration drawn too) rather than on the cell itself.
     pub randomise_cells: bool,
+    /// The rules the policy ran with: `all` (the cell file's), `none`, or the names of those
+    /// that ran, comma-separated (docs/policy-rules.md).
+    pub rules: String,
     pub success_rate: Option<f64>,
     pub avg_steps: Option<f64>,
     pub failures: Value,
@@ -108,6 +111,7 @@ struct EvaluationRow {
     calibration_scale: f64,
     fault: Option<String>,
     randomise_cells: bool,
+    rules: String,
     success_rate: Option<f64>,
     avg_steps: Option<f64>,
     failures: Option<String>,
@@ -133,6 +137,7 @@ impl From<EvaluationRow> for Evaluation {
             calibration_scale: row.calibration_scale,
             fault: row.fault,
             randomise_cells: row.randomise_cells,
+            rules: row.rules,
             success_rate: row.success_rate,
             avg_steps: row.avg_steps,
             failures: json_column(row.failures),
@@ -292,13 +297,14 @@ pub async fn start_evaluation(
     seed: u64,
     cell_hash: &str,
     on: &EvaluatedOn,
+    rules: &str,
     requested_by: &str,
 ) -> Result<Evaluation, DbError> {
     let mismatch = on.mismatch();
     let rows = sqlx::query_as::<_, EvaluationRow>(
         "INSERT INTO policy_evaluations (policy_id, status, episodes, seed, cell_hash, noise_scale,
-                calibration_scale, fault, randomise_cells, requested_by)
-         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
+                calibration_scale, fault, randomise_cells, rules, requested_by)
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING *",
     )
     .bind(policy_id)
     .bind(if queued { "queued" } else { "running" })
@@ -309,6 +315,7 @@ pub async fn start_evaluation(
     .bind(mismatch.calibration_scale)
     .bind(mismatch.fault.map(|f| f.code()))
     .bind(on.is_drawn())
+    .bind(rules)
     .bind(requested_by)
     .fetch_all(&db.writer)
     .await;
@@ -401,8 +408,8 @@ pub async fn fail_unfinished_evaluations(db: &Db, why: &str) -> Result<u64, DbEr
 }
 
 /// The latest finished evaluation of `policy_id` on the cell with `cell_hash`, under the twin as
-/// the cell file describes it (noise and calibration scale 1, no fault): what the activation
-/// gate reads.
+/// the cell file describes it (noise and calibration scale 1, no fault) and with the cell's
+/// rules: what the activation gate reads.
 pub async fn latest_evaluation_on(
     db: &Db,
     policy_id: i64,
@@ -411,7 +418,7 @@ pub async fn latest_evaluation_on(
     let row: Option<EvaluationRow> = sqlx::query_as(
         "SELECT * FROM policy_evaluations WHERE policy_id = ? AND cell_hash = ? AND status = 'done'
                 AND noise_scale = 1 AND calibration_scale = 1 AND fault IS NULL
-                AND randomise_cells = 0
+                AND randomise_cells = 0 AND rules = 'all'
          ORDER BY id DESC LIMIT 1",
     )
     .bind(policy_id)
@@ -480,6 +487,7 @@ mod tests {
             1,
             "cell",
             &EvaluatedOn::Cell(Mismatch::NONE),
+            "all",
             "test",
         )
         .await
@@ -502,6 +510,7 @@ mod tests {
             1,
             "cell",
             &EvaluatedOn::Cell(faulty),
+            "all",
             "test",
         )
         .await
@@ -515,7 +524,7 @@ mod tests {
         assert_eq!(latest.fault.as_deref(), Some("frozen_camera"));
         assert!(!latest.randomise_cells);
         let drawn = EvaluatedOn::DrawnCells { fault: None };
-        let across = start_evaluation(&db, false, id, 10, 1, "cell", &drawn, "test")
+        let across = start_evaluation(&db, false, id, 10, 1, "cell", &drawn, "all", "test")
             .await
             .unwrap();
         finish_evaluation(&db, across.id, Ok((1.0, Some(30.0), json!({}))))
@@ -541,7 +550,7 @@ mod tests {
         let on = EvaluatedOn::Cell(Mismatch::NONE);
         let mut ids = Vec::new();
         for queued in [true, true, false] {
-            let e = start_evaluation(&db, queued, id, 10, 1, "cell", &on, "test")
+            let e = start_evaluation(&db, queued, id, 10, 1, "cell", &on, "all", "test")
                 .await
                 .unwrap();
             assert_eq!(e.status, if queued { "queued" } else { "running" });

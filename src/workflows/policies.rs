@@ -6,6 +6,7 @@ use super::{Context, Error, Result, off_the_runtime};
 use crate::policy::Controller;
 use crate::policy::eval;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
+use crate::policy::shield::RuleSelection;
 use crate::sim::randomise::CellRanges;
 use crate::sim::{EnvOptions, MAX_MISMATCH_SCALE, Mismatch};
 use crate::storage::policies::{self, EvaluatedOn, Evaluation, NewPolicy, Policy};
@@ -106,6 +107,7 @@ pub async fn evaluate(
     episodes: Option<u32>,
     seed: Option<u64>,
     on: EvaluatedOn,
+    rules: RuleSelection,
     by: &str,
 ) -> Result<Evaluation> {
     find(context, id).await?;
@@ -127,7 +129,8 @@ pub async fn evaluate(
             )));
         }
     }
-    let evaluation = spawn_evaluation(context, id, episodes, seed.unwrap_or(1), on, by).await?;
+    let evaluation =
+        spawn_evaluation(context, id, episodes, seed.unwrap_or(1), on, rules, by).await?;
     audit::record(
         &context.db,
         by,
@@ -155,9 +158,14 @@ pub async fn spawn_evaluation(
     episodes: u32,
     seed: u64,
     on: EvaluatedOn,
+    rules: RuleSelection,
     requested_by: &str,
 ) -> Result<Evaluation> {
-    let cell = context.cell_config.clone();
+    // The cell with the rules asked for: its hash differs from the cell's unless they are the
+    // cell's own, so only an evaluation with the cell's rules counts for the gate.
+    let mut cell = (*context.cell_config).clone();
+    cell.rules = cell.rules.selected(&rules);
+    let cell = Arc::new(cell);
     let bytes = policies::file(&context.db, id)
         .await?
         .ok_or_else(|| Error::not_found(format!("no policy with id {id}")))?;
@@ -171,6 +179,7 @@ pub async fn spawn_evaluation(
         seed,
         &cell.config_hash(),
         &on,
+        &rules.label(),
         requested_by,
     )
     .await?;
@@ -369,6 +378,7 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
         episodes,
         1,
         EvaluatedOn::Cell(Mismatch::NONE),
+        RuleSelection::All,
         "celld",
     )
     .await?;

@@ -13,6 +13,7 @@ use assembly_cell::learning::pipeline::{self, step_limits};
 use assembly_cell::learning::run;
 use assembly_cell::learning::selector::SelectorConfig;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
+use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::{Actor, Controller};
 use candle_nn::VarMap;
 use indicatif::MultiProgress;
@@ -106,6 +107,9 @@ impl Run {
             driver.name(),
             self.args.demonstrator
         );
+        // The rules as training runs them (docs/policy-rules.md).
+        let driver = LearnedPolicy::hierarchical(driver.clone())
+            .with_rules(&self.cell.rules.in_training());
         let make = || Box::new(driver.clone()) as Box<dyn Controller>;
         dagger::rollouts(
             &self.cell,
