@@ -17,6 +17,8 @@
 //! - Fig. 7: learning curves (return and success, moving averages) of the `--curve` files
 //!   written by `celld train td3` (td3_curve.json) and `celld train flat` (td3-flat_curve.json).
 
+mod rules;
+
 use super::progress::Progress;
 use super::svg;
 use anyhow::{Context, Result, bail};
@@ -24,6 +26,7 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::learning::refine::EpisodeRecord;
 use assembly_cell::policy::eval::{self, EvalSummary};
 use assembly_cell::policy::learned::LearnedPolicy;
+use assembly_cell::policy::shield::RuleSelection;
 use assembly_cell::policy::{self, ControllerFactory};
 use assembly_cell::sim::randomise::CellRanges;
 use assembly_cell::sim::{EnvOptions, Fault, InitialConditions, Mismatch};
@@ -169,7 +172,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let unseen = generalisation_cells()?;
     // Per controller: Tables 5 and 6, the two columns of drawn cells, the mismatches and the
     // unseen cells.
-    let total = learned_policies.len() * conditions.len()
+    let total = learned_policies.len() * (conditions.len() + 1)
         + (builtins.len() + learned_policies.len()) * (4 + extra + unseen.len());
     let bar = Progress::new(
         total as u64,
@@ -228,6 +231,19 @@ pub fn run(args: ReportArgs) -> Result<()> {
             default_phi200,
             Mismatch::NONE,
             "phi200",
+        )?);
+    }
+    // Table 5's episodes of each learned policy with no rule: what the networks decide.
+    let mut bare_reference = reference.clone();
+    bare_reference.rules = bare_reference.rules.selected(&RuleSelection::None);
+    let mut without_rules = Vec::new();
+    for controller in &learned_policies {
+        without_rules.push(evaluate(
+            controller,
+            &bare_reference,
+            default,
+            Mismatch::NONE,
+            "phi170, no rules",
         )?);
     }
     // The same episodes on cells drawn over the specified ranges, ten episodes to a kept robot
@@ -317,6 +333,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         table6: &table6,
         generalisation: &generalisation,
         mismatch: &mismatch,
+        without_rules: &without_rules,
     };
     let markdown = render(&args, &command, &learned_policies, &tables, &curves);
     std::fs::write(args.out.join("report.md"), markdown)?;
@@ -332,6 +349,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
             "table6": table6,
             "generalisation": generalisation,
             "mismatch": mismatch,
+            "without_rules": without_rules,
         }))?,
     )?;
     if !curves.is_empty() {
@@ -524,6 +542,8 @@ struct Tables<'a> {
     /// Every Table 5 controller on each of [`GENERALISATION_CELLS`].
     generalisation: &'a [Cell],
     mismatch: &'a [Cell],
+    /// Every learned policy on Table 5's episodes with no rule.
+    without_rules: &'a [Cell],
 }
 
 fn render(
@@ -539,6 +559,7 @@ fn render(
         table6,
         generalisation,
         mismatch,
+        without_rules,
     } = *tables;
     let mut md = String::new();
     let _ = writeln!(md, "# The paper's tables on our twin\n");
@@ -628,6 +649,7 @@ fn render(
         }
         let _ = writeln!(md);
     }
+    rules::render(&mut md, table5, without_rules);
     let all: Vec<&Cell> = table5.iter().chain(table6).chain(generalisation).collect();
     render_generalisation(&mut md, &all);
     render_mismatch(&mut md, table5, mismatch);
