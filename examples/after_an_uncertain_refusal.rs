@@ -5,7 +5,7 @@
 //!
 //! - `deployed`: as `celld eval` runs the controller (a learned policy asks the full step
 //!   there, but not after a refusal for the wall until a move is made:
-//!   `policy::learned::FullStepAfterUncertainty`, decision 0040);
+//!   `policy::shield::FullStepAfterUncertainty`, decision 0040);
 //! - `none`: as the controller asks it (a learned policy with that rule switched off);
 //! - `full`: the full step (5 mm on the reference cell) after every such refusal, also after
 //!   refusals for the wall, so that the cell's cautious execution tries shares of it down to a
@@ -23,7 +23,8 @@ use common::arg;
 use assembly_cell::collision::supervisor::VetoReason;
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
-use assembly_cell::policy::learned::{FullStepAfterUncertainty, LearnedPolicy};
+use assembly_cell::policy::learned::LearnedPolicy;
+use assembly_cell::policy::shield::{FullStepAfterUncertainty, RuleId};
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{EnvOptions, Observation};
 use std::collections::BTreeMap;
@@ -86,7 +87,11 @@ impl Controller for AfterARefusal {
         // Where the deployed rule applies (0.2 mm in to 6 mm short of the seat here).
         let inserted_mm = observation.insertion_mm();
         let in_the_bore =
-            FullStepAfterUncertainty::applies_at(inserted_mm, self.depth_mm, self.step_limit_mm);
+            FullStepAfterUncertainty::default().applies_at(
+                inserted_mm,
+                self.depth_mm,
+                self.step_limit_mm,
+            );
         let z = &mut decision.action.translation_mm.z;
         if self.refused && in_the_bore && *z < 0.0 {
             *z = match self.mode {
@@ -113,7 +118,7 @@ fn main() -> anyhow::Result<()> {
         Some(bytes) if !matches!(mode, Mode::Deployed) => {
             let bare = LearnedPolicy::from_bytes(bytes)?
                 .with_name(controller.as_str())
-                .without_full_step_after_uncertainty();
+                .without(RuleId::FullStepAfterUncertainty);
             Box::new(move || Box::new(bare.clone()))
         }
         _ => policy::builtin_factory(&controller, &cell)?,

@@ -30,6 +30,7 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
 use assembly_cell::policy::expert::{ExpertTuning, tip_in_bore};
 use assembly_cell::policy::learned::LearnedPolicy;
+use assembly_cell::policy::shield::RuleId;
 use assembly_cell::policy::{self, Controller, Decision};
 use assembly_cell::sim::{EnvOptions, Fault, Observation};
 use serde_json::json;
@@ -115,7 +116,7 @@ fn main() -> anyhow::Result<()> {
         Some(bytes) if mode == "without-standoff" => {
             let bare = LearnedPolicy::from_bytes(bytes)?
                 .with_name(controller.as_str())
-                .without_standoff_while_unsure();
+                .without(RuleId::StandoffWhileUnsure);
             Box::new(move || Box::new(bare.clone()))
         }
         _ => policy::builtin_factory(&controller, &cell)?,
