@@ -86,12 +86,11 @@ impl Controller for AfterARefusal {
         }
         // Where the deployed rule applies (0.2 mm in to 6 mm short of the seat here).
         let inserted_mm = observation.insertion_mm();
-        let in_the_bore =
-            FullStepAfterUncertainty::default().applies_at(
-                inserted_mm,
-                self.depth_mm,
-                self.step_limit_mm,
-            );
+        let in_the_bore = FullStepAfterUncertainty::default().applies_at(
+            inserted_mm,
+            self.depth_mm,
+            self.step_limit_mm,
+        );
         let z = &mut decision.action.translation_mm.z;
         if self.refused && in_the_bore && *z < 0.0 {
             *z = match self.mode {

@@ -3,8 +3,8 @@
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
-use assembly_cell::policy::shield::{RuleId, RuleSelection};
 use assembly_cell::policy::learned::LearnedPolicy;
+use assembly_cell::policy::shield::{RuleId, RuleSelection};
 use assembly_cell::policy::{self, eval};
 use assembly_cell::sim::randomise::CellRanges;
 use assembly_cell::sim::{EnvOptions, Fault, InitialConditions};

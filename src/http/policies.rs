@@ -308,17 +308,16 @@ async fn evaluate(
             fault: body.fault,
         })
     };
-    let evaluation =
-        workflows::policies::evaluate(
-            &context,
-            id,
-            body.episodes,
-            body.seed,
-            on,
-            body.rules.unwrap_or_default(),
-            &caller.name,
-        )
-        .await?;
+    let evaluation = workflows::policies::evaluate(
+        &context,
+        id,
+        body.episodes,
+        body.seed,
+        on,
+        body.rules.unwrap_or_default(),
+        &caller.name,
+    )
+    .await?;
     Ok((StatusCode::ACCEPTED, Json(evaluation)))
 }
 

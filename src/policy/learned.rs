@@ -11,7 +11,9 @@
 use super::file::{PolicyFile, PolicyFileError, PolicyKind, PolicyMetadata};
 use super::flat::{FlatPolicy, FlatPolicyFile};
 use super::hierarchical::HierarchicalPolicy;
-use super::shield::{RuleContext, RuleId, RuleSet, RulesConfig, Shaped, Shield, ShieldTrace};
+use super::shield::{
+    RuleContext, RuleId, RuleSelection, RuleSet, RulesConfig, Shaped, Shield, ShieldTrace,
+};
 use super::{Controller, Decision};
 use crate::sim::Observation;
 use std::collections::BTreeMap;
@@ -103,18 +105,17 @@ impl LearnedPolicy {
         }
     }
 
-    /// The policy without rule `rule` (to measure what the rule is worth).
+    /// The policy without rule `rule`, the others as they are (to measure what it is worth).
     pub fn without(self, rule: RuleId) -> Self {
-        let mut on = self.shield.rules();
-        let mut rules = RulesConfig::default();
-        on = on.iter().filter(|id| *id != rule).collect();
-        rules = rules.selected(&super::shield::RuleSelection::Only(on));
+        let config = self.shield.config();
+        let on = config.enabled().iter().filter(|id| *id != rule).collect();
+        let rules = config.selected(&RuleSelection::Only(on));
         self.with_rules(&rules)
     }
 
     /// The rules this policy runs with.
     pub fn rules(&self) -> RuleSet {
-        self.shield.rules()
+        self.shield.config().enabled()
     }
 
     /// A hierarchical policy run with every rule.

@@ -144,6 +144,7 @@ mod tests {
             calibration_scale: 1.0,
             fault: None,
             randomise_cells: false,
+            rules: "all".to_string(),
             success_rate: success,
             avg_steps: None,
             failures: json!({}),

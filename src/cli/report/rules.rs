@@ -28,7 +28,9 @@ pub(super) fn render(md: &mut String, with_rules: &[Cell], without: &[Cell]) {
     let pairs: Vec<(&Cell, &Cell)> = without
         .iter()
         .filter_map(|bare| {
-            let ruled = with_rules.iter().find(|c| c.controller == bare.controller)?;
+            let ruled = with_rules
+                .iter()
+                .find(|c| c.controller == bare.controller)?;
             Some((ruled, bare))
         })
         .collect();

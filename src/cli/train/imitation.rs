@@ -108,8 +108,8 @@ impl Run {
             self.args.demonstrator
         );
         // The rules as training runs them (docs/policy-rules.md).
-        let driver = LearnedPolicy::hierarchical(driver.clone())
-            .with_rules(&self.cell.rules.in_training());
+        let driver =
+            LearnedPolicy::hierarchical(driver.clone()).with_rules(&self.cell.rules.in_training());
         let make = || Box::new(driver.clone()) as Box<dyn Controller>;
         dagger::rollouts(
             &self.cell,

@@ -156,6 +156,7 @@ impl Stage {
 /// The rules in pipeline order, as the cell file's `[rules]` switches them.
 #[derive(Debug, Clone)]
 pub struct Shield {
+    config: RulesConfig,
     actor_with_work: Option<ActorWithWork>,
     stages: Vec<Stage>,
 }
@@ -206,24 +207,15 @@ impl Shield {
         );
         push(RuleId::StandoffWhileUnsure, Stage::StandoffWhileUnsure);
         Shield {
+            config: *config,
             actor_with_work: on(RuleId::ActorWithWork).then_some(config.actor_with_work),
             stages,
         }
     }
 
-    /// No rule: the networks' proposal as it is, within the step limits.
-    pub fn none() -> Self {
-        Shield::new(&RulesConfig::default().selected(&RuleSelection::None))
-    }
-
-    /// The rules that are on, in pipeline order.
-    pub fn rules(&self) -> RuleSet {
-        let mut set = RuleSet::default();
-        if self.actor_with_work.is_some() {
-            set.insert(RuleId::ActorWithWork);
-        }
-        self.stages.iter().for_each(|s| set.insert(s.id()));
-        set
+    /// The rules and parameters the pipeline was built from.
+    pub fn config(&self) -> &RulesConfig {
+        &self.config
     }
 
     /// Starts a new episode (forgets the refusals since the last move).

@@ -601,3 +601,75 @@ fn a_position_move_never_goes_past_the_goal() {
         "no position move: the rule was not exercised"
     );
 }
+
+/// Along episodes of a bundled policy on the reference cell at four times the camera's noise
+/// (where every kind of rule has work), under every rule, none, and all but one: a decision
+/// no rule changed is the proposal within the step limit; no rule switched off ever fires; and
+/// the rules that fired account for every change (with none on, the move is the proposal).
+#[test]
+fn the_trace_names_exactly_the_rules_that_changed_the_move_and_only_those_switched_on() {
+    use crate::config::cell::CellConfig;
+    use crate::policy::eval::{episode_seed, run_episode_watched};
+    use crate::sim::{AssemblyEnv, EnvOptions};
+    let cell = CellConfig::reference();
+    let options = EnvOptions {
+        noise_scale: 4.0,
+        ..EnvOptions::from_cell(&cell)
+    };
+    let bytes = crate::policy::bundled_policy("hierarchical-swift-cells").unwrap();
+    let without_steering = RulesConfig::default()
+        .selected(&RuleSelection::parse("actor_with_work,full_step,centred_as_demonstrated,turned_as_demonstrated,deepest_move,not_past_the_axis,not_past_level,pivot_in_bore,careful_step_under_noise,noisy_camera_descent,centres_after_a_refusal,full_step_after_uncertainty,standoff_while_unsure").unwrap());
+    for rules in [
+        RulesConfig::default(),
+        RulesConfig::default().selected(&RuleSelection::None),
+        without_steering,
+    ] {
+        let mut policy = LearnedPolicy::from_bytes(bytes).unwrap().with_rules(&rules);
+        let mut env = AssemblyEnv::new(&cell, options);
+        let mut fired_at_all = RuleSet::default();
+        let mut decisions = 0;
+        for index in 0..6 {
+            run_episode_watched(
+                &mut env,
+                &mut policy,
+                index,
+                episode_seed(3, index),
+                &mut |_, decision, _| {
+                    let trace = decision
+                        .shield
+                        .expect("a learned policy's decision is traced");
+                    decisions += 1;
+                    for id in trace.fired.iter() {
+                        assert!(rules.is_on(id), "{id} fired switched off");
+                        fired_at_all.insert(id);
+                    }
+                    if trace.fired.is_empty() {
+                        let limit_mm = 5.0;
+                        let within = trace
+                            .proposed
+                            .translation_mm
+                            .map(|v| v.clamp(-limit_mm, limit_mm));
+                        assert_eq!(decision.action.translation_mm, within, "{trace:?}");
+                        assert_eq!(decision.action.rotation_deg, trace.proposed.rotation_deg);
+                        assert_eq!(decision.actor, trace.proposed_actor);
+                    }
+                },
+            );
+        }
+        assert!(decisions > 100, "{decisions} decisions");
+        if rules.enabled().is_empty() {
+            assert!(fired_at_all.is_empty());
+        } else {
+            // The rules that read the network's output fire on every episode.
+            assert!(fired_at_all.contains(RuleId::FullStep), "{fired_at_all:?}");
+            assert!(
+                fired_at_all.contains(RuleId::CentredAsDemonstrated),
+                "{fired_at_all:?}"
+            );
+        }
+        assert_eq!(
+            fired_at_all.contains(RuleId::SteeredAgainstDrift),
+            rules.is_on(RuleId::SteeredAgainstDrift) && rules.enabled().len() == 14
+        );
+    }
+}
