@@ -16,7 +16,8 @@ use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::Controller;
 use assembly_cell::policy::eval::episode_seed;
 use assembly_cell::policy::file::PolicyFile;
-use assembly_cell::policy::hierarchical::{self, BatchState, HierarchicalPolicy};
+use assembly_cell::policy::hierarchical::{BatchState, HierarchicalPolicy};
+use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::sim::{AssemblyEnv, EnvOptions};
 use std::time::Instant;
 
@@ -43,7 +44,7 @@ fn main() {
     };
     let mut policy = HierarchicalPolicy::from_file(&file).expect("the policy loads");
     let cell = CellConfig::reference();
-    let runs = record_states(&mut policy, &cell, episodes);
+    let runs = record_states(&policy, &cell, episodes);
     let decisions: usize = runs.iter().map(Vec::len).sum();
     let config = *policy.config();
     println!(
@@ -116,18 +117,20 @@ fn count_argument(argument: Option<&String>, name: &str, default: usize) -> usiz
     }
 }
 
-/// The states of the policy's fresh frames in `episodes` twin episodes it drives itself
-/// (episodes without one left out).
+/// The states of the policy's fresh frames in `episodes` twin episodes it drives itself, with
+/// the rules training runs it with (episodes without a fresh frame left out).
 fn record_states(
-    policy: &mut HierarchicalPolicy,
+    policy: &HierarchicalPolicy,
     cell: &CellConfig,
     episodes: usize,
 ) -> Vec<Vec<[f64; 12]>> {
+    let mut policy =
+        LearnedPolicy::hierarchical(policy.clone()).with_rules(&cell.rules.in_training());
     let mut env = AssemblyEnv::new(cell, EnvOptions::from_cell(cell));
     (0..episodes)
         .map(|index| {
             let seed = episode_seed(1, index);
-            Controller::reset(policy, seed);
+            policy.reset(seed);
             let mut observation = env.reset(seed).expect("an episode starts");
             let mut states = Vec::new();
             loop {

@@ -552,11 +552,7 @@ fn a_file_from_our_writer_runs_like_the_fixture() {
     let path = dir.path().join("copy.safetensors");
     file.save(&path).unwrap();
     let mut p = HierarchicalPolicy::from_path(&path).unwrap();
-    assert_eq!(
-        assembly_cell::policy::Controller::name(&p),
-        "copy",
-        "named after the file stem"
-    );
+    assert_eq!(p.name(), "copy", "named after the file stem");
     for (t, (s, want)) in states().iter().zip(&expected()).enumerate() {
         assert_matches(&as_json(&p.step(s).unwrap()), want, &format!("step {t}"));
     }
