@@ -351,7 +351,8 @@ pub async fn find(context: &Context, id: i64) -> Result<Policy> {
 /// it passes the gate and nothing else is active. So on a database from an earlier default, that
 /// policy keeps its row, its evaluations and its status: if it is active it stays active, and the
 /// new default waits, evaluated, for an admin to activate it (which retires the earlier one; its
-/// rollback is to activate that again).
+/// rollback is to activate that again), and the audit log says so
+/// (`policy.bundled_not_activated`).
 pub async fn register_bundled(context: &Context) -> Result<()> {
     let Some(bytes) = crate::policy::bundled_policy(crate::policy::DEFAULT_POLICY) else {
         return Ok(());
@@ -401,15 +402,21 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
                             .await;
                         }
                         Ok(false) => {
+                            // Another policy is active: it stays so, and the record says why
+                            // the new default waits.
                             let active =
                                 policies::active(db).await.ok().flatten().map(|(id, _)| id);
-                            tracing::info!(
-                                policy_id = policy.id,
-                                evaluation_id = e.id,
-                                ?active,
-                                "the bundled default passed the gate; the active policy stays \
-                                 active until an admin activates another"
-                            );
+                            let _ = audit::record(
+                                db,
+                                "celld",
+                                "policy.bundled_not_activated",
+                                json!({
+                                    "policy_id": policy.id,
+                                    "evaluation_id": e.id,
+                                    "active_policy_id": active,
+                                }),
+                            )
+                            .await;
                         }
                         Err(error) => {
                             tracing::warn!(%error, policy_id = policy.id, "could not activate the bundled default");
