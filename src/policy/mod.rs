@@ -67,7 +67,7 @@ pub trait Controller: Send {
 }
 
 /// The controllers that need no learning, by name. `expert-state-only` is the demonstrator
-/// `celld train` records by default and `expert-careful` the one the bundled policy learnt from
+/// `celld train` records by default and `expert-careful` the one `hierarchical-reference` learnt from
 /// (both decide on what the policy sees; see [`expert`]).
 pub const BUILTIN_CONTROLLERS: [&str; 7] = [
     "expert",
@@ -89,8 +89,8 @@ pub const BUILTIN_CONTROLLERS: [&str; 7] = [
 /// reference cell, a DAgger round, then TD3 on the selector's step size: a third fewer steps
 /// than `hierarchical-reference`), and `hierarchical-swift-cells` ([`DEFAULT_POLICY`]: the
 /// recipe of `hierarchical-cells` on `expert-swift`'s demonstrations, fast on every cell, and
-/// what `celld train policy` makes by default). The reference-cell policies succeed on no cell
-/// with another robot or camera placement. See the README.
+/// what `celld train policy` makes by default). The reference-cell policies succeed in none of
+/// the episodes on the cell files with another robot or camera placement. See the README.
 pub const LEARNED_CONTROLLERS: [&str; 6] = [
     "hierarchical-reference",
     "bc",
