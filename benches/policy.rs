@@ -7,7 +7,7 @@
 //! - `step_batch` with BATCH rows (the batched environment's path): per call and per decision.
 //!
 //! `cargo bench --bench policy -- [EPISODES] [BATCH] [POLICY_FILE]` (default: 200 episodes,
-//! 64 rows, the bundled `hierarchical` policy). `celld` and this bench set `RAYON_NUM_THREADS`
+//! 64 rows, the bundled `hierarchical-reference` policy). `celld` and this bench set `RAYON_NUM_THREADS`
 //! to the core count when it is unset (`init_cpu_threads`).
 
 mod support;
@@ -38,7 +38,7 @@ fn main() {
             std::process::exit(2)
         }),
         None => PolicyFile::from_bytes(
-            assembly_cell::policy::bundled_policy("hierarchical").expect("bundled"),
+            assembly_cell::policy::bundled_policy("hierarchical-reference").expect("bundled"),
         )
         .expect("the bundled policy is valid"),
     };

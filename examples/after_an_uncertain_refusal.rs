@@ -105,7 +105,7 @@ impl Controller for AfterARefusal {
 }
 
 fn main() -> anyhow::Result<()> {
-    let controller: String = arg(1, "hierarchical".to_string())?;
+    let controller: String = arg(1, "hierarchical-reference".to_string())?;
     let mode_text: String = arg(2, "deployed".to_string())?;
     let noise_scale: f64 = arg(3, 2.0)?;
     let episodes: usize = arg(4, 4000)?;

@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # Makes the six bundled policies again:
-#   policies/default.safetensors  the hierarchical policy (controller `hierarchical`)
+#   policies/default.safetensors  the hierarchical policy of the reference cell
+#                                 (controller `hierarchical-reference`)
 #   policies/bc.safetensors       plain behaviour cloning (controller `bc`)
 #   policies/td3.safetensors      the flat TD3 baseline (controller `td3`)
 #   policies/across-cells.safetensors  the policy trained across randomised cells
 #                                 (controller `hierarchical-cells`)
-#   policies/swift.safetensors    the fast hierarchical policy, learnt from expert-swift and
-#                                 refined by TD3 (controller `hierarchical-swift`)
+#   policies/swift.safetensors    the fast hierarchical policy of the reference cell, learnt from
+#                                 expert-swift and refined by TD3 (controller `hierarchical-swift-reference`)
 #   policies/swift-bc.safetensors its policy before TD3 (the start of the TD3 run)
-#   policies/swift-cells.safetensors  the fast policy trained across randomised cells
-#                                 (controller `hierarchical-swift-cells`)
+#   policies/swift-cells.safetensors  the fast policy trained across randomised cells, the
+#                                 default (controller `hierarchical-swift-cells`)
 #
 # Every flag and seed below is the one the committed files were made with; the runs that set
 # RAYON_NUM_THREADS=1 did so then too. Every committed file is today's code's: these commands
@@ -25,21 +26,21 @@ RUNS=runs/bundled
 mkdir -p "$RUNS"
 total=$SECONDS
 
-# hierarchical 1: behaviour cloning on 800 demonstrations of expert-careful, the sideways errors
+# hierarchical-reference 1: behaviour cloning on 800 demonstrations of expert-careful, the sideways errors
 # in the bore weighted 30 in the BC loss; the TD3 stage runs one episode
-step hierarchical-1 "$CELLD" train all --out "$RUNS/W30" --seed 2026 --demonstrator expert-careful \
+step hierarchical-reference-1 "$CELLD" train all --out "$RUNS/W30" --seed 2026 --demonstrator expert-careful \
     --bc-bore-lateral-weight 30 --td3-episodes 1
 
-# hierarchical 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
-step hierarchical-2 "$CELLD" train all --out "$RUNS/W30r1" --seed 2026 --demonstrator expert-careful \
+# hierarchical-reference 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
+step hierarchical-reference-2 "$CELLD" train all --out "$RUNS/W30r1" --seed 2026 --demonstrator expert-careful \
     --bc-bore-lateral-weight 30 --dagger-policy "$RUNS/W30/policy.safetensors" \
     --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
 
-# hierarchical 3: fine-tuning: start from the last policy, add 800 episodes of it, BC at 0.002
+# hierarchical-reference 3: fine-tuning: start from the last policy, add 800 episodes of it, BC at 0.002
 # for 6 epochs (the last 3 at 0.0005), the selector at 5e-4
 FT=(--bc-lr 0.002 --bc-epochs 6 --bc-anneal-fraction 0.5 --bc-anneal-factor 0.25
     --bc-orientation-epochs 100 --lstm-lr 5e-4 --lstm-epochs 10 --td3-episodes 1)
-step hierarchical-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30ft" --seed 2027 \
+step hierarchical-reference-3 env RAYON_NUM_THREADS=1 "$CELLD" train all --out "$RUNS/W30ft" --seed 2027 \
     --demonstrator expert-careful "${FT[@]}" --bc-bore-lateral-weight 30 \
     --init-policy "$RUNS/W30r1/policy.safetensors" --dagger-policy "$RUNS/W30r1/policy.safetensors"
 cp "$RUNS/W30ft/policy.safetensors" policies/default.safetensors
@@ -61,20 +62,20 @@ cp "$RUNS/across-cells/policy.safetensors" policies/across-cells.safetensors
 step hierarchical-swift-cells "$CELLD" train policy --out "$RUNS/swift-across-cells" --seed 2026
 cp "$RUNS/swift-across-cells/policy.safetensors" policies/swift-cells.safetensors
 
-# hierarchical-swift 1: behaviour cloning on 800 demonstrations of expert-swift (no holds,
+# hierarchical-swift-reference 1: behaviour cloning on 800 demonstrations of expert-swift (no holds,
 # steps up to the 5 mm limit), the sideways errors in the bore weighted 30
-step hierarchical-swift-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --demonstrator expert-swift \
+step hierarchical-swift-reference-1 "$CELLD" train all --out "$RUNS/S30" --seed 2026 --demonstrator expert-swift \
     --bc-bore-lateral-weight 30 --td3-episodes 1
 
-# hierarchical-swift 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
+# hierarchical-swift-reference 2: DAgger, that policy drives 800 episodes and the demonstrator labels them
 # (seed 2027: the better of the two seeds tried for this round;
 # docs/experiments/2026-11-26-0087bca-a-fast-policy-and-kept-robots.md has both)
-step hierarchical-swift-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --demonstrator expert-swift \
+step hierarchical-swift-reference-2 "$CELLD" train all --out "$RUNS/S30r1" --seed 2027 --demonstrator expert-swift \
     --bc-bore-lateral-weight 30 --dagger-policy "$RUNS/S30/policy.safetensors" \
     --bc-epochs 100 --lstm-epochs 30 --td3-episodes 1
 cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
 
-# hierarchical-swift 3: TD3 with the step-size agent from that policy: the selector's step
+# hierarchical-swift-reference 3: TD3 with the step-size agent from that policy: the selector's step
 # size on the approach learns from the twin, and near the entrance and in the bore it may
 # move 0.6 from its start (0.2 fewer steps than the default 0.3 on average over five TD3
 # seeds, decision 0032); the best
@@ -84,7 +85,7 @@ cp "$RUNS/S30r1/policy.safetensors" policies/swift-bc.safetensors
 # docs/experiments/2026-12-02-3f53f0e-centring-in-the-bore-beyond-the-bound.md has all five)
 mkdir -p "$RUNS/S30r1-td3"
 cp policies/swift-bc.safetensors "$RUNS/S30r1-td3/lstm.safetensors"
-step hierarchical-swift-3 env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/S30r1-td3" \
+step hierarchical-swift-reference-3 env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/S30r1-td3" \
     --seed 2030 --robots 10 --td3-step-size --td3-step-fine-trust-region 0.6
 cp "$RUNS/S30r1-td3/policy.safetensors" policies/swift.safetensors
 

@@ -43,6 +43,6 @@ step report "$CELLD" report --episodes 1000 --out docs/report --made-by scripts/
     --curve "BC+TD3 (hierarchical)=$RUNS/T27/td3_curve.json" \
     --curve "TD3 without BC (hierarchical)=$RUNS/NB27/td3_curve.json" \
     --curve "TD3, one 6-DoF actor (td3)=$RUNS/flat/td3-flat_curve.json" \
-    --curve "BC+TD3 with the step-size agent (hierarchical-swift)=$RUNS/SW30/td3_curve.json"
+    --curve "BC+TD3 with the step-size agent (hierarchical-swift-reference)=$RUNS/SW30/td3_curve.json"
 
 echo "== all done in $((SECONDS - total)) s; git diff docs/report shows what changed"

@@ -2,6 +2,7 @@
 
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
+use assembly_cell::config::service::PolicyConfig;
 use assembly_cell::policy::hierarchical::HierarchicalPolicy;
 use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::shield::{RuleId, RuleSelection};
@@ -70,8 +71,8 @@ enum PolicyCommand {
 #[derive(Args)]
 struct EvalArgs {
     /// A built-in controller (expert, expert-state-only, expert-careful, expert-swift,
-    /// visual-servo, spiral, da-dmp, hierarchical, bc, td3, hierarchical-cells,
-    /// hierarchical-swift, hierarchical-swift-cells) or a policy file (.safetensors).
+    /// visual-servo, spiral, da-dmp, hierarchical-reference, bc, td3, hierarchical-cells,
+    /// hierarchical-swift-reference, hierarchical-swift-cells) or a policy file (.safetensors).
     #[arg(long, default_value = "expert")]
     controller: String,
     /// Cell file (default: the bundled reference cell, cells/phi170.toml).
@@ -123,6 +124,16 @@ struct EvalArgs {
     /// or a comma-separated list of rule names (only those).
     #[arg(long, default_value = "all", value_name = "all|none|LIST")]
     rules: RuleSelection,
+    /// With --randomise-cells: also print each drawn cell (what was drawn, and its success
+    /// rate over its own episodes) and how many cells reach --threshold: the activation
+    /// gate's question asked of every cell. `--robots 100 --episodes 100000`: 100 cells of
+    /// 1000 episodes each, the gate's count.
+    #[arg(long, requires = "randomise_cells")]
+    per_cell: bool,
+    /// With --per-cell: the success rate a cell must reach (default: the service's
+    /// `policies.activation_threshold`, 0.95).
+    #[arg(long, requires = "per_cell")]
+    threshold: Option<f64>,
     /// Print the summary as one JSON object on the last line.
     #[arg(long)]
     json: bool,
@@ -250,6 +261,12 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     }
     let ranges = CellRanges::drawn(args.randomise_noise_up_to)
         .map_err(|e| anyhow::anyhow!("--randomise-noise-up-to {e}"))?;
+    let threshold = args
+        .threshold
+        .unwrap_or(PolicyConfig::default().activation_threshold);
+    if !(0.0..=1.0).contains(&threshold) {
+        bail!("--threshold must lie in [0, 1], got {threshold}");
+    }
     // Fail on an unknown name or a bad policy file before any work starts.
     let policy_file = controller_file(&args.controller);
     let factory: policy::ControllerFactory = match &policy_file {
@@ -283,7 +300,7 @@ fn run_eval(args: EvalArgs) -> Result<()> {
             .expect("valid template"),
     );
     let on_episode = |_: &eval::EpisodeReport| progress.inc(1);
-    let (summary, _) = if args.randomise_cells {
+    let (summary, reports) = if args.randomise_cells {
         eval::evaluate_on_drawn_cells(
             &cell,
             &ranges,
@@ -363,10 +380,54 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         );
     }
     println!("  wall {:.3} s", summary.wall_s);
+    let mut json = serde_json::to_value(&summary)?;
+    if args.per_cell {
+        let cells = eval::per_drawn_cell(&cell, &ranges, options, args.seed, &reports);
+        print_per_cell(&cells, threshold);
+        json["per_cell"] = serde_json::to_value(&cells)?;
+        json["threshold"] = threshold.into();
+        json["cells_reaching"] = eval::reaching(&cells, threshold).into();
+    }
     if args.json {
-        println!("{}", serde_json::to_string(&summary)?);
+        println!("{json}");
     }
     Ok(())
+}
+
+/// Each drawn cell and its success rate, then how many reach `threshold` and the lowest.
+fn print_per_cell(cells: &[eval::DrawnCell], threshold: f64) {
+    println!("  per drawn cell (success over its own episodes; gate ≥ {threshold}):");
+    for c in cells {
+        println!(
+            "    cell {:>3}: bore Φ{:.1} mm, clearance {:.3} mm, depth {:.1} mm, robot ×{:.3}, \
+             camera {:.0} mm at {:.1}°, noise ×{:.2}, calibration ×{:.2}: {:.4} ({} of {}){}",
+            c.index,
+            c.bore_diameter_mm,
+            c.radial_clearance_mm,
+            c.depth_mm,
+            c.robot_scale,
+            c.camera_distance_mm,
+            c.camera_elevation_deg,
+            c.noise_scale,
+            c.calibration_scale,
+            c.success_rate,
+            c.successes,
+            c.episodes,
+            if c.reaches(threshold) { "" } else { "  below" },
+        );
+    }
+    let lowest = cells
+        .iter()
+        .min_by(|a, b| a.success_rate.total_cmp(&b.success_rate));
+    println!(
+        "  {} of {} cells reach {threshold}{}",
+        eval::reaching(cells, threshold),
+        cells.len(),
+        lowest.map_or(String::new(), |c| format!(
+            "; lowest {:.4} (cell {})",
+            c.success_rate, c.index
+        )),
+    );
 }
 
 /// A `--controller` value that names a policy file rather than a built-in controller.

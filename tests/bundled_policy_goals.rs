@@ -93,9 +93,9 @@ fn on_the_reference_cell_the_hierarchical_policies_fail_no_more_than_expert() {
     let cell = CellConfig::reference();
     let expert = evaluated("expert", &cell, REFERENCE_SEED);
     for (policy, most_steps) in [
-        ("hierarchical", None),
+        ("hierarchical-reference", None),
         ("hierarchical-cells", None),
-        ("hierarchical-swift", Some(40.0)),
+        ("hierarchical-swift-reference", Some(40.0)),
         ("hierarchical-swift-cells", Some(40.0)),
     ] {
         let learned = evaluated(policy, &cell, REFERENCE_SEED);
@@ -138,9 +138,9 @@ fn under_a_camera_two_and_four_times_as_noisy_the_hierarchical_policies_hold_the
             evaluated_under_noise("expert", &cell, noise_scale, NOISY_EPISODES, NOISY_SEED);
         let expert_steps = expert.avg_steps.unwrap();
         for policy in [
-            "hierarchical",
+            "hierarchical-reference",
             "hierarchical-cells",
-            "hierarchical-swift",
+            "hierarchical-swift-reference",
             "hierarchical-swift-cells",
         ] {
             let learned =

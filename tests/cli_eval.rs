@@ -133,6 +133,71 @@ fn drawn_cells_are_named_and_repeat_under_a_seed() {
     assert!(one.get("drawn_cells").is_none(), "{one}");
 }
 
+/// `--per-cell`: every drawn cell with its own episodes, which add up to the evaluation's, and
+/// the count of cells at the threshold agreeing with the cells' rates.
+#[test]
+fn per_cell_the_drawn_cells_add_up_to_the_evaluation() {
+    let output = celld(&[
+        "eval",
+        "--controller",
+        "expert",
+        "--randomise-cells",
+        "--robots",
+        "3",
+        "--episodes",
+        "7",
+        "--seed",
+        "4",
+        "--per-cell",
+        "--threshold",
+        "0.6",
+        "--json",
+    ]);
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary = last_json(&output);
+    let cells = summary["per_cell"].as_array().unwrap();
+    assert_eq!(cells.len(), 3, "{summary}");
+    // Consecutive blocks of 7 episodes among 3 robots: 2, 2 and 3.
+    let episodes: Vec<u64> = cells
+        .iter()
+        .map(|c| c["episodes"].as_u64().unwrap())
+        .collect();
+    assert_eq!(episodes, vec![2, 2, 3]);
+    let successes: u64 = cells.iter().map(|c| c["successes"].as_u64().unwrap()).sum();
+    assert_eq!(
+        successes,
+        summary["successes"].as_u64().unwrap(),
+        "{summary}"
+    );
+    let reaching = cells
+        .iter()
+        .filter(|c| c["success_rate"].as_f64().unwrap() >= 0.6)
+        .count();
+    assert_eq!(summary["cells_reaching"], reaching as u64);
+    assert_eq!(summary["threshold"], 0.6);
+    let text = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        text.contains(&format!("{reaching} of 3 cells reach 0.6")),
+        "{text}"
+    );
+    // Without --threshold, the service's activation threshold.
+    let default = last_json(&celld(&[
+        "eval",
+        "--randomise-cells",
+        "--robots",
+        "2",
+        "--episodes",
+        "2",
+        "--per-cell",
+        "--json",
+    ]));
+    assert_eq!(default["threshold"], 0.95, "{default}");
+}
+
 fn refused(args: &[&str], needle: &str) {
     let output = celld(args);
     assert!(!output.status.success(), "{args:?} should fail");
@@ -175,6 +240,32 @@ fn bad_input_is_refused_with_a_message() {
             "0.2",
         ],
         "--randomise-noise-up-to 0.2 is outside 0.5..=16",
+    );
+    refused(
+        &["eval", "--controller", "hierarchical", "--episodes", "1"],
+        "`hierarchical` was renamed `hierarchical-reference` (the reference-cell policy); \
+         the default for any cell is `hierarchical-swift-cells`",
+    );
+    refused(
+        &[
+            "eval",
+            "--controller",
+            "hierarchical-swift",
+            "--episodes",
+            "1",
+        ],
+        "`hierarchical-swift` was renamed `hierarchical-swift-reference`",
+    );
+    refused(&["eval", "--per-cell"], "--randomise-cells");
+    refused(
+        &[
+            "eval",
+            "--randomise-cells",
+            "--per-cell",
+            "--threshold",
+            "1.5",
+        ],
+        "--threshold must lie in [0, 1], got 1.5",
     );
     refused(
         &["eval", "--fault", "gravity"],

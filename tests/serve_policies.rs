@@ -3,11 +3,15 @@
 mod serve_support;
 
 use assembly_cell::policy::eval;
+use assembly_cell::storage::Db;
 use serde_json::{Map, Value, json};
 use serve_support::Server;
 use std::time::Duration;
 
-const BUNDLED: &[u8] = include_bytes!("../policies/default.safetensors");
+/// The bundled default, `hierarchical-swift-cells`.
+const DEFAULT: &[u8] = include_bytes!("../policies/swift-cells.safetensors");
+/// `hierarchical-reference`, the bundled default before it.
+const REFERENCE: &[u8] = include_bytes!("../policies/default.safetensors");
 const BC: &[u8] = include_bytes!("../policies/bc.safetensors");
 const TD3: &[u8] = include_bytes!("../policies/td3.safetensors");
 const ACROSS_CELLS: &[u8] = include_bytes!("../policies/across-cells.safetensors");
@@ -36,6 +40,94 @@ fn evaluation_ended(server: &Server, id: i64) -> Value {
     })
 }
 
+/// Opens the database file at `path` (made with every migration when it is not there) and
+/// does one thing with it, before a server starts on it.
+fn with_db<T>(path: &std::path::Path, work: impl AsyncFnOnce(&Db) -> T) -> T {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(async {
+            let db = Db::open(path).await.expect("the database opens");
+            let answer = work(&db).await;
+            db.writer.close().await;
+            db.reader.close().await;
+            answer
+        })
+}
+
+/// A database an earlier release left, whose bundled default (the reference-cell policy) is
+/// registered, evaluated and active: at the next start the new default is registered beside it
+/// and evaluated, and the earlier one stays active, with its evaluation, until an admin
+/// activates the new one.
+#[test]
+fn an_earlier_default_left_active_stays_active_beside_the_new_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let earlier = with_db(&dir.path().join("celld.db"), async |db| {
+        let workflows = assembly_cell::workflows::policies::register;
+        let (policy, created) = workflows(db, "bundled-default", REFERENCE.to_vec(), "celld")
+            .await
+            .unwrap();
+        assert!(created);
+        assembly_cell::storage::policies::activate(db, policy.id)
+            .await
+            .unwrap();
+        policy.id
+    });
+    let server = Server::start(dir.path(), &[]);
+    let admin = server.admin.clone();
+    let (_, list) = server.get("/api/policies", Some(&admin));
+    let items = list["items"].as_array().unwrap();
+    assert_eq!(items.len(), 2, "{list}");
+    let (new, old) = (&items[0], &items[1]);
+    assert_eq!(old["id"], earlier);
+    assert_eq!(old["status"], "active", "{old}");
+    assert_eq!(new["name"], "bundled-default");
+    assert_ne!(new["sha256"], old["sha256"]);
+    let new_id = new["id"].as_i64().unwrap();
+    let (status, same) = upload(&server, &admin, "again", DEFAULT);
+    assert_eq!((status, &same["id"]), (200, &json!(new_id)), "{same}");
+
+    let evaluated = evaluation_ended(&server, new_id);
+    assert_eq!(evaluated["evaluation"]["status"], "done", "{evaluated}");
+    assert!(evaluated["evaluation"]["success_rate"].as_f64().unwrap() >= 0.95);
+    // It passed the gate; the service records that it left it inactive, and why.
+    let entry = server.poll(
+        "/api/audit",
+        "recorded the default left inactive",
+        EVALUATION,
+        |audit| {
+            audit["items"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|e| e["action"] == "policy.bundled_not_activated")
+        },
+    );
+    let entry = entry["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["action"] == "policy.bundled_not_activated")
+        .unwrap()
+        .clone();
+    assert_eq!(entry["detail"]["policy_id"], new_id, "{entry}");
+    assert_eq!(entry["detail"]["active_policy_id"], earlier, "{entry}");
+    let (_, old) = server.get(&format!("/api/policies/{earlier}"), Some(&admin));
+    assert_eq!(old["status"], "active", "{old}");
+    let (_, new) = server.get(&format!("/api/policies/{new_id}"), Some(&admin));
+    assert_eq!(new["status"], "candidate", "{new}");
+
+    // The admin's activation retires the earlier default; activating that again rolls back.
+    let (status, activated) = server.post(
+        &format!("/api/policies/{new_id}/activate"),
+        Some(&admin),
+        None,
+    );
+    assert_eq!(status, 200, "{activated}");
+    assert_eq!(activated["retired"], earlier, "{activated}");
+}
+
 fn policy_count(server: &Server) -> usize {
     let (_, list) = server.get("/api/policies", Some(&server.admin));
     list["items"].as_array().unwrap().len()
@@ -59,7 +151,7 @@ fn upload_evaluate_activate_and_roll_back() {
     let bundled = list["items"][0].clone();
     assert_eq!(bundled["name"], "bundled-default", "{list}");
 
-    let (status, same) = upload(&server, &admin, "again", BUNDLED);
+    let (status, same) = upload(&server, &admin, "again", DEFAULT);
     assert_eq!(status, 200, "the same bytes are the same policy: {same}");
     assert_eq!(same["id"], bundled["id"]);
     let (status, bc) = upload(&server, &admin, "bc", BC);
@@ -369,9 +461,9 @@ struct Parts {
 }
 
 fn parts() -> Parts {
-    let n = u64::from_le_bytes(BUNDLED[..8].try_into().unwrap()) as usize;
-    let header: Map<String, Value> = serde_json::from_slice(&BUNDLED[8..8 + n]).unwrap();
-    let data = &BUNDLED[8 + n..];
+    let n = u64::from_le_bytes(REFERENCE[..8].try_into().unwrap()) as usize;
+    let header: Map<String, Value> = serde_json::from_slice(&REFERENCE[8..8 + n]).unwrap();
+    let data = &REFERENCE[8 + n..];
     let mut parts = Parts {
         metadata: header["__metadata__"].clone(),
         tensors: Vec::new(),
@@ -423,12 +515,12 @@ fn each_malformed_upload_is_refused_with_its_own_message() {
     ));
     cases.push((
         "truncated",
-        BUNDLED[..BUNDLED.len() - 100].to_vec(),
+        REFERENCE[..REFERENCE.len() - 100].to_vec(),
         422,
         "truncated",
     ));
-    let mut long = BUNDLED.to_vec();
-    long[..8].copy_from_slice(&(BUNDLED.len() as u64).to_le_bytes());
+    let mut long = REFERENCE.to_vec();
+    long[..8].copy_from_slice(&(REFERENCE.len() as u64).to_le_bytes());
     cases.push((
         "header longer than the file",
         long,

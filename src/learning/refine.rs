@@ -723,7 +723,7 @@ mod tests {
         use crate::policy::ControllerFactory;
         use crate::policy::file::PolicyFile;
         let cell = CellConfig::reference();
-        let bytes = crate::policy::bundled_policy("hierarchical-swift").unwrap();
+        let bytes = crate::policy::bundled_policy("hierarchical-swift-reference").unwrap();
         let file = PolicyFile::from_bytes(bytes).unwrap();
         let options = EnvOptions {
             kept_robots: 2,

@@ -119,11 +119,11 @@ pub struct TrainingSettings {
     #[schema(exclusive_minimum = 0.0)]
     pub bc_learning_rate: f64,
     /// Weight of the sideways errors of samples in the bore in the BC loss (see
-    /// [`BcConfig::bore_lateral_weight`]; the bundled policy was made with 30).
+    /// [`BcConfig::bore_lateral_weight`]; `hierarchical-reference` was made with 30).
     #[schema(exclusive_minimum = 0.0)]
     pub bc_bore_lateral_weight: f64,
     /// The demonstrator recorded when the run is given no stored demonstrations (one of
-    /// [`super::demos::DEMONSTRATORS`]; the bundled policy's is `expert-careful`).
+    /// [`super::demos::DEMONSTRATORS`]; `hierarchical-reference`'s is `expert-careful`).
     #[schema(pattern = "^(expert-state-only|expert-careful|expert-swift|expert)$")]
     pub demonstrator: String,
     /// Train a policy for cells it was not trained on: it reads cell-scaled inputs (a

@@ -10,6 +10,9 @@ use serde::Serialize;
 use std::collections::BTreeMap;
 use std::time::Instant;
 
+mod per_cell;
+pub use per_cell::{DrawnCell, per_drawn_cell, reaching};
+
 /// What one episode came to.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct EpisodeReport {

@@ -72,7 +72,7 @@ pub trait Controller: Send {
 }
 
 /// The controllers that need no learning, by name. `expert-state-only` is the demonstrator
-/// `celld train` records by default and `expert-careful` the one the bundled policy learnt from
+/// `celld train` records by default and `expert-careful` the one `hierarchical-reference` learnt from
 /// (both decide on what the policy sees; see [`expert`]).
 pub const BUILTIN_CONTROLLERS: [&str; 7] = [
     "expert",
@@ -84,33 +84,46 @@ pub const BUILTIN_CONTROLLERS: [&str; 7] = [
     "da-dmp",
 ];
 
-/// The bundled learned policies, by name: `hierarchical` (BC + LSTM + TD3 after two DAgger
-/// rounds, the default policy), `bc` (plain behaviour cloning: BC actors and selector on the
-/// demonstrations alone, no DAgger, no TD3), both made by `celld train all`, and `td3`
-/// (the flat baseline: one 6-DoF actor, TD3 without BC or hierarchy, made by `celld train
-/// flat`), and `hierarchical-cells` (BC + LSTM on cell-scaled inputs, every demonstration
-/// on a randomised cell: the policy for cells none was trained on), and `hierarchical-swift`
-/// (BC + LSTM on `expert-swift`, a DAgger round, then TD3 on the selector's step size: the
-/// fast policy, a third fewer steps than `hierarchical`), and `hierarchical-swift-cells`
-/// (the recipe of `hierarchical-cells` on `expert-swift`'s demonstrations: fast on every
-/// cell, and what `celld train policy` makes by default). See the README.
+/// The bundled learned policies, by name: `hierarchical-reference` (BC + LSTM + TD3 after two
+/// DAgger rounds on the reference cell: the paper's policy, for its tables), `bc` (plain
+/// behaviour cloning: BC actors and selector on the demonstrations alone, no DAgger, no TD3),
+/// both made by `celld train all`, and `td3` (the flat baseline: one 6-DoF actor, TD3 without
+/// BC or hierarchy, made by `celld train flat`), and `hierarchical-cells` (BC + LSTM on
+/// cell-scaled inputs, every demonstration on a randomised cell: the careful policy for cells
+/// none was trained on), and `hierarchical-swift-reference` (BC + LSTM on `expert-swift` on the
+/// reference cell, a DAgger round, then TD3 on the selector's step size: a third fewer steps
+/// than `hierarchical-reference`), and `hierarchical-swift-cells` ([`DEFAULT_POLICY`]: the
+/// recipe of `hierarchical-cells` on `expert-swift`'s demonstrations, fast on every cell, and
+/// what `celld train policy` makes by default). The reference-cell policies succeed in none of
+/// the episodes on the cell files with another robot or camera placement. See the README.
 pub const LEARNED_CONTROLLERS: [&str; 6] = [
-    "hierarchical",
+    "hierarchical-reference",
     "bc",
     "td3",
     "hierarchical-cells",
-    "hierarchical-swift",
+    "hierarchical-swift-reference",
     "hierarchical-swift-cells",
+];
+
+/// The bundled default policy: the one the service registers and evaluates at first start
+/// (`bundled-default`), the one for any cell in the specified ranges.
+pub const DEFAULT_POLICY: &str = "hierarchical-swift-cells";
+
+/// Bundled policies' earlier names, each with the name it has now: refused with both named
+/// ([`UnknownController::renamed`]), never taken as the new one.
+const RENAMED: [(&str, &str); 2] = [
+    ("hierarchical", "hierarchical-reference"),
+    ("hierarchical-swift", "hierarchical-swift-reference"),
 ];
 
 /// The bundled policy file of a [`LEARNED_CONTROLLERS`] name.
 pub fn bundled_policy(name: &str) -> Option<&'static [u8]> {
     match name {
-        "hierarchical" => Some(include_bytes!("../../policies/default.safetensors")),
+        "hierarchical-reference" => Some(include_bytes!("../../policies/default.safetensors")),
         "bc" => Some(include_bytes!("../../policies/bc.safetensors")),
         "td3" => Some(include_bytes!("../../policies/td3.safetensors")),
         "hierarchical-cells" => Some(include_bytes!("../../policies/across-cells.safetensors")),
-        "hierarchical-swift" => Some(include_bytes!("../../policies/swift.safetensors")),
+        "hierarchical-swift-reference" => Some(include_bytes!("../../policies/swift.safetensors")),
         "hierarchical-swift-cells" => {
             Some(include_bytes!("../../policies/swift-cells.safetensors"))
         }
@@ -126,12 +139,34 @@ fn load_bundled(name: &str, cell: &CellConfig) -> Option<learned::LearnedPolicy>
     Some(policy.with_name(name).with_rules(&cell.rules))
 }
 
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("unknown controller `{name}`; known: {known}")]
+/// A controller name `celld` does not know; for a bundled policy's earlier name, the name it
+/// has now (`renamed`), so the message says which to use instead.
+#[derive(Debug, Clone, PartialEq)]
 pub struct UnknownController {
     pub name: String,
     pub known: String,
+    pub renamed: Option<&'static str>,
 }
+
+impl std::fmt::Display for UnknownController {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.renamed {
+            Some(now) => write!(
+                f,
+                "`{}` was renamed `{now}` (the reference-cell policy); the default for any cell \
+                 is `{DEFAULT_POLICY}`",
+                self.name
+            ),
+            None => write!(
+                f,
+                "unknown controller `{}`; known: {}",
+                self.name, self.known
+            ),
+        }
+    }
+}
+
+impl std::error::Error for UnknownController {}
 
 /// Builds a built-in controller for `cell` by name.
 pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, UnknownController> {
@@ -152,7 +187,7 @@ pub fn builtin(name: &str, cell: &CellConfig) -> Result<Box<dyn Controller>, Unk
 }
 
 /// Refuses a name that is not one of [`BUILTIN_CONTROLLERS`] or [`LEARNED_CONTROLLERS`],
-/// without building anything.
+/// without building anything; a bundled policy's earlier name is refused naming its new one.
 pub fn check_known(name: &str) -> Result<(), UnknownController> {
     if BUILTIN_CONTROLLERS.contains(&name) || LEARNED_CONTROLLERS.contains(&name) {
         Ok(())
@@ -164,6 +199,10 @@ pub fn check_known(name: &str) -> Result<(), UnknownController> {
                 BUILTIN_CONTROLLERS.join(", "),
                 LEARNED_CONTROLLERS.join(", ")
             ),
+            renamed: RENAMED
+                .iter()
+                .find(|(before, _)| *before == name)
+                .map(|(_, now)| *now),
         })
     }
 }
@@ -209,4 +248,40 @@ pub fn steered_against_drift(
 /// Clamps every component to ±`limit`.
 pub(crate) fn clamp_components(v: nalgebra::Vector3<f64>, limit: f64) -> nalgebra::Vector3<f64> {
     v.map(|x| x.clamp(-limit, limit))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn earlier_names_are_refused_naming_the_new_one_and_the_default() {
+        for (before, now) in RENAMED {
+            let error = check_known(before).unwrap_err();
+            assert_eq!(error.renamed, Some(now));
+            let message = error.to_string();
+            assert!(
+                message.contains(&format!("`{before}` was renamed `{now}`"))
+                    && message.contains("`hierarchical-swift-cells`"),
+                "{message}"
+            );
+            // Refused, not taken as the new name.
+            assert!(bundled_policy(before).is_none());
+            assert!(LEARNED_CONTROLLERS.contains(&now) && bundled_policy(now).is_some());
+        }
+        let unknown = check_known("hierarchical-fast").unwrap_err();
+        assert_eq!(unknown.renamed, None);
+        assert!(
+            unknown
+                .to_string()
+                .starts_with("unknown controller `hierarchical-fast`")
+        );
+        assert!(unknown.to_string().contains("hierarchical-reference"));
+        assert!(check_known(DEFAULT_POLICY).is_ok());
+        // The default is one of the bundled files, and not a reference-cell one.
+        assert_eq!(
+            bundled_policy(DEFAULT_POLICY),
+            Some(&include_bytes!("../../policies/swift-cells.safetensors")[..])
+        );
+    }
 }

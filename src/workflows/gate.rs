@@ -202,7 +202,7 @@ mod tests {
             bundled_hashes().len(),
             crate::policy::LEARNED_CONTROLLERS.len()
         );
-        let default = crate::policy::bundled_policy("hierarchical").unwrap();
+        let default = crate::policy::bundled_policy(crate::policy::DEFAULT_POLICY).unwrap();
         assert!(bundled_hashes().contains(&hash_bytes(default)));
         assert!(!bundled_hashes().contains(&hash_bytes(b"not a policy")));
     }

@@ -356,11 +356,16 @@ pub async fn find(context: &Context, id: i64) -> Result<Policy> {
     Ok(policy)
 }
 
-/// Registers the bundled default policy (idempotent, by its bytes). Until it has a finished
-/// evaluation on this cell (its first registration, or a service stopped during that
-/// evaluation) it is evaluated, and activated if it passes the gate and nothing else is active.
+/// Registers the bundled default policy ([`crate::policy::DEFAULT_POLICY`]) as `bundled-default`
+/// (idempotent, by its bytes). Until it has a finished evaluation on this cell (its first
+/// registration, or a service stopped during that evaluation) it is evaluated, and activated if
+/// it passes the gate and nothing else is active. So on a database from an earlier default, that
+/// policy keeps its row, its evaluations and its status: if it is active it stays active, and the
+/// new default waits, evaluated, for an admin to activate it (which retires the earlier one; its
+/// rollback is to activate that again), and the audit log says so
+/// (`policy.bundled_not_activated`).
 pub async fn register_bundled(context: &Context) -> Result<()> {
-    let Some(bytes) = crate::policy::bundled_policy("hierarchical") else {
+    let Some(bytes) = crate::policy::bundled_policy(crate::policy::DEFAULT_POLICY) else {
         return Ok(());
     };
     let (policy, _) = register(&context.db, "bundled-default", bytes.to_vec(), "celld").await?;
@@ -398,14 +403,36 @@ pub async fn register_bundled(context: &Context) -> Result<()> {
                     continue;
                 }
                 Ok(Some(e)) if e.success_rate.unwrap_or(0.0) >= threshold => {
-                    if let Ok(true) = policies::activate_if_none_active(db, policy.id).await {
-                        let _ = audit::record(
-                            db,
-                            "celld",
-                            "policy.activate",
-                            json!({"policy_id": policy.id, "bundled": true, "evaluation_id": e.id}),
-                        )
-                        .await;
+                    match policies::activate_if_none_active(db, policy.id).await {
+                        Ok(true) => {
+                            let _ = audit::record(
+                                db,
+                                "celld",
+                                "policy.activate",
+                                json!({"policy_id": policy.id, "bundled": true, "evaluation_id": e.id}),
+                            )
+                            .await;
+                        }
+                        Ok(false) => {
+                            // Another policy is active: it stays so, and the record says why
+                            // the new default waits.
+                            let active =
+                                policies::active(db).await.ok().flatten().map(|(id, _)| id);
+                            let _ = audit::record(
+                                db,
+                                "celld",
+                                "policy.bundled_not_activated",
+                                json!({
+                                    "policy_id": policy.id,
+                                    "evaluation_id": e.id,
+                                    "active_policy_id": active,
+                                }),
+                            )
+                            .await;
+                        }
+                        Err(error) => {
+                            tracing::warn!(%error, policy_id = policy.id, "could not activate the bundled default");
+                        }
                     }
                     return;
                 }

@@ -154,7 +154,15 @@ fn the_gate_governs_every_job_and_only_an_admin_overrides_it_on_the_record() {
         json!({"controller": format!("policy:{bundled}")}),
     );
     assert_eq!(by_id["policy_id"], bundled);
-    server.create_job(&operator, json!({"controller": "hierarchical"}));
+    server.create_job(&operator, json!({"controller": "hierarchical-reference"}));
+    // A bundled policy's earlier name is refused, naming the new one and the default.
+    let (status, renamed) = job(&operator, json!({"controller": "hierarchical"}));
+    assert_eq!(status, 422, "{renamed}");
+    assert!(
+        message(&renamed).contains("renamed `hierarchical-reference`")
+            && message(&renamed).contains("`hierarchical-swift-cells`"),
+        "{renamed}"
+    );
 
     // Evaluated on this cell and through the gate: the operator's job runs it.
     let (status, started) = server.post(

@@ -2,7 +2,7 @@
 //! head that gives ω3, the step scale s = sigmoid(ω3).
 //!
 //! Behaviour cloning leaves the step scale short where the demonstrators take full steps: on
-//! the approach above the bore the cloned selector of `hierarchical-swift` answers their 1.0
+//! the approach above the bore the cloned selector of `hierarchical-swift-reference` answers their 1.0
 //! with 0.86–0.90, and the actors' tanh outputs cannot make up for it. There the moves are
 //! millimetres and an error of a tenth of one is corrected by the next step, so the agent
 //! explores more ([`StepSizeConfig::coarse_noise`]) and may move further
