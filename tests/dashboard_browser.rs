@@ -248,7 +248,10 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         ),
     );
     assert_eq!(tags, first["rules"]);
-    js(&browser, "document.getElementById('job-steps').scrollIntoView()");
+    js(
+        &browser,
+        "document.getElementById('job-steps').scrollIntoView()",
+    );
     browser.screenshot(&shots.join("3b-learned-job-steps.png"));
 
     // E-stop acts at once; reset asks first (the confirmation is answered yes here).
