@@ -1,5 +1,8 @@
 //! Service figures (docs/design.md §9), printed rather than asserted:
-//! - step rows written to SQLite in batches, rows/s;
+//! - step rows written to SQLite in batches, rows/s, each with a learned policy's proposal and
+//!   two rules that changed it (every step: the most a step's record costs);
+//! - what a step's record costs the control thread: building it and its telemetry JSON, with
+//!   and without a proposal and rules;
 //! - a real `celld serve` running expert jobs back to back: the control step's p99 alone, under
 //!   1000 HTTP reads/s (and those reads' p50/p99 and errors), and with 100 telemetry
 //!   subscribers plus one that never reads.
@@ -10,6 +13,7 @@
 mod support;
 
 use assembly_cell::cell::StepRecord;
+use assembly_cell::policy::shield::RuleId;
 use assembly_cell::sim::RewardTerms;
 use assembly_cell::storage::{Db, steps};
 use serde_json::{Value, json};
@@ -23,6 +27,7 @@ use support::percentile;
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     step_rows(if quick { 50_000 } else { 200_000 });
+    record_cost(if quick { 20_000 } else { 200_000 });
     service(if quick { 4 } else { 40 });
 }
 
@@ -34,6 +39,10 @@ fn record(job_id: i64, step: u32) -> StepRecord {
         t_s: x * 0.25,
         state: std::array::from_fn(|i| x * 0.1 + i as f64),
         action: [0.1, -0.2, 0.3, 0.01, 0.02, -0.03],
+        proposed: Some([0.15, -0.25, 0.5, 0.01, 0.02, -0.03]),
+        rules: [RuleId::FullStep, RuleId::NotPastLevel]
+            .into_iter()
+            .collect(),
         actor: Some(assembly_cell::policy::Actor::Position),
         scale: Some(0.5),
         legs_mm: [760.0; 6],
@@ -72,6 +81,42 @@ fn step_rows(rows: u32) {
             );
         }
     });
+}
+
+/// What a step's record costs the control thread, µs: the record itself and its telemetry
+/// JSON (the event sink serialises it there), p50 and p99 of `n` steps, without a proposal (the
+/// expert) and with one and two rules.
+fn record_cost(n: u32) {
+    let expert = |step| StepRecord {
+        proposed: None,
+        rules: Default::default(),
+        ..record(1, step)
+    };
+    let learned = |step| record(1, step);
+    let mut p99 = Vec::new();
+    for (label, make) in [
+        ("without a proposal", &expert as &dyn Fn(u32) -> StepRecord),
+        ("with a proposal and two rules", &learned),
+    ] {
+        let mut times: Vec<f64> = (1..=n)
+            .map(|step| {
+                let start = Instant::now();
+                let json = serde_json::to_string(&make(step)).unwrap();
+                std::hint::black_box(json);
+                start.elapsed().as_secs_f64() * 1e6
+            })
+            .collect();
+        let high = percentile(&mut times, 0.99);
+        println!(
+            "step record and its telemetry JSON, {label}: p50 {:.2} µs, p99 {high:.2} µs",
+            percentile(&mut times, 0.5),
+        );
+        p99.push(high);
+    }
+    println!(
+        "the proposal and rules add {:+.2} µs to the record's p99",
+        p99[1] - p99[0]
+    );
 }
 
 struct Server {

@@ -1,7 +1,7 @@
 // Plots (Chart.js, vendored in /vendor): the per-step plots of a job, shared by the live view
 // and the job page, and the history and training charts.
 
-import { h } from './lib.js';
+import { fmt, h, table } from './lib.js';
 
 const Chart = window.Chart;
 Chart.defaults.animation = false;
@@ -28,11 +28,19 @@ function lineSet(label, colour, extra = {}) {
   return { label, data: [], borderColor: colour, backgroundColor: colour, pointRadius: 0, borderWidth: 1.5, ...extra };
 }
 
+/** A move `[dx, dy, dz, rx, ry, rz]` as text: mm, then deg; a dash for none. */
+function moveText(move) {
+  if (!move) return '–';
+  const part = (values) => values.map((v) => fmt(v, 2)).join(' ');
+  return `${part(move.slice(0, 3))} mm · ${part(move.slice(3))}°`;
+}
+
 /**
  * The plots of one job's steps: pose errors, leg lengths, the actor and step size at each step,
- * the trajectory of Segment I (top and side views), and the supervisor's vetoes. `prefix`
- * names the canvases (`chart-<prefix>-errors`, ...). `add(step)` takes a step as the API and
- * the telemetry give it; drawing is batched to one frame.
+ * the trajectory of Segment I (top and side views), the supervisor's vetoes, and a table of
+ * each step's proposal, the move made and the rules that changed it. `prefix` names the
+ * canvases (`chart-<prefix>-errors`, ...) and the table (`<prefix>-steps`). `add(step)` takes a
+ * step as the API and the telemetry give it; drawing is batched to one frame.
  */
 export class StepPlots {
   constructor(prefix) {
@@ -48,10 +56,15 @@ export class StepPlots {
           h('p', { class: 'muted', id: `${prefix}-vetoes-none`, text: 'No move was vetoed.' }))),
       h('div', { class: 'grid wide' },
         chartCard('Segment I trajectory, top view', `chart-${prefix}-trajectory`, 'Measured position of Segment I in the camera frame {W}: x against y, mm'),
-        chartCard('Segment I trajectory, side view', `chart-${prefix}-trajectory-side`, 'x against z (along the camera axis), mm')));
+        chartCard('Segment I trajectory, side view', `chart-${prefix}-trajectory-side`, 'x against z (along the camera axis), mm')),
+      h('section', { class: 'card' },
+        h('h2', {}, 'Proposals and rules ', h('span', { class: 'pill', id: `${prefix}-ruled-count`, title: 'steps a rule changed', text: '0' })),
+        h('p', { class: 'muted', text: 'What the controller proposed, the move made and the rules that changed it (learned policies; other controllers propose nothing of their own). Rows a rule changed are marked.' }),
+        h('div', { class: 'steps-table', id: `${prefix}-steps` }, table(['step', 'proposed', 'made', 'rules'], []))));
     this.pending = false;
     this.charts = [];
     this.lastStep = 0;
+    this.ruled = 0;
     this.gap = false;
   }
 
@@ -98,6 +111,8 @@ export class StepPlots {
     this.vetoes = this.element.querySelector(`#${this.prefix}-vetoes`);
     this.vetoCount = this.element.querySelector(`#${this.prefix}-veto-count`);
     this.vetoesNone = this.element.querySelector(`#${this.prefix}-vetoes-none`);
+    this.steps = this.element.querySelector(`#${this.prefix}-steps tbody`);
+    this.ruledCount = this.element.querySelector(`#${this.prefix}-ruled-count`);
   }
 
   /** Empties every plot (a new job). */
@@ -106,6 +121,9 @@ export class StepPlots {
     this.vetoes.replaceChildren();
     this.vetoCount.textContent = '0';
     this.vetoesNone.hidden = false;
+    this.steps.replaceChildren();
+    this.ruledCount.textContent = '0';
+    this.ruled = 0;
     this.lastStep = 0;
     this.gap = false;
     this.redraw();
@@ -138,6 +156,13 @@ export class StepPlots {
       this.vetoCount.textContent = String(this.vetoes.children.length);
       this.vetoesNone.hidden = true;
     }
+    const rules = step.rules ?? [];
+    this.steps.append(h('tr', { class: rules.length ? 'ruled' : null, 'data-step': step.step },
+      h('td', { text: step.step }),
+      h('td', { text: moveText(step.proposed) }),
+      h('td', { text: moveText(step.action) }),
+      h('td', { class: 'wrap' }, rules.map((rule) => h('span', { class: 'tag', text: rule })))));
+    if (rules.length) this.ruledCount.textContent = String(++this.ruled);
     if (step.verdict !== 'allowed') {
       this.vetoes.append(h('li', {}, `step ${step.step}: ${step.verdict}`, step.veto_reason ? ` (${step.veto_reason})` : ''));
       this.vetoCount.textContent = String(this.vetoes.children.length);

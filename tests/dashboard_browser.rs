@@ -192,6 +192,19 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     assert!(browser.find("#job-csv").is_displayed());
     browser.screenshot(&shots.join("2-job-page.png"));
 
+    // The steps table: a row per step; the expert proposes nothing of its own, so no rule
+    // changed a move.
+    let rows = |b: &Browser, css: &str| {
+        js(
+            b,
+            &format!("return document.querySelectorAll('{css}').length"),
+        )
+        .as_u64()
+        .unwrap()
+    };
+    assert_eq!(rows(&browser, "#job-steps tbody tr"), steps);
+    assert_eq!(rows(&browser, "#job-steps tr.ruled"), 0);
+
     // History: the job is listed, the stats charts are drawn.
     browser.goto(&format!("{}/#/jobs", server.base));
     browser.wait_until("the history table", WAIT, |b| {
@@ -202,6 +215,44 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         vec![1, 1]
     );
     browser.screenshot(&shots.join("3-history.png"));
+
+    // A learned policy's job: every row a rule changed is marked, with its rules as tags, in
+    // the stored order.
+    let learned = server.create_job(
+        &server.admin,
+        json!({"controller": "hierarchical-swift-cells", "seed": 7}),
+    );
+    let learned_id = learned["id"].as_i64().unwrap();
+    server.wait_final(learned_id);
+    let stored = server.steps(learned_id);
+    let ruled: Vec<&Value> = stored
+        .iter()
+        .filter(|s| !s["rules"].as_array().unwrap().is_empty())
+        .collect();
+    assert!(!ruled.is_empty(), "some rule changed some move");
+    browser.goto(&format!("{}/#/jobs/{learned_id}", server.base));
+    browser.wait_until("the learned job's steps table", WAIT, |b| {
+        rows(b, "#job-steps tbody tr") == stored.len() as u64
+    });
+    assert_eq!(rows(&browser, "#job-steps tr.ruled"), ruled.len() as u64);
+    assert_eq!(
+        text_of(&browser, "#job-ruled-count"),
+        ruled.len().to_string()
+    );
+    let first = ruled[0];
+    let tags = js(
+        &browser,
+        &format!(
+            "return [...document.querySelectorAll('#job-steps tr[data-step=\"{}\"] .tag')].map((t) => t.textContent)",
+            first["step"]
+        ),
+    );
+    assert_eq!(tags, first["rules"]);
+    js(
+        &browser,
+        "document.getElementById('job-steps').scrollIntoView()",
+    );
+    browser.screenshot(&shots.join("3b-learned-job-steps.png"));
 
     // E-stop acts at once; reset asks first (the confirmation is answered yes here).
     browser.goto(&format!("{}/#/live", server.base));
@@ -367,7 +418,7 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     // The server goes away: the page says so.
     browser.goto(&format!("{}/#/live", server.base));
     browser.wait_until("the live page with the last job", WAIT, |b| {
-        b.exists(&format!("#live-job[data-job-id='{job_id}']"))
+        b.exists(&format!("#live-job[data-job-id='{learned_id}']"))
     });
     server.kill9();
     browser.wait_until("the unreachable message", WAIT, |b| {

@@ -468,6 +468,108 @@ fn telemetry_streams_a_running_jobs_steps() {
     assert_eq!(status, 401, "the stream needs a token too");
 }
 
+/// A learned policy's job keeps, at every step, the policy's own proposal and the rules that
+/// changed it, stored as streamed; where no rule fired the move made is the proposal, but for
+/// the clamp of each translation component to the step limit. The expert proposes nothing of
+/// its own.
+#[test]
+fn a_learned_jobs_steps_keep_its_proposals_and_the_rules_that_changed_them() {
+    use assembly_cell::policy::shield::RuleId;
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &QUICK);
+    let operator = server.token("operator");
+    let stream = ureq::get(format!(
+        "{}/api/telemetry?access_token={}",
+        server.base, server.admin
+    ))
+    .call()
+    .expect("subscribe");
+    let mut lines = std::io::BufReader::new(stream.into_body().into_reader()).lines();
+
+    let learned = server.create_job(
+        &operator,
+        json!({"controller": "hierarchical-swift-cells", "seed": 5}),
+    );
+    let started = Instant::now();
+    let (mut event, mut streamed) = (String::new(), Vec::new());
+    loop {
+        assert!(started.elapsed() < Duration::from_secs(60), "no end event");
+        let line = lines.next().expect("the stream stays open").unwrap();
+        if let Some(name) = line.strip_prefix("event: ") {
+            event = name.to_string();
+        } else if let Some(data) = line.strip_prefix("data: ") {
+            let data: Value = serde_json::from_str(data).unwrap();
+            if data["job_id"] != id(&learned) {
+                continue;
+            }
+            match event.as_str() {
+                "step" => streamed.push(data),
+                "job" if data["status"] != "running" => break,
+                _ => {}
+            }
+        }
+    }
+    let done = server.wait_final(id(&learned));
+    let steps = server.steps(id(&learned));
+    assert_eq!(
+        steps.len() as i64,
+        done["steps"].as_i64().unwrap(),
+        "{done}"
+    );
+    assert!(steps.len() > 5, "{done}");
+    assert_eq!(streamed.len(), steps.len(), "every step streamed");
+
+    let numbers = |value: &Value| -> Vec<f64> {
+        let items = value.as_array().unwrap_or_else(|| panic!("{value}"));
+        items.iter().map(|v| v.as_f64().unwrap()).collect()
+    };
+    let (mut shaped, mut limits) = (0, Vec::new());
+    for (step, live) in steps.iter().zip(&streamed) {
+        assert_eq!(
+            (&step["proposed"], &step["rules"]),
+            (&live["proposed"], &live["rules"]),
+            "stored as streamed"
+        );
+        let proposed = numbers(&step["proposed"]);
+        let made = numbers(&step["action"]);
+        assert_eq!(proposed.len(), 6, "{step}");
+        let rules = step["rules"].as_array().unwrap();
+        for rule in rules {
+            let name = rule.as_str().unwrap();
+            assert!(RuleId::from_name(name).is_some(), "{name} is no rule");
+        }
+        if !rules.is_empty() {
+            shaped += 1;
+            continue;
+        }
+        assert_eq!(made[3..], proposed[3..], "no rule turns: {step}");
+        for (m, p) in made[..3].iter().zip(&proposed[..3]) {
+            if m != p {
+                // Clamped: the limit's sign is the proposal's, the proposal beyond it.
+                assert!(m.signum() == p.signum() && p.abs() > m.abs(), "{step}");
+                limits.push(m.abs());
+            }
+        }
+    }
+    assert!(shaped > 0, "some rule changed some move: {steps:?}");
+    assert!(
+        limits.windows(2).all(|pair| pair[0] == pair[1]),
+        "one step limit clamps every component: {limits:?}"
+    );
+
+    let expert = server.create_job(&operator, json!({"controller": "expert", "seed": 5}));
+    server.wait_final(id(&expert));
+    let steps = server.steps(id(&expert));
+    assert!(!steps.is_empty());
+    for step in &steps {
+        assert_eq!(
+            (&step["proposed"], &step["rules"]),
+            (&Value::Null, &json!([])),
+            "{step}"
+        );
+    }
+}
+
 /// Every operation the served OpenAPI document describes is a route of the running server: asked
 /// without a token, none answers "no such route" or "method not allowed" (the protected ones
 /// answer 401, the open ones 200).

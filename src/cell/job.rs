@@ -11,6 +11,7 @@ use super::backend::CellBackend;
 use crate::config::cell::CellConfig;
 use crate::learning::demos::DemoStep;
 use crate::policy::learned::{LearnedPolicy, LearnedPolicyFile};
+use crate::policy::shield::RuleSet;
 use crate::policy::{self, Actor, Controller, Decision};
 use crate::sim::{InitialConditions, Observation, Outcome, PoseErrors, RewardTerms};
 use serde::Serialize;
@@ -147,6 +148,11 @@ pub struct StepRecord {
     pub state: [f64; 12],
     /// The commanded move `[Δx, Δy, Δz, θx, θy, θz]`, mm and deg.
     pub action: [f64; 6],
+    /// The controller's own proposal, in the same units, before the shield's rules shaped it
+    /// into `action` (none for a controller without rules: the expert, the baselines).
+    pub proposed: Option<[f64; 6]>,
+    /// The rules that changed the proposal, in pipeline order (empty where none did).
+    pub rules: RuleSet,
     pub actor: Option<Actor>,
     pub scale: Option<f64>,
     pub legs_mm: [f64; 6],
@@ -339,6 +345,8 @@ impl JobRun {
             t_s: clock() - self.started_s,
             state: result.observation.state,
             action: decision.action.to_array(),
+            proposed: decision.shield.map(|trace| trace.proposed.to_array()),
+            rules: decision.shield.map(|trace| trace.fired).unwrap_or_default(),
             actor: decision.actor,
             scale: decision.scale,
             legs_mm: result.legs_mm,

@@ -274,4 +274,30 @@ mod tests {
             .collect();
         assert_eq!(named, known);
     }
+
+    /// A stored step is described with the controller's proposal (six numbers or null) and
+    /// the rules that changed it (names, always there).
+    #[test]
+    fn a_stored_step_is_described_with_its_proposal_and_rules() {
+        let document: serde_json::Value =
+            serde_json::from_str(crate::http::openapi_json()).unwrap();
+        let step = &document["components"]["schemas"]["StoredStep"];
+        let proposed = &step["properties"]["proposed"];
+        assert_eq!(
+            proposed["type"],
+            serde_json::json!(["array", "null"]),
+            "{proposed}"
+        );
+        assert_eq!(proposed["items"]["type"], "number", "{proposed}");
+        assert_eq!(
+            (&proposed["minItems"], &proposed["maxItems"]),
+            (&6.into(), &6.into())
+        );
+        let rules = &step["properties"]["rules"];
+        assert_eq!(rules["type"], "array", "{rules}");
+        assert_eq!(rules["items"]["type"], "string", "{rules}");
+        let required = step["required"].as_array().unwrap();
+        assert!(required.contains(&"rules".into()), "{step}");
+        assert!(!required.contains(&"proposed".into()), "{step}");
+    }
 }

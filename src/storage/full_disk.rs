@@ -60,6 +60,8 @@ fn steps_of(job_id: i64, from: u32, count: u32) -> Vec<StepRecord> {
             t_s: 0.1 * f64::from(step),
             state: [0.5; 12],
             action: [0.25; 6],
+            proposed: None,
+            rules: Default::default(),
             actor: None,
             scale: None,
             legs_mm: [100.0; 6],

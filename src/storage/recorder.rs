@@ -280,6 +280,8 @@ mod tests {
             t_s: 0.1 * f64::from(step),
             state: [0.0; 12],
             action: [0.0; 6],
+            proposed: None,
+            rules: Default::default(),
             actor: None,
             scale: None,
             legs_mm: [0.0; 6],

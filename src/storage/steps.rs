@@ -2,12 +2,13 @@
 
 use super::{Db, DbError};
 use crate::cell::{StepRecord, StepUncertainty};
+use crate::policy::shield::RuleSet;
 use crate::sim::RewardTerms;
 use serde::Serialize;
 use serde_json::Value;
 use sqlx::{QueryBuilder, Sqlite};
 
-/// Rows per INSERT statement (22 values each, well under SQLite's 32766 parameters).
+/// Rows per INSERT statement (24 values each, well under SQLite's 32766 parameters).
 pub const ROWS_PER_STATEMENT: usize = 100;
 
 /// Inserts the records in one transaction.
@@ -35,7 +36,7 @@ pub async fn insert_rows<'e>(
         "INSERT INTO steps (job_id, step, t_s, state, action, actor, scale, legs_mm, verdict,
              veto_reason, reward_global, reward_position, reward_orientation, reward_error,
              reward_step, reward_total, compute_us, sd_lateral_mm, sd_axial_mm, sd_tilt_deg,
-             noise_scale, detected) ",
+             noise_scale, detected, proposed, rules) ",
     );
     insert.push_values(records, |mut row, r| {
         row.push_bind(r.job_id)
@@ -59,7 +60,9 @@ pub async fn insert_rows<'e>(
             .push_bind(r.uncertainty.sd_axial_mm)
             .push_bind(r.uncertainty.sd_tilt_deg)
             .push_bind(r.uncertainty.noise_scale)
-            .push_bind(r.detected.clone());
+            .push_bind(r.detected.clone())
+            .push_bind(r.proposed.as_ref().map(|p| json_array(p)))
+            .push_bind(rule_names(r.rules));
     });
     insert.build().execute(executor).await?;
     Ok(())
@@ -67,6 +70,13 @@ pub async fn insert_rows<'e>(
 
 fn json_array(values: &[f64]) -> String {
     serde_json::to_string(values).expect("finite numbers serialise")
+}
+
+/// The rules as stored: their names as a JSON array, NULL where none fired (most steps), so
+/// a step costs no text for them. Names rather than bits: a stored step keeps its meaning when
+/// rules are added or reordered.
+fn rule_names(rules: RuleSet) -> Option<String> {
+    (!rules.is_empty()).then(|| serde_json::to_string(&rules).expect("names serialise"))
 }
 
 fn actor_name(actor: &crate::policy::Actor) -> &'static str {
@@ -83,6 +93,14 @@ pub struct StoredStep {
     pub t_s: f64,
     pub state: Value,
     pub action: Value,
+    /// The controller's own move `[Δx, Δy, Δz, θx, θy, θz]` (mm, deg) before the shield's
+    /// rules shaped it into `action`; null for a controller without rules (the expert, the
+    /// baselines) and for steps recorded before it was kept.
+    #[schema(min_items = 6, max_items = 6)]
+    pub proposed: Option<[f64; 6]>,
+    /// The rules that changed the proposal, in pipeline order, by the names of the cell file's
+    /// `[rules]` (`full_step`, `not_past_level`, ...); empty where none did.
+    pub rules: Vec<String>,
     pub actor: Option<String>,
     pub scale: Option<f64>,
     pub legs_mm: Value,
@@ -102,6 +120,8 @@ struct StepRow {
     t_s: f64,
     state: String,
     action: String,
+    proposed: Option<String>,
+    rules: Option<String>,
     actor: Option<String>,
     scale: Option<f64>,
     legs_mm: String,
@@ -129,6 +149,13 @@ impl From<StepRow> for StoredStep {
             t_s: row.t_s,
             state: parse(&row.state),
             action: parse(&row.action),
+            proposed: row
+                .proposed
+                .and_then(|text| serde_json::from_str(&text).ok()),
+            rules: row
+                .rules
+                .and_then(|text| serde_json::from_str(&text).ok())
+                .unwrap_or_default(),
             actor: row.actor,
             scale: row.scale,
             legs_mm: parse(&row.legs_mm),
@@ -173,7 +200,8 @@ pub async fn list(db: &Db, job_id: i64) -> Result<Vec<StoredStep>, DbError> {
     Ok(rows.into_iter().map(StoredStep::from).collect())
 }
 
-/// The CSV form of [`list`]: one header line, vectors spread over numbered columns.
+/// The CSV form of [`list`]: one header line, vectors spread over numbered columns; the rules
+/// that fired as one field, `;` between names.
 pub fn to_csv(steps: &[StoredStep]) -> String {
     let mut header: Vec<String> = vec!["step".into(), "t_s".into()];
     header.extend((0..12).map(|i| format!("state_{i}")));
@@ -198,6 +226,10 @@ pub fn to_csv(steps: &[StoredStep]) -> String {
         ]
         .map(String::from),
     );
+    header.extend(
+        ["dx_mm", "dy_mm", "dz_mm", "rx_deg", "ry_deg", "rz_deg"].map(|c| format!("proposed_{c}")),
+    );
+    header.push("rules".into());
     let mut out = header.join(",");
     out.push('\n');
     let numbers = |value: &Value, n: usize| -> Vec<String> {
@@ -239,8 +271,136 @@ pub fn to_csv(steps: &[StoredStep]) -> String {
             .map(|v| v.map(|v| v.to_string()).unwrap_or_default()),
         );
         fields.push(s.detected.clone().unwrap_or_default());
+        fields.extend((0..6).map(|i| s.proposed.map(|p| p[i].to_string()).unwrap_or_default()));
+        // Names hold no comma; `;` keeps the list in one field.
+        fields.push(s.rules.join(";"));
         out.push_str(&fields.join(","));
         out.push('\n');
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::policy::shield::RuleId;
+    use crate::storage::jobs::{self, NewJob};
+
+    fn record(job_id: i64, step: u32) -> StepRecord {
+        StepRecord {
+            job_id,
+            step,
+            t_s: 0.25 * f64::from(step),
+            state: [0.5; 12],
+            action: [0.5, -0.25, -1.0, 0.0, 0.125, 0.0],
+            proposed: None,
+            rules: RuleSet::default(),
+            actor: None,
+            scale: None,
+            legs_mm: [760.0; 6],
+            verdict: "allowed",
+            veto_reason: None,
+            reward: RewardTerms::default(),
+            compute_us: 30.0,
+            uncertainty: StepUncertainty::default(),
+            detected: None,
+        }
+    }
+
+    async fn job(db: &Db) -> i64 {
+        let new = NewJob {
+            controller: "hierarchical".into(),
+            policy_id: None,
+            seed: 1,
+            initial_pos_mm: 1.0,
+            initial_ori_deg: 1.0,
+            demonstration: false,
+            created_by: "test".into(),
+        };
+        jobs::insert(db, &new).await.unwrap().id
+    }
+
+    #[tokio::test]
+    async fn a_steps_proposal_and_rules_read_back_as_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = Db::open(&dir.path().join("celld.db")).await.unwrap();
+        let id = job(&db).await;
+        let shaped = StepRecord {
+            proposed: Some([2.5, -7.75, -5.0, 0.0, 0.3, -0.1]),
+            rules: [RuleId::StandoffWhileUnsure, RuleId::FullStep]
+                .into_iter()
+                .collect(),
+            ..record(id, 1)
+        };
+        let unshaped = StepRecord {
+            proposed: Some(record(id, 2).action),
+            ..record(id, 2)
+        };
+        let expert = record(id, 3);
+        insert_batch(&db, &[shaped.clone(), unshaped.clone(), expert])
+            .await
+            .unwrap();
+        // A row as written before proposals were kept.
+        sqlx::query(
+            "INSERT INTO steps (job_id, step, t_s, state, action, legs_mm, verdict,
+                 reward_global, reward_position, reward_orientation, reward_error, reward_step,
+                 reward_total, compute_us)
+             VALUES (?, 4, 1.0, '[]', '[0,0,0,0,0,0]', '[]', 'allowed', 0, 0, 0, 0, 0, 0, 1)",
+        )
+        .bind(id)
+        .execute(&db.writer)
+        .await
+        .unwrap();
+
+        let stored = list(&db, id).await.unwrap();
+        let read: Vec<_> = stored
+            .iter()
+            .map(|s| (s.step, s.proposed, s.rules.clone()))
+            .collect();
+        assert_eq!(
+            read,
+            [
+                (
+                    1,
+                    shaped.proposed,
+                    vec!["full_step".to_string(), "standoff_while_unsure".into()]
+                ),
+                (2, unshaped.proposed, vec![]),
+                (3, None, vec![]),
+                (4, None, vec![]),
+            ]
+        );
+        // The names are the rules' own: they read back as the set written.
+        assert_eq!(
+            RuleSet::from_names(stored[0].rules.iter().map(String::as_str)),
+            Ok(shaped.rules)
+        );
+        // Most steps fire no rule: their rules cost no text.
+        let texts: Vec<Option<String>> =
+            sqlx::query_scalar("SELECT rules FROM steps WHERE job_id = ? ORDER BY step")
+                .bind(id)
+                .fetch_all(&db.reader)
+                .await
+                .unwrap();
+        assert_eq!(
+            texts,
+            [
+                Some(r#"["full_step","standoff_while_unsure"]"#.to_string()),
+                None,
+                None,
+                None
+            ]
+        );
+
+        let csv = to_csv(&stored);
+        let lines: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
+        let column = |name: &str| lines[0].iter().position(|c| *c == name).unwrap();
+        assert!(lines.iter().all(|l| l.len() == lines[0].len()), "{csv}");
+        assert_eq!(lines[1][column("proposed_dy_mm")], "-7.75");
+        assert_eq!(lines[1][column("proposed_rz_deg")], "-0.1");
+        assert_eq!(lines[1][column("rules")], "full_step;standoff_while_unsure");
+        assert_eq!(lines[2][column("proposed_dz_mm")], "-1");
+        assert_eq!(lines[2][column("rules")], "");
+        assert_eq!(lines[3][column("proposed_dx_mm")], "");
+    }
 }
