@@ -32,7 +32,7 @@ pub struct CreateJob {
     /// `active` (the active policy, or the configured controller when none is active), a
     /// built-in controller, a bundled policy, or `policy:<id>`.
     #[schema(
-        pattern = "^(active|expert|expert-state-only|expert-careful|expert-swift|visual-servo|spiral|da-dmp|hierarchical|bc|td3|hierarchical-cells|hierarchical-swift|hierarchical-swift-cells|policy:[0-9]{1,18})$"
+        pattern = "^(active|expert|expert-state-only|expert-careful|expert-swift|visual-servo|spiral|da-dmp|hierarchical-reference|bc|td3|hierarchical-cells|hierarchical-swift-reference|hierarchical-swift-cells|policy:[0-9]{1,18})$"
     )]
     controller: String,
     /// The episode's seed, any u64 (default: a random one, stored with the job).

@@ -284,7 +284,7 @@ mod tests {
         assert_eq!((flat.kind(), flat.name()), (PolicyKind::Flat, "td3"));
         let file = LearnedPolicyFile::from_bytes(&flat_bytes()).unwrap();
         assert_eq!(file.shapes()[4], ("actor.4.weight".to_string(), vec![6, 4]));
-        let bundled = crate::policy::bundled_policy("hierarchical").unwrap();
+        let bundled = crate::policy::bundled_policy("hierarchical-reference").unwrap();
         let hierarchical = LearnedPolicy::from_bytes(bundled).unwrap();
         assert_eq!(hierarchical.kind(), PolicyKind::Hierarchical);
         assert_eq!(hierarchical.with_name("x").name(), "x");
@@ -367,7 +367,7 @@ mod tests {
         let per_mm = Vector6::new(0.02, -0.01, 0.004, 0.015, 0.01, -0.003);
         let observation = observed_with_drift([3.0, -2.0, -80.0], per_mm, 1e-3);
         let drift = observation.estimate.drift();
-        let bare = bundled_hierarchical("hierarchical");
+        let bare = bundled_hierarchical("hierarchical-reference");
         let wanted = as_trained(bare.clone())
             .act(&observation)
             .action
