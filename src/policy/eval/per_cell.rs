@@ -133,6 +133,7 @@ mod tests {
             reward: 0.0,
             vetoes: 0,
             final_errors: PoseErrors::default(),
+            rules: Default::default(),
         }
     }
 
