@@ -353,7 +353,8 @@ fn after_a_refusal_for_contact_the_move_keeps_its_depth_and_nothing_else_changes
     use crate::sim::{AssemblyEnv, EnvOptions};
     let cell = CellConfig::reference();
     let file =
-        PolicyFile::from_bytes(crate::policy::bundled_policy("hierarchical-reference").unwrap()).unwrap();
+        PolicyFile::from_bytes(crate::policy::bundled_policy("hierarchical-reference").unwrap())
+            .unwrap();
     let mut policy = as_trained(HierarchicalPolicy::from_file(&file).unwrap());
     let mut env = AssemblyEnv::new(&cell, EnvOptions::from_cell(&cell));
     let mut observation = env.reset(11).unwrap();
@@ -574,7 +575,8 @@ fn a_position_move_never_goes_past_the_goal() {
     assert_eq!(at(-3.0, Some(VetoReason::StaleMeasurement)), -3.0);
 
     let file =
-        PolicyFile::from_bytes(crate::policy::bundled_policy("hierarchical-reference").unwrap()).unwrap();
+        PolicyFile::from_bytes(crate::policy::bundled_policy("hierarchical-reference").unwrap())
+            .unwrap();
     let mut policy = as_trained(HierarchicalPolicy::from_file(&file).unwrap());
     let mut past_goal = 0;
     loop {
