@@ -172,3 +172,24 @@ fn missing_file_is_reported_with_its_path() {
         .to_string();
     assert!(error.contains("cells/nope.toml"), "{error}");
 }
+
+/// A cell file's `[rules]`: a rule switched off or tuned is read, changes the config hash (so an
+/// evaluation under other rules is told apart), and a parameter out of range or an unknown rule
+/// is refused by name; an empty section is today's rules and keeps the hash.
+#[test]
+fn a_cell_files_rules_are_read_and_change_its_hash_only_when_they_differ() {
+    use assembly_cell::policy::shield::RuleId;
+    let reference = CellConfig::parse(&reference_text(), "phi170.toml").unwrap();
+    let empty = CellConfig::parse(&format!("{}\n[rules]\n", reference_text()), "x").unwrap();
+    assert_eq!(empty.config_hash(), reference.config_hash());
+    let off = format!("{}\n[rules.full_step]\nenabled = false\n", reference_text());
+    let off = CellConfig::parse(&off, "x").unwrap();
+    assert!(!off.rules.is_on(RuleId::FullStep));
+    assert_eq!(off.rules.enabled().len(), 13);
+    assert_ne!(off.config_hash(), reference.config_hash());
+    let wide = format!("{}\n[rules.full_step]\nfrom_share = 2.0\n", reference_text());
+    let message = refused(&wide);
+    assert!(message.contains("rules.full_step.from_share"), "{message}");
+    let unknown = format!("{}\n[rules.full_stepp]\nenabled = false\n", reference_text());
+    assert!(refused(&unknown).contains("full_stepp"));
+}

@@ -497,6 +497,16 @@ fn series(
         .collect()
 }
 
+/// The failures by reason, `reason count` comma-separated.
+fn failures(summary: &EvalSummary) -> String {
+    let counted: Vec<String> = summary
+        .failures
+        .iter()
+        .map(|(k, v)| format!("{k} {v}"))
+        .collect();
+    counted.join(", ")
+}
+
 fn steps(summary: &EvalSummary) -> String {
     summary
         .avg_steps
@@ -631,12 +641,6 @@ fn render(
         );
         let _ = writeln!(md, "|---|---|---|---|---|");
         for c in cells {
-            let failures: Vec<String> = c
-                .summary
-                .failures
-                .iter()
-                .map(|(k, v)| format!("{k} {v}"))
-                .collect();
             let _ = writeln!(
                 md,
                 "| {} | {} | {:.1} | {:.3} | {} |",
@@ -644,7 +648,7 @@ fn render(
                 steps(&c.summary),
                 c.summary.avg_reward,
                 c.summary.success_rate,
-                failures.join(", ")
+                failures(&c.summary)
             );
         }
         let _ = writeln!(md);

@@ -2,7 +2,7 @@
 //! with all its rules and with none (`--rules none`), and how often each rule changed its
 //! decisions (docs/policy-rules.md).
 
-use super::{Cell, steps};
+use super::{Cell, failures, steps};
 use assembly_cell::policy::shield::RuleId;
 use std::fmt::Write as _;
 
@@ -39,12 +39,6 @@ pub(super) fn render(md: &mut String, with_rules: &[Cell], without: &[Cell]) {
             .summary
             .rules
             .map_or("-".to_string(), |r| format!("{:.3}", r.changed_share()));
-        let failures: Vec<String> = bare
-            .summary
-            .failures
-            .iter()
-            .map(|(k, v)| format!("{k} {v}"))
-            .collect();
         let _ = writeln!(
             md,
             "| {} | {:.3} | {} | {changed} | {:.3} | {} | {} |",
@@ -53,7 +47,7 @@ pub(super) fn render(md: &mut String, with_rules: &[Cell], without: &[Cell]) {
             steps(&ruled.summary),
             bare.summary.success_rate,
             steps(&bare.summary),
-            failures.join(", ")
+            failures(&bare.summary)
         );
     }
     let _ = writeln!(md);

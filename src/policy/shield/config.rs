@@ -44,30 +44,17 @@ pub struct RulesConfig {
 impl RulesConfig {
     /// Whether rule `id` is switched on.
     pub fn is_on(&self, id: RuleId) -> bool {
-        *self.switch(id)
-    }
-
-    fn switch(&self, id: RuleId) -> &bool {
-        match id {
-            RuleId::ActorWithWork => &self.actor_with_work.enabled,
-            RuleId::FullStep => &self.full_step.enabled,
-            RuleId::CentredAsDemonstrated => &self.centred_as_demonstrated.enabled,
-            RuleId::TurnedAsDemonstrated => &self.turned_as_demonstrated.enabled,
-            RuleId::DeepestMove => &self.deepest_move.enabled,
-            RuleId::NotPastTheAxis => &self.not_past_the_axis.enabled,
-            RuleId::NotPastLevel => &self.not_past_level.enabled,
-            RuleId::PivotInBore => &self.pivot_in_bore.enabled,
-            RuleId::CarefulStepUnderNoise => &self.careful_step_under_noise.enabled,
-            RuleId::NoisyCameraDescent => &self.noisy_camera_descent.enabled,
-            RuleId::CentresAfterARefusal => &self.centres_after_a_refusal.enabled,
-            RuleId::SteeredAgainstDrift => &self.steered_against_drift.enabled,
-            RuleId::FullStepAfterUncertainty => &self.full_step_after_uncertainty.enabled,
-            RuleId::StandoffWhileUnsure => &self.standoff_while_unsure.enabled,
-        }
+        let mut copy = *self;
+        *copy.switch(id)
     }
 
     fn set(&mut self, id: RuleId, on: bool) {
-        let slot = match id {
+        *self.switch(id) = on;
+    }
+
+    /// Rule `id`'s `enabled`.
+    fn switch(&mut self, id: RuleId) -> &mut bool {
+        match id {
             RuleId::ActorWithWork => &mut self.actor_with_work.enabled,
             RuleId::FullStep => &mut self.full_step.enabled,
             RuleId::CentredAsDemonstrated => &mut self.centred_as_demonstrated.enabled,
@@ -82,8 +69,7 @@ impl RulesConfig {
             RuleId::SteeredAgainstDrift => &mut self.steered_against_drift.enabled,
             RuleId::FullStepAfterUncertainty => &mut self.full_step_after_uncertainty.enabled,
             RuleId::StandoffWhileUnsure => &mut self.standoff_while_unsure.enabled,
-        };
-        *slot = on;
+        }
     }
 
     /// The rules switched on.

@@ -71,8 +71,8 @@ pub struct Shaped {
     pub actor: Option<Actor>,
     pub action: Move,
     /// The sideways part is the demonstrators' exact centring, which the robot's learned drift
-    /// does not steer ([`noisy_camera_descent`](NoisyCameraDescent),
-    /// [`centres_after_a_refusal`](centres_after_a_refusal::CentresAfterARefusal)).
+    /// does not steer (set by rules 10 and 11, `noisy_camera_descent` and
+    /// `centres_after_a_refusal`; rule 12 then leaves it alone).
     pub exact_sideways: bool,
 }
 
