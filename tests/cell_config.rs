@@ -187,9 +187,15 @@ fn a_cell_files_rules_are_read_and_change_its_hash_only_when_they_differ() {
     assert!(!off.rules.is_on(RuleId::FullStep));
     assert_eq!(off.rules.enabled().len(), 13);
     assert_ne!(off.config_hash(), reference.config_hash());
-    let wide = format!("{}\n[rules.full_step]\nfrom_share = 2.0\n", reference_text());
+    let wide = format!(
+        "{}\n[rules.full_step]\nfrom_share = 2.0\n",
+        reference_text()
+    );
     let message = refused(&wide);
     assert!(message.contains("rules.full_step.from_share"), "{message}");
-    let unknown = format!("{}\n[rules.full_stepp]\nenabled = false\n", reference_text());
+    let unknown = format!(
+        "{}\n[rules.full_stepp]\nenabled = false\n",
+        reference_text()
+    );
     assert!(refused(&unknown).contains("full_stepp"));
 }

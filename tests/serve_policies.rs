@@ -453,6 +453,59 @@ fn the_gate_holds_unless_forced_with_a_reason() {
     assert_eq!(entry["actor"], "admin");
 }
 
+/// An evaluation with other rules than the cell's (`rules`) is stored with them and does not
+/// open the gate; one with the cell's own does. A selection naming no rule is refused by name.
+#[test]
+fn an_evaluation_under_other_rules_is_kept_with_them_and_not_read_by_the_gate() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[]);
+    let admin = server.admin.clone();
+    // The reference-cell network succeeds on the reference cell with no rule too (0.99 of 2000
+    // episodes), so only the rules can keep the gate shut.
+    let (_, reference) = upload(&server, &admin, "reference", REFERENCE);
+    let id = reference["id"].as_i64().unwrap();
+    let evaluate = format!("/api/policies/{id}/evaluate");
+    let (status, refused) = server.post(
+        &evaluate,
+        Some(&admin),
+        Some(json!({"episodes": 5, "rules": ["full_step", "no_such_rule"]})),
+    );
+    assert_eq!(status, 422, "{refused}");
+    assert!(refused.to_string().contains("no_such_rule"), "{refused}");
+
+    let (status, started) = server.post(
+        &evaluate,
+        Some(&admin),
+        Some(json!({"episodes": 10, "rules": "none"})),
+    );
+    assert_eq!(status, 202, "{started}");
+    assert_eq!(started["rules"], "none");
+    let bare = evaluation_ended(&server, id);
+    assert_eq!(bare["evaluation"]["rules"], "none", "{bare}");
+    assert!(
+        bare["evaluation"]["success_rate"].as_f64().unwrap() >= 0.95,
+        "{bare}"
+    );
+    let (status, shut) = server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);
+    assert_eq!(status, 409, "{shut}");
+
+    server.post(&evaluate, Some(&admin), Some(json!({"episodes": 10})));
+    let ruled = loop {
+        let ended = evaluation_ended(&server, id);
+        if ended["evaluation"]["rules"] == "all" {
+            break ended;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(
+        ruled["evaluation"]["success_rate"].as_f64().unwrap() >= 0.95,
+        "{ruled}"
+    );
+    let (status, activated) =
+        server.post(&format!("/api/policies/{id}/activate"), Some(&admin), None);
+    assert_eq!(status, 200, "{activated}");
+}
+
 /// The safetensors pieces of a good file, to break one thing at a time: tensor name → (header
 /// entry, bytes), laid out again on encoding.
 struct Parts {
