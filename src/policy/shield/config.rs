@@ -225,7 +225,9 @@ pub enum RuleSelection {
 
 /// A selection that names something that is not a rule.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("`{name}` is not a rule; rules are all, none or a comma-separated list of: {known}")]
+#[error(
+    "`{name}` is not a rule; rules are all, none or a comma-separated list (no spaces) of: {known}"
+)]
 pub struct RuleSelectionError {
     pub name: String,
     pub known: String,
@@ -241,25 +243,28 @@ impl RuleSelection {
         }
     }
 
-    /// Parses `all`, `none` or `a,b,c`.
+    /// Parses `all`, `none` or `a,b,c` (rule names, nothing else between the commas).
     pub fn parse(text: &str) -> Result<Self, RuleSelectionError> {
-        match text.trim() {
+        match text {
             "all" => Ok(RuleSelection::All),
             "none" => Ok(RuleSelection::None),
-            list => Self::of_names(list.split(',').map(str::trim).filter(|n| !n.is_empty())),
+            list => Self::of_names(list.split(',')),
         }
     }
 
-    /// Only the rules `names`.
+    /// Only the rules `names` (none for no name).
     pub fn of_names<'a>(
         names: impl IntoIterator<Item = &'a str>,
     ) -> Result<Self, RuleSelectionError> {
-        RuleSet::from_names(names)
-            .map(RuleSelection::Only)
-            .map_err(|name| RuleSelectionError {
-                name,
-                known: RuleId::ALL.map(RuleId::name).join(", "),
-            })
+        let set = RuleSet::from_names(names).map_err(|name| RuleSelectionError {
+            name,
+            known: RuleId::ALL.map(RuleId::name).join(", "),
+        })?;
+        Ok(if set.is_empty() {
+            RuleSelection::None
+        } else {
+            RuleSelection::Only(set)
+        })
     }
 
     /// `all`, `none` or the names, comma-separated (what [`RuleSelection::parse`] reads).
@@ -326,8 +331,20 @@ mod tests {
     fn a_selection_parses_round_trips_and_names_an_unknown_rule() {
         assert_eq!(RuleSelection::parse("all"), Ok(RuleSelection::All));
         assert_eq!(RuleSelection::parse("none"), Ok(RuleSelection::None));
-        let only = RuleSelection::parse("pivot_in_bore, full_step").unwrap();
+        let only = RuleSelection::parse("pivot_in_bore,full_step").unwrap();
         assert_eq!(only.label(), "full_step,pivot_in_bore");
+        // Nothing but names between the commas: what the request's schema describes.
+        for bad in [
+            "",
+            " full_step",
+            "full_step,",
+            "full_step,,pivot_in_bore",
+            "All",
+        ] {
+            assert!(RuleSelection::parse(bad).is_err(), "{bad:?}");
+        }
+        let empty: RuleSelection = serde_json::from_str("[]").unwrap();
+        assert_eq!(empty, RuleSelection::None);
         assert_eq!(RuleSelection::parse(&only.label()), Ok(only));
         let e = RuleSelection::parse("full_step,fullstep").unwrap_err();
         assert_eq!(e.name, "fullstep");
