@@ -113,11 +113,6 @@ impl LearnedPolicy {
         self.with_rules(&rules)
     }
 
-    /// The rules this policy runs with.
-    pub fn rules(&self) -> RuleSet {
-        self.shield.config().enabled()
-    }
-
     /// A hierarchical policy run with every rule.
     pub fn hierarchical(policy: HierarchicalPolicy) -> Self {
         Self::new(LearnedNetwork::Hierarchical(Box::new(policy)))
