@@ -4,6 +4,7 @@
 // Each example uses what it needs of this module.
 #![allow(dead_code)]
 
+#[path = "../../tests/support/camera_jobs.rs"]
 pub mod camera_jobs;
 
 /// Positional argument `index` (1 is the first), or `default` when it is not given; an error

@@ -1,6 +1,6 @@
 //! The policy registry over HTTP: upload checks, evaluation, the activation gate, rollback.
 
-mod serve_support;
+use crate::serve_support;
 
 use assembly_cell::policy::eval;
 use assembly_cell::storage::Db;
@@ -9,12 +9,27 @@ use serve_support::Server;
 use std::time::Duration;
 
 /// The bundled default, `hierarchical-swift-cells`.
-const DEFAULT: &[u8] = include_bytes!("../policies/swift-cells.safetensors");
+const DEFAULT: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/policies/swift-cells.safetensors"
+));
 /// `hierarchical-reference`, the bundled default before it.
-const REFERENCE: &[u8] = include_bytes!("../policies/default.safetensors");
-const BC: &[u8] = include_bytes!("../policies/bc.safetensors");
-const TD3: &[u8] = include_bytes!("../policies/td3.safetensors");
-const ACROSS_CELLS: &[u8] = include_bytes!("../policies/across-cells.safetensors");
+const REFERENCE: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/policies/default.safetensors"
+));
+const BC: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/policies/bc.safetensors"
+));
+const TD3: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/policies/td3.safetensors"
+));
+const ACROSS_CELLS: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/policies/across-cells.safetensors"
+));
 
 fn upload(server: &Server, token: &str, name: &str, bytes: &[u8]) -> (u16, Value) {
     server.post_raw(

@@ -6,9 +6,9 @@
 //! Screenshots are saved
 //! under `target/tmp/dashboard-screenshots/` for a person to look at.
 
-mod browser_support;
-mod drivers_support;
-mod serve_support;
+use crate::browser_support;
+use crate::drivers_support;
+use crate::serve_support;
 
 use browser_support::Browser;
 use drivers_support::TwinServer;

@@ -3,8 +3,8 @@
 //! garbage, ends it in a hold with a named reason, keeps every step stored and the service
 //! serving; after a lost controller the robot moves again only after an operator reset.
 
-mod drivers_support;
-mod serve_support;
+use crate::drivers_support;
+use crate::serve_support;
 
 use drivers_support::{GARBAGE, PASS, REPEAT, SILENT, TwinServer, camera_relay};
 use serde_json::{Value, json};

@@ -1,6 +1,6 @@
 //! `celld eval` end to end: the JSON summary, determinism, and clear errors for bad input.
 
-mod common;
+use crate::common;
 
 use common::{celld, last_json};
 

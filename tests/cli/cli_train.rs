@@ -1,7 +1,7 @@
 //! `celld train` end to end, at toy sizes: the run directory, resuming, refusing to overwrite,
 //! determinism under a seed, and bad input named before any work.
 
-mod common;
+use crate::common;
 
 use common::celld;
 use serde_json::json;

@@ -6,7 +6,7 @@
 //! `.ci/run` installs schemathesis. Elsewhere, without it, this test says so and passes; with
 //! `CI` set, a missing schemathesis fails it.
 
-mod serve_support;
+use crate::serve_support;
 
 use serve_support::Server;
 use std::path::Path;

@@ -9,7 +9,10 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-const SWIFT_BC: &[u8] = include_bytes!("../../policies/swift-bc.safetensors");
+const SWIFT_BC: &[u8] = include_bytes!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/policies/swift-bc.safetensors"
+));
 
 /// A policy no one has evaluated: the swift-bc file with its `seed` metadata changed to `seed`
 /// (four digits, so the header keeps its length), which makes other bytes, hence a policy of

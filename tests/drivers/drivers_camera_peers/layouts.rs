@@ -22,7 +22,7 @@ fn ring_file() -> PathBuf {
 fn calibrated_cell(layout: &str) -> (tempfile::TempDir, Result<CellConfig, CellConfigError>) {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("fixtures.csv"), layout).unwrap();
-    let text = include_str!("../../cells/phi170.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/cells/phi170.toml"))
         .replace("[camera]", "[camera]\nfixture_layout = \"fixtures.csv\"");
     let path = dir.path().join("cell.toml");
     std::fs::write(&path, text).unwrap();
@@ -235,7 +235,7 @@ fn a_bad_calibration_file_is_refused_naming_the_point() {
     // A file that is not there is named.
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cell.toml");
-    let text = include_str!("../../cells/phi170.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/cells/phi170.toml"))
         .replace("[camera]", "[camera]\nfixture_layout = \"missing.csv\"");
     std::fs::write(&path, text).unwrap();
     let message = CellConfig::load(&path).unwrap_err().to_string();

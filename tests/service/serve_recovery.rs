@@ -1,6 +1,6 @@
 //! `celld serve` stopped hard (kill -9) and softly (SIGTERM) during a job, then started again.
 
-mod serve_support;
+use crate::serve_support;
 
 use assembly_cell::storage::Db;
 use serde_json::json;

@@ -2,7 +2,7 @@
 //! relay that goes silent, repeats a frame, or sends garbage. Each ends the job with a named
 //! reason and names the fault at each step it shows in.
 
-mod drivers_support;
+use crate::drivers_support;
 
 use assembly_cell::cell::job::{ControllerSource, JobEnd, JobRun, JobSpec, SafetyLimits};
 use assembly_cell::cell::{DriverBackend, DriverSettings};

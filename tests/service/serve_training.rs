@@ -1,7 +1,7 @@
 //! Training runs over HTTP: progress and curve while running, waiting their turn in the work
 //! queue, cancel, and the lineage demonstrations → run → policy → jobs.
 
-mod serve_support;
+use crate::serve_support;
 
 use serde_json::{Value, json};
 use serve_support::Server;

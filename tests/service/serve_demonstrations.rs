@@ -1,6 +1,6 @@
 //! Demonstrations over HTTP: recorded by a job, exported, re-imported, refused line by line.
 
-mod serve_support;
+use crate::serve_support;
 
 use serde_json::json;
 use serve_support::Server;

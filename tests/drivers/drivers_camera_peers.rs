@@ -6,12 +6,9 @@
 //! as a streaming camera and as a tracker (without it, its test says so and passes; with `CI`
 //! set, a missing one fails it).
 
-// The tracker-relay job runner and its settings, shared with examples/camera_goals.rs.
-#[path = "../examples/common/camera_jobs.rs"]
-#[allow(dead_code)]
-mod camera_jobs;
-mod drivers_support;
-#[path = "drivers_camera_peers/layouts.rs"]
+use crate::camera_jobs;
+use crate::drivers_support;
+
 mod layouts;
 
 use assembly_cell::camera::ingest::{Detected, Estimate, Ingest, Shot};

@@ -5,9 +5,8 @@
 //! what `examples/camera_goals.rs` measures over 100 jobs. Without pyigtl or numpy the test
 //! says so and passes; with `CI` set it fails.
 
-#[path = "../examples/common/camera_jobs.rs"]
-mod camera_jobs;
-mod drivers_support;
+use crate::camera_jobs;
+use crate::drivers_support;
 
 use assembly_cell::cell::job::JobStatus;
 use assembly_cell::cell::{DriverBackend, TwinBackend};

@@ -1,6 +1,6 @@
 //! `celld serve` over HTTP: a real server on a free port with a real SQLite file.
 
-mod serve_support;
+use crate::serve_support;
 
 use serde_json::{Value, json};
 use serve_support::Server;

@@ -1,6 +1,6 @@
 //! `celld policy run` and `celld eval --controller FILE` end to end on the PyTorch-layout fixture.
 
-mod common;
+use crate::common;
 
 use common::{celld, last_json};
 

@@ -5,7 +5,7 @@
 //! `.ci/run` installs both. Elsewhere, without one, its test says so and passes; with `CI`
 //! set, a missing one fails it.
 
-mod drivers_support;
+use crate::drivers_support;
 
 use assembly_cell::camera::ingest::{Ingest, Shot};
 use assembly_cell::camera::{CameraFrame, CodedPoint, Fixture};
