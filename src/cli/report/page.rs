@@ -141,7 +141,8 @@ fn header(md: &mut String, report: &Report, links: &Links, missing: &[String]) {
          for every controller, are kept with the commands that measured them: [where the \
          policies stand]({1}experiments/2026-12-07-81d9a69-where-the-policies-stand.md), the \
          [learning reference]({1}learning-reference.md) and the [experiment \
-         records]({1}experiments/).\n",
+         records]({1}experiments/), among them [every controller with a robot new to the cell \
+         in every episode]({1}experiments/2026-11-26-1c6ace4-remembering-the-robot.md).\n",
         links.data, links.docs, links.data_file
     );
     if !missing.is_empty() {
@@ -364,6 +365,36 @@ fn mismatch(md: &mut String, report: &Report, eval: &EvalLine) {
         let _ = writeln!(md, "| {controller} | {} |", row.join(" | "));
     }
     let _ = writeln!(md);
+    // Each evaluation once: the nominal columns repeat Table 5's.
+    let mut distinct: Vec<&Cell> = Vec::new();
+    for c in &report.mismatch {
+        if !distinct
+            .iter()
+            .any(|d| d.controller == c.controller && d.summary == c.summary)
+        {
+            distinct.push(c);
+        }
+    }
+    let contacts: Vec<(&Cell, usize)> = distinct
+        .iter()
+        .filter_map(|c| Some((*c, *c.summary.failures.get("contact")?)))
+        .filter(|(_, n)| *n > 0)
+        .collect();
+    let total: usize = contacts.iter().map(|(_, n)| n).sum();
+    let listed: Vec<String> = contacts
+        .iter()
+        .map(|(c, n)| format!("{} at {}: {n}", c.controller, c.condition))
+        .collect();
+    let _ = writeln!(
+        md,
+        "Episodes ended by contact over the table's {} evaluations: {total}{}.\n",
+        distinct.len(),
+        if listed.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", listed.join("; "))
+        }
+    );
 }
 
 fn figure(md: &mut String, report: &Report, links: &Links) {
@@ -430,4 +461,70 @@ pub(super) fn steps(summary: &Summary) -> String {
     summary
         .avg_steps
         .map_or("-".to_string(), |s| format!("{s:.1}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Links, render};
+    use crate::cli::report::data::Report;
+    use serde_json::json;
+
+    fn cell(controller: &str, condition: &str, contacts: usize, wall_s: f64) -> serde_json::Value {
+        let failures = if contacts > 0 {
+            json!({ "contact": contacts })
+        } else {
+            json!({})
+        };
+        json!({
+            "controller": controller,
+            "condition": condition,
+            "summary": {
+                "cell": "phi170", "success_rate": 1.0 - contacts as f64 / 10.0,
+                "avg_steps": 30.0, "avg_reward": 60.0, "failures": failures,
+                "kept_robots": 10, "wall_s": wall_s
+            }
+        })
+    }
+
+    #[test]
+    fn the_contacts_under_mismatch_count_each_evaluation_once() {
+        let a = cell("a", "phi170", 0, 1.0);
+        let b = cell("b", "phi170", 1, 2.0);
+        let nominal = |c: &serde_json::Value, condition: &str| {
+            let mut c = c.clone();
+            c["condition"] = json!(condition);
+            c
+        };
+        let report: Report = serde_json::from_value(json!({
+            "command": "celld report", "episodes": 10, "seed": 1,
+            "robustness": [], "table5": [a, b], "table6": [], "generalisation": [],
+            "mismatch": [
+                nominal(&a, "noise ×1"), cell("a", "noise ×4", 2, 3.0),
+                nominal(&b, "noise ×1"), nominal(&b, "calibration ×1"),
+                cell("b", "robot_lag", 3, 4.0)
+            ],
+            "without_rules": [], "curves": []
+        }))
+        .unwrap();
+        let links = Links {
+            data: "report/".into(),
+            docs: String::new(),
+            data_file: "docs/report/report.json".into(),
+            figures_exist: false,
+        };
+        let (page, missing) = render(&report, &links);
+        assert!(missing.is_empty());
+        // a: nominal (0) and noise ×4 (2); b: nominal (1, shown twice) and robot_lag (3).
+        assert!(
+            page.contains(
+                "over the table's 4 evaluations: 6 (a at noise ×4: 2; b at noise ×1: 1; \
+                 b at robot_lag: 3)."
+            ),
+            "{page}"
+        );
+        assert!(
+            page.contains("| b | 0.900 / 30.0 / 1 | - | 0.900 / 30.0 / 1 | 0.700 / 30.0 / 3 |"),
+            "{page}"
+        );
+    }
 }
