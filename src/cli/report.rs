@@ -370,11 +370,19 @@ pub fn run(args: ReportArgs) -> Result<()> {
     Ok(())
 }
 
+/// One of Fig. 7's figures: its file's name, title, y label and the value plotted.
+type Figure = (
+    &'static str,
+    &'static str,
+    &'static str,
+    fn(&EpisodeRecord) -> f64,
+);
+
 /// Writes the page for `report` to `page`, and Fig. 7's figures to `folder` when the report
 /// holds learning curves; returns what the data could not make.
 fn write_page(report: &Report, folder: &Path, page: &Path) -> Result<Vec<String>> {
     if let Some(curves) = report.curves.as_ref().filter(|c| !c.is_empty()) {
-        let figures: [(&str, &str, &str, fn(&EpisodeRecord) -> f64); 3] = [
+        let figures: [Figure; 3] = [
             (
                 "return",
                 "Return per episode (moving average of 20)",
