@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Makes docs/report/ again (the paper's Tables 2-6 and Fig. 7 on the twin) with the bundled
-# policies in policies/.
+# Makes docs/results.md and its data in docs/report/ (report.json, Fig. 7's SVG files) again: the
+# paper's Tables 2-6 and Fig. 7 on the twin with the bundled policies in policies/. About an hour
+# on 2 cores. `celld report --from docs/report/report.json` makes the page again from the saved
+# data alone, in a second.
 #
 # Fig. 7's three learning curves come from three training runs under runs/report/ (ignored by
 # git; removed and made afresh each time):
@@ -13,7 +15,8 @@
 #         BC+TD3 with the step-size agent, the run that makes policies/swift.safetensors
 #   flat  `celld train flat --seed 2026 --demonstrator expert`: the flat TD3 baseline, the run
 #         that makes policies/td3.safetensors (scripts/bundled-policies.sh)
-# Then `celld report` evaluates every table cell on 1000 episodes (evaluation seed 1).
+# Then `celld report` evaluates every table cell on 1000 episodes (evaluation seed 1) and keeps
+# the curves in report.json.
 # Everything is seeded: on the same code and policies the tables and curves come out the same
 # (report.json's wall_s figures are timings and differ).
 #
@@ -39,10 +42,11 @@ step td3-step-size env RAYON_NUM_THREADS=1 "$CELLD" train td3 --out "$RUNS/SW30"
     --robots 10 --td3-step-size --td3-step-fine-trust-region 0.6
 step td3-flat env RAYON_NUM_THREADS=1 "$CELLD" train flat --out "$RUNS/flat" --seed 2026 --demonstrator expert
 
-step report "$CELLD" report --episodes 1000 --out docs/report --made-by scripts/report.sh \
+step report "$CELLD" report --episodes 1000 --out docs/report --page docs/results.md \
+    --made-by scripts/report.sh \
     --curve "BC+TD3 (hierarchical)=$RUNS/T27/td3_curve.json" \
     --curve "TD3 without BC (hierarchical)=$RUNS/NB27/td3_curve.json" \
     --curve "TD3, one 6-DoF actor (td3)=$RUNS/flat/td3-flat_curve.json" \
     --curve "BC+TD3 with the step-size agent (hierarchical-swift-reference)=$RUNS/SW30/td3_curve.json"
 
-echo "== all done in $((SECONDS - total)) s; git diff docs/report shows what changed"
+echo "== all done in $((SECONDS - total)) s; git diff docs/results.md docs/report shows what changed"

@@ -110,7 +110,7 @@ struct EvalArgs {
     #[arg(long, value_enum, value_delimiter = ',')]
     without: Vec<Imperfection>,
     /// Run on cells drawn around --cell over the ranges the product is specified for, as
-    /// `celld train all --randomise-cells` draws them (docs/learning.md): each kept robot on a
+    /// `celld train all --randomise-cells` draws them (docs/learning-reference.md): each kept robot on a
     /// cell of its own (with --robots 0, each episode), its camera noise and calibration error
     /// drawn too. The draws come from --seed, so they are not the cells a training run saw.
     #[arg(long, conflicts_with_all = ["noise_scale", "calibration_scale"])]

@@ -16,33 +16,50 @@
 //!   fault (`sim::fault`).
 //! - Fig. 7: learning curves (return and success, moving averages) of the `--curve` files
 //!   written by `celld train td3` (td3_curve.json) and `celld train flat` (td3-flat_curve.json).
+//!
+//! It writes its data (report.json, every evaluation and curve) and the figures to `--out`, and
+//! the results page (docs/results.md) to `--page`, made from the data alone: `--from
+//! report.json` makes the page and figures again from saved data without running anything.
 
+mod data;
+mod page;
 mod rules;
+
+use data::{Cell, Curve, Report};
 
 use super::progress::Progress;
 use super::svg;
 use anyhow::{Context, Result, bail};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::learning::refine::EpisodeRecord;
-use assembly_cell::policy::eval::{self, EvalSummary};
+use assembly_cell::policy::eval;
 use assembly_cell::policy::learned::LearnedPolicy;
 use assembly_cell::policy::shield::RuleSelection;
 use assembly_cell::policy::{self, ControllerFactory};
 use assembly_cell::sim::randomise::CellRanges;
 use assembly_cell::sim::{EnvOptions, Fault, InitialConditions, Mismatch};
 use clap::Args;
-use serde::Serialize;
-use serde_json::json;
-use std::fmt::Write as _;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct ReportArgs {
     /// Episodes per table cell.
     #[arg(long, default_value_t = 1000)]
     episodes: usize,
+    /// The folder of the report's data (report.json) and figures.
     #[arg(long, default_value = "docs/report")]
     out: PathBuf,
+    /// The results page, made from the data alone.
+    #[arg(long, default_value = "docs/results.md")]
+    page: PathBuf,
+    /// Makes the page (and the figures, when the data hold the curves) again from a saved
+    /// report.json, beside which the figures go, running nothing.
+    #[arg(
+        long,
+        value_name = "REPORT_JSON",
+        conflicts_with_all = ["episodes", "out", "seed", "robots", "policies", "curves", "made_by"]
+    )]
+    from: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Robots each evaluation shares its episodes among, each kept and its drift remembered
@@ -60,14 +77,6 @@ pub struct ReportArgs {
     /// The script that ran this command (e.g. scripts/report.sh), named in the report's header.
     #[arg(long = "made-by", value_name = "SCRIPT")]
     made_by: Option<String>,
-}
-
-/// One table cell: a controller under one condition.
-#[derive(Serialize)]
-struct Cell {
-    controller: String,
-    condition: String,
-    summary: EvalSummary,
 }
 
 /// Makes a controller factory for a cell.
@@ -109,6 +118,16 @@ fn builtin(name: &'static str) -> Controller {
 }
 
 pub fn run(args: ReportArgs) -> Result<()> {
+    if let Some(from) = &args.from {
+        let report = Report::read(from)?;
+        let folder = from.parent().unwrap_or(Path::new("."));
+        let missing = write_page(&report, folder, &args.page)?;
+        for item in &missing {
+            eprintln!("not made again: {item}");
+        }
+        println!("{} written from {}", args.page.display(), from.display());
+        return Ok(());
+    }
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
@@ -125,7 +144,10 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let mut curves = Vec::new();
     for value in &args.curves {
         let (label, path) = labelled(value, "--curve")?;
-        curves.push((label, read_curve(&path)?));
+        curves.push(Curve {
+            label,
+            episodes: read_curve(&path)?,
+        });
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("--out {}: cannot create", args.out.display()))?;
@@ -198,11 +220,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         let (summary, _) =
             eval::evaluate(cell, options, args.episodes, args.seed, &factory, &|_| {});
         bar.inc(1);
-        Ok(Cell {
-            controller: controller.label.clone(),
-            condition: condition.to_string(),
-            summary,
-        })
+        Cell::measured(&controller.label, condition, &summary)
     };
     let mut robustness = Vec::new();
     for controller in &learned_policies {
@@ -256,12 +274,12 @@ pub fn run(args: ReportArgs) -> Result<()> {
             CellRanges::default(),
         ),
         (
-            format!("{drawn_robots} cells drawn around phi170, noise to ×4"),
-            CellRanges::drawn(Some(4.0)).expect("four times is within the noise range"),
+            format!("{drawn_robots} cells drawn around phi170, noise to ×{DRAWN_NOISE_UP_TO}"),
+            CellRanges::drawn(Some(DRAWN_NOISE_UP_TO)).expect("within the noise range"),
         ),
     ];
     let evaluate_drawn =
-        |controller: &Controller, (drawn_column, ranges): &(String, CellRanges)| -> Cell {
+        |controller: &Controller, (drawn_column, ranges): &(String, CellRanges)| -> Result<Cell> {
             bar.set_message(format!("{} · {drawn_column}", controller.label));
             let make = |cell: &CellConfig| {
                 (controller.factory)(cell).expect("Table 5 made this controller for a cell")()
@@ -282,11 +300,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
             );
             summary.cell = drawn_column.clone();
             bar.inc(1);
-            Cell {
-                controller: controller.label.clone(),
-                condition: drawn_column.clone(),
-                summary,
-            }
+            Cell::measured(&controller.label, drawn_column, &summary)
         };
     let mut generalisation = Vec::new();
     for controller in builtins.iter().chain(&learned_policies) {
@@ -301,7 +315,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
             )?);
         }
         for column in &drawn_columns {
-            generalisation.push(evaluate_drawn(controller, column));
+            generalisation.push(evaluate_drawn(controller, column)?);
         }
     }
     // The twin as the cell file says is Table 5's own evaluation (the same options and seed).
@@ -326,63 +340,127 @@ pub fn run(args: ReportArgs) -> Result<()> {
         }
     }
     bar.finish_and_clear();
-    let command = command_line(std::env::args().skip(1));
-    let tables = Tables {
-        robustness: &robustness,
-        table5: &table5,
-        table6: &table6,
-        generalisation: &generalisation,
-        mismatch: &mismatch,
-        without_rules: &without_rules,
+    let report = Report {
+        command: command_line(std::env::args().skip(1)),
+        made_by: args.made_by.clone(),
+        episodes: args.episodes,
+        seed: args.seed,
+        robots: Some(args.robots),
+        robustness,
+        table5,
+        table6,
+        generalisation,
+        mismatch,
+        without_rules: Some(without_rules),
+        curves: Some(curves),
     };
-    let markdown = render(&args, &command, &learned_policies, &tables, &curves);
-    std::fs::write(args.out.join("report.md"), markdown)?;
     std::fs::write(
         args.out.join("report.json"),
-        serde_json::to_vec_pretty(&json!({
-            "command": command,
-            "made_by": args.made_by,
-            "episodes": args.episodes,
-            "seed": args.seed,
-            "robustness": robustness,
-            "table5": table5,
-            "table6": table6,
-            "generalisation": generalisation,
-            "mismatch": mismatch,
-            "without_rules": without_rules,
-        }))?,
-    )?;
-    if !curves.is_empty() {
-        std::fs::write(
-            args.out.join("fig7_return.svg"),
-            svg::line_plot(
-                "Return per episode (moving average of 20)",
-                "episode",
-                "return",
-                &series(&curves, |r| r.return_),
-            ),
-        )?;
-        std::fs::write(
-            args.out.join("fig7_success.svg"),
-            svg::line_plot(
-                "Success (moving average of 20)",
-                "episode",
-                "success rate",
-                &series(&curves, |r| f64::from(u8::from(r.success))),
-            ),
-        )?;
-        std::fs::write(
-            args.out.join("fig7_steps.svg"),
-            svg::line_plot(
-                "Steps per episode (moving average of 20)",
-                "episode",
-                "steps",
-                &series(&curves, |r| f64::from(r.steps)),
-            ),
-        )?;
-    }
-    println!("report written to {}", args.out.display());
+        serde_json::to_vec_pretty(&report)?,
+    )
+    .with_context(|| format!("--out {}: cannot write report.json", args.out.display()))?;
+    // The page is made from the data as saved, so that `--from` makes the same page again.
+    let saved = Report::read(&args.out.join("report.json"))?;
+    write_page(&saved, &args.out, &args.page)?;
+    println!(
+        "report written to {} and {}",
+        args.out.display(),
+        args.page.display()
+    );
     Ok(())
+}
+
+/// One of Fig. 7's figures: its file's name, title, y label and the value plotted.
+type Figure = (
+    &'static str,
+    &'static str,
+    &'static str,
+    fn(&EpisodeRecord) -> f64,
+);
+
+/// Writes the page for `report` to `page`, and Fig. 7's figures to `folder` when the report
+/// holds learning curves; returns what the data could not make.
+fn write_page(report: &Report, folder: &Path, page: &Path) -> Result<Vec<String>> {
+    if let Some(curves) = report.curves.as_ref().filter(|c| !c.is_empty()) {
+        let figures: [Figure; 3] = [
+            (
+                "return",
+                "Return per episode (moving average of 20)",
+                "return",
+                |r| r.return_,
+            ),
+            (
+                "success",
+                "Success (moving average of 20)",
+                "success rate",
+                |r| f64::from(u8::from(r.success)),
+            ),
+            (
+                "steps",
+                "Steps per episode (moving average of 20)",
+                "steps",
+                |r| f64::from(r.steps),
+            ),
+        ];
+        for (name, title, y_label, value) in figures {
+            let file = folder.join(format!("fig7_{name}.svg"));
+            std::fs::write(
+                &file,
+                svg::line_plot(title, "episode", y_label, &series(curves, value)),
+            )
+            .with_context(|| format!("cannot write {}", file.display()))?;
+        }
+    }
+    let page_folder = page.parent().unwrap_or(Path::new(""));
+    let links = page::Links {
+        data: relative_folder(page_folder, folder)?,
+        docs: relative_folder(page_folder, Path::new("docs"))?,
+        data_file: folder.join("report.json").display().to_string(),
+        figures_exist: folder.join("fig7_return.svg").is_file(),
+    };
+    let (markdown, missing) = page::render(report, &links);
+    if let Some(parent) = page.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("--page {}: cannot create its folder", page.display()))?;
+    }
+    std::fs::write(page, markdown)
+        .with_context(|| format!("--page {}: cannot write", page.display()))?;
+    Ok(missing)
+}
+
+/// `to` as a link from a page in `from`, ending in `/` (empty when they are the same folder).
+fn relative_folder(from: &Path, to: &Path) -> Result<String> {
+    let absolute = |p: &Path| -> Result<Vec<String>> {
+        let p = if p.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            p
+        };
+        let mut parts: Vec<String> = Vec::new();
+        for part in std::path::absolute(p)
+            .with_context(|| format!("{}: no absolute path", p.display()))?
+            .components()
+        {
+            match part {
+                std::path::Component::Normal(name) => {
+                    parts.push(name.to_string_lossy().into_owned())
+                }
+                std::path::Component::ParentDir => {
+                    parts.pop();
+                }
+                _ => {}
+            }
+        }
+        Ok(parts)
+    };
+    let (from, to) = (absolute(from)?, absolute(to)?);
+    let shared = from.iter().zip(&to).take_while(|(a, b)| a == b).count();
+    let mut link = "../".repeat(from.len() - shared);
+    for part in &to[shared..] {
+        link.push_str(part);
+        link.push('/');
+    }
+    Ok(link)
 }
 
 /// The generalisation table's cells beyond phi170 and phi200, across the range a deployed policy
@@ -413,6 +491,9 @@ fn generalisation_cells() -> Result<Vec<CellConfig>> {
         .map(|(path, text)| Ok(CellConfig::parse(text, path)?))
         .collect()
 }
+
+/// The camera noise the last drawn-cells column draws up to, × the data sheet's.
+const DRAWN_NOISE_UP_TO: f64 = 4.0;
 
 /// Camera noise levels of Table 4, × the spec's point σ.
 const NOISE_LEVELS: [f64; 5] = [0.0, 0.5, 1.0, 2.0, 4.0];
@@ -455,11 +536,6 @@ fn mismatch_conditions() -> Vec<(String, Mismatch)> {
     noise.chain(calibration).chain(faults).collect()
 }
 
-/// Episodes of an evaluation that ended in contact.
-fn contacts(summary: &EvalSummary) -> usize {
-    summary.failures.get("contact").copied().unwrap_or(0)
-}
-
 fn read_curve(path: &PathBuf) -> Result<Vec<EpisodeRecord>> {
     #[derive(serde::Deserialize)]
     struct Curve {
@@ -474,43 +550,29 @@ fn read_curve(path: &PathBuf) -> Result<Vec<EpisodeRecord>> {
     Ok(curve.episodes)
 }
 
-fn series(
-    curves: &[(String, Vec<EpisodeRecord>)],
-    value: impl Fn(&EpisodeRecord) -> f64,
-) -> Vec<(String, Vec<(f64, f64)>)> {
+fn series(curves: &[Curve], value: fn(&EpisodeRecord) -> f64) -> Vec<(String, Vec<(f64, f64)>)> {
     curves
         .iter()
-        .map(|(label, records)| {
-            let values: Vec<f64> = records.iter().map(&value).collect();
-            let points = (0..values.len())
-                .map(|i| {
-                    let from = i.saturating_sub(19);
-                    let window = &values[from..=i];
-                    (
-                        records[i].episode as f64,
-                        window.iter().sum::<f64>() / window.len() as f64,
-                    )
-                })
-                .collect();
-            (label.clone(), points)
-        })
+        .map(
+            |Curve {
+                 label,
+                 episodes: records,
+             }| {
+                let values: Vec<f64> = records.iter().map(&value).collect();
+                let points = (0..values.len())
+                    .map(|i| {
+                        let from = i.saturating_sub(19);
+                        let window = &values[from..=i];
+                        (
+                            records[i].episode as f64,
+                            window.iter().sum::<f64>() / window.len() as f64,
+                        )
+                    })
+                    .collect();
+                (label.clone(), points)
+            },
+        )
         .collect()
-}
-
-/// The failures by reason, `reason count` comma-separated.
-fn failures(summary: &EvalSummary) -> String {
-    let counted: Vec<String> = summary
-        .failures
-        .iter()
-        .map(|(k, v)| format!("{k} {v}"))
-        .collect();
-    counted.join(", ")
-}
-
-fn steps(summary: &EvalSummary) -> String {
-    summary
-        .avg_steps
-        .map_or("-".to_string(), |s| format!("{s:.1}"))
 }
 
 /// The command as the report names it: `celld` and the arguments after the program's own path
@@ -543,241 +605,163 @@ fn shell_quoted(arg: &str) -> String {
     }
 }
 
-/// The evaluated table cells, for [`render`].
-struct Tables<'a> {
-    /// Tables 2–4.
-    robustness: &'a [Cell],
-    table5: &'a [Cell],
-    table6: &'a [Cell],
-    /// Every Table 5 controller on each of [`GENERALISATION_CELLS`].
-    generalisation: &'a [Cell],
-    mismatch: &'a [Cell],
-    /// Every learned policy on Table 5's episodes with no rule.
-    without_rules: &'a [Cell],
-}
-
-fn render(
-    args: &ReportArgs,
-    command: &str,
-    learned: &[Controller],
-    tables: &Tables,
-    curves: &[(String, Vec<EpisodeRecord>)],
-) -> String {
-    let Tables {
-        robustness,
-        table5,
-        table6,
-        generalisation,
-        mismatch,
-        without_rules,
-    } = *tables;
-    let mut md = String::new();
-    let _ = writeln!(md, "# The paper's tables on our twin\n");
-    let made_by = match &args.made_by {
-        Some(script) => format!("Made by `{script}`, which runs `{command}`"),
-        None => format!("Made by `{command}`"),
-    };
-    let _ = writeln!(
-        md,
-        "{made_by}: {} episodes per cell, evaluation seed {}, {}. Success is judged on the \
-         twin's true pose; avg steps count successful episodes only.\n",
-        args.episodes,
-        args.seed,
-        match args.robots {
-            0 => "a robot the cell has never seen in every episode".to_string(),
-            n => format!(
-                "the episodes shared among {n} robots, each kept and its drift remembered \
-                 from episode to episode as a cell in service does (docs/estimation.md §3a)"
-            ),
-        }
-    );
-    let find = |label: &str, condition: &str| {
-        robustness
-            .iter()
-            .find(|c| c.controller == label && c.condition == condition)
-            .map_or("-".to_string(), |c| {
-                format!("{:.3}", c.summary.success_rate)
-            })
-    };
-    let table = |md: &mut String, title: &str, columns: &[String]| {
-        let _ = writeln!(md, "## {title}\n");
-        let _ = writeln!(md, "| policy | {} |", columns.join(" | "));
-        let _ = writeln!(md, "|---|{}", "---|".repeat(columns.len()));
-        for controller in learned {
-            let row: Vec<String> = columns.iter().map(|c| find(&controller.label, c)).collect();
-            let _ = writeln!(md, "| {} | {} |", controller.label, row.join(" | "));
-        }
-        let _ = writeln!(md);
-    };
-    let columns = |items: &[&str]| items.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-    table(
-        &mut md,
-        "Table 2: success under pure position or orientation errors (rows: policies, i.e. training conditions)",
-        &columns(&["10 mm", "30 mm", "50 mm", "3 deg", "6 deg", "9 deg"]),
-    );
-    let combined: Vec<String> = [10, 30, 50]
-        .iter()
-        .flat_map(|mm| {
-            [3, 6, 9]
-                .iter()
-                .map(move |deg| format!("{mm} mm + {deg} deg"))
-        })
-        .collect();
-    table(&mut md, "Table 3: success under combined errors", &combined);
-    let noise: Vec<String> = NOISE_LEVELS.iter().map(|n| format!("noise ×{n}")).collect();
-    table(
-        &mut md,
-        "Table 4: success by camera noise (× the spec's point σ; initial 50 mm / 1 deg)",
-        &noise,
-    );
-    for (title, cells) in [
-        ("Table 5: every method, phi170 (simulation column)", table5),
-        ("Table 6: phi200 without retraining", table6),
-    ] {
-        let _ = writeln!(md, "## {title}\n");
-        let _ = writeln!(
-            md,
-            "| method | avg steps | avg reward | success | failures |"
-        );
-        let _ = writeln!(md, "|---|---|---|---|---|");
-        for c in cells {
-            let _ = writeln!(
-                md,
-                "| {} | {} | {:.1} | {:.3} | {} |",
-                c.controller,
-                steps(&c.summary),
-                c.summary.avg_reward,
-                c.summary.success_rate,
-                failures(&c.summary)
-            );
-        }
-        let _ = writeln!(md);
-    }
-    rules::render(&mut md, table5, without_rules);
-    let all: Vec<&Cell> = table5.iter().chain(table6).chain(generalisation).collect();
-    render_generalisation(&mut md, &all);
-    render_mismatch(&mut md, table5, mismatch);
-    if !curves.is_empty() {
-        let _ = writeln!(md, "## Fig. 7: learning curves\n");
-        let _ = writeln!(
-            md,
-            "![return](fig7_return.svg)\n\n![success](fig7_success.svg)\n\n![steps](fig7_steps.svg)\n"
-        );
-        for (label, records) in curves {
-            let last: Vec<&EpisodeRecord> = records.iter().rev().take(50).collect();
-            let success = last.iter().filter(|r| r.success).count() as f64 / last.len() as f64;
-            let _ = writeln!(
-                md,
-                "- {label}: {} episodes; success over the last {} training episodes {:.2}",
-                records.len(),
-                last.len(),
-                success
-            );
-        }
-    }
-    md
-}
-
-/// The generalisation table: a row per controller, a column per cell (in the order first met).
-fn render_generalisation(md: &mut String, cells: &[&Cell]) {
-    let _ = writeln!(
-        md,
-        "## Generalisation: every method on cells it was not trained on\n"
-    );
-    let _ = writeln!(
-        md,
-        "Each cell: success rate / avg steps (successful episodes), and the commonest failure \
-         when some episodes failed. phi170 is the cell the policies were trained on; the others \
-         differ in diameter, clearance, depth, holes, robot or camera placement (`cells/`). \
-         The last two columns run the same number of episodes on cells drawn over the ranges \
-         the product is specified for (`celld eval --randomise-cells`, docs/learning.md): ten \
-         episodes to a cell, each with its own camera noise (0.5–2×, as training draws it; \
-         then 0.5–4×, `--randomise-noise-up-to 4`) and calibration error (0–3×).\n"
-    );
-    let mut names: Vec<&str> = Vec::new();
-    let mut controllers: Vec<&str> = Vec::new();
-    for c in cells {
-        if !names.contains(&c.summary.cell.as_str()) {
-            names.push(&c.summary.cell);
-        }
-        if !controllers.contains(&c.controller.as_str()) {
-            controllers.push(&c.controller);
-        }
-    }
-    let _ = writeln!(md, "| method | {} |", names.join(" | "));
-    let _ = writeln!(md, "|---|{}", "---|".repeat(names.len()));
-    for controller in controllers {
-        let row: Vec<String> = names
-            .iter()
-            .map(|name| {
-                cells
-                    .iter()
-                    .find(|c| c.controller == controller && c.summary.cell == *name)
-                    .map_or("-".to_string(), |c| {
-                        let commonest = c.summary.failures.iter().max_by_key(|(_, n)| **n);
-                        match commonest {
-                            Some((reason, _)) => format!(
-                                "{:.3} / {} ({reason})",
-                                c.summary.success_rate,
-                                steps(&c.summary)
-                            ),
-                            None => {
-                                format!("{:.3} / {}", c.summary.success_rate, steps(&c.summary))
-                            }
-                        }
-                    })
-            })
-            .collect();
-        let _ = writeln!(md, "| {controller} | {} |", row.join(" | "));
-    }
-    let _ = writeln!(md);
-}
-
-/// The mismatch table: a row per Table 5 controller, a column per condition.
-fn render_mismatch(md: &mut String, table5: &[Cell], mismatch: &[Cell]) {
-    let _ = writeln!(
-        md,
-        "## Mismatch: every method, phi170, when the twin departs from the cell file\n"
-    );
-    let _ = writeln!(
-        md,
-        "Each cell: success rate / avg steps (successful episodes) / episodes ended by contact. \
-         Noise × the spec's point σ; calibration × the cell file's calibration error (the radius \
-         of the ball the robot's true joint centres are drawn in); a fault starts at a step drawn \
-         in 5..=35 and lasts to the end of the episode (docs/configuration.md). Noise ×1 and \
-         calibration ×1 are Table 5's phi170 column.\n"
-    );
-    let labels: Vec<String> = mismatch_conditions()
-        .into_iter()
-        .map(|(label, _)| label)
-        .collect();
-    let _ = writeln!(md, "| method | {} |", labels.join(" | "));
-    let _ = writeln!(md, "|---|{}", "---|".repeat(labels.len()));
-    for controller in table5.iter().map(|c| &c.controller) {
-        let row: Vec<String> = labels
-            .iter()
-            .map(|label| {
-                mismatch
-                    .iter()
-                    .find(|c| &c.controller == controller && &c.condition == label)
-                    .map_or("-".to_string(), |c| {
-                        format!(
-                            "{:.3} / {} / {}",
-                            c.summary.success_rate,
-                            steps(&c.summary),
-                            contacts(&c.summary)
-                        )
-                    })
-            })
-            .collect();
-        let _ = writeln!(md, "| {controller} | {} |", row.join(" | "));
-    }
-    let _ = writeln!(md);
-}
-
 #[cfg(test)]
 mod tests {
-    use super::{command_line, generalisation_cells, mismatch_conditions, shell_quoted};
+    use super::{
+        ReportArgs, command_line, generalisation_cells, mismatch_conditions, relative_folder, run,
+        shell_quoted,
+    };
+    use clap::Parser;
+    use std::path::Path;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: ReportArgs,
+    }
+
+    fn parsed(words: &[&str]) -> ReportArgs {
+        Cli::try_parse_from(std::iter::once("report").chain(words.iter().copied()))
+            .unwrap()
+            .args
+    }
+
+    fn read(path: &Path) -> String {
+        std::fs::read_to_string(path).unwrap()
+    }
+
+    #[test]
+    fn the_page_made_again_from_saved_data_is_the_page_the_run_wrote() {
+        let dir = tempfile::tempdir().unwrap();
+        let curve = dir.path().join("td3_curve.json");
+        let episodes: Vec<String> = (0..30)
+            .map(|i| {
+                format!(
+                    r#"{{"episode": {i}, "return": {}, "success": {}, "steps": {}}}"#,
+                    f64::from(i) * 0.5 - 3.0,
+                    i % 3 == 0,
+                    40 - i
+                )
+            })
+            .collect();
+        std::fs::write(
+            &curve,
+            format!(r#"{{"episodes": [{}]}}"#, episodes.join(",")),
+        )
+        .unwrap();
+        let out = dir.path().join("docs/report");
+        let page = dir.path().join("docs/results.md");
+        let (out_s, page_s) = (out.to_str().unwrap(), page.to_str().unwrap());
+        let curve_arg = format!("a curve={}", curve.display());
+        run(parsed(&[
+            "--episodes",
+            "1",
+            "--out",
+            out_s,
+            "--page",
+            page_s,
+            "--curve",
+            &curve_arg,
+        ]))
+        .unwrap();
+        let first = read(&page);
+        let figures: Vec<String> = ["return", "success", "steps"]
+            .iter()
+            .map(|name| read(&out.join(format!("fig7_{name}.svg"))))
+            .collect();
+        assert!(first.contains("## Table 5"), "{first}");
+        assert!(first.contains("](report/fig7_return.svg)"), "{first}");
+        assert!(
+            first.contains(
+                "- a curve: 30 episodes; success over the last 30 training episodes 0.33"
+            )
+        );
+        assert!(!first.contains("Not made again"), "{first}");
+
+        // Made again from the saved data, figures and all: the same page and figures.
+        for name in ["return", "success", "steps"] {
+            std::fs::remove_file(out.join(format!("fig7_{name}.svg"))).unwrap();
+        }
+        let again = dir.path().join("docs/again.md");
+        let json = out.join("report.json");
+        run(parsed(&[
+            "--from",
+            json.to_str().unwrap(),
+            "--page",
+            again.to_str().unwrap(),
+        ]))
+        .unwrap();
+        assert_eq!(read(&again), first);
+        for (name, figure) in ["return", "success", "steps"].iter().zip(&figures) {
+            assert_eq!(&read(&out.join(format!("fig7_{name}.svg"))), figure);
+        }
+
+        // Data saved before the report kept its curves and its runs without rules: the page
+        // says what it could not make, and the rest of it is the same.
+        let mut value: serde_json::Value = serde_json::from_str(&read(&json)).unwrap();
+        let object = value.as_object_mut().unwrap();
+        object.remove("curves");
+        object.remove("without_rules");
+        let older = dir.path().join("older");
+        std::fs::create_dir_all(&older).unwrap();
+        std::fs::write(older.join("report.json"), value.to_string()).unwrap();
+        let older_page = dir.path().join("docs/older.md");
+        run(parsed(&[
+            "--from",
+            older.join("report.json").to_str().unwrap(),
+            "--page",
+            older_page.to_str().unwrap(),
+        ]))
+        .unwrap();
+        let older_text = read(&older_page);
+        assert!(older_text.contains("Not made again from this report.json:"));
+        assert!(older_text.contains("Fig. 7's learning curves"));
+        assert!(older_text.contains("\"What the networks decide\""));
+        assert!(!older.join("fig7_return.svg").exists());
+        let section = |text: &str, title: &str| {
+            let from = text.find(title).unwrap();
+            text[from..].split("\n## ").next().unwrap().to_string()
+        };
+        for title in [
+            "## Table 2",
+            "## Table 5",
+            "## Generalisation",
+            "## Mismatch",
+        ] {
+            assert_eq!(section(&older_text, title), section(&first, title));
+        }
+    }
+
+    #[test]
+    fn saved_data_that_is_not_a_report_is_refused_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let json = dir.path().join("report.json");
+        std::fs::write(&json, r#"{"episodes": 3}"#).unwrap();
+        let page = dir.path().join("results.md");
+        let error = run(parsed(&[
+            "--from",
+            json.to_str().unwrap(),
+            "--page",
+            page.to_str().unwrap(),
+        ]))
+        .unwrap_err();
+        assert!(
+            format!("{error:#}").contains("not a report.json"),
+            "{error:#}"
+        );
+        assert!(!page.exists());
+        assert!(Cli::try_parse_from(["report", "--from", "r.json", "--episodes", "5"]).is_err());
+    }
+
+    #[test]
+    fn a_folder_is_linked_relative_to_the_page() {
+        let link = |from: &str, to: &str| relative_folder(Path::new(from), Path::new(to)).unwrap();
+        assert_eq!(link("docs", "docs/report"), "report/");
+        assert_eq!(link("docs", "docs"), "");
+        assert_eq!(link("", "docs"), "docs/");
+        assert_eq!(link("a/b", "c"), "../../c/");
+        assert_eq!(link("a/b/../c", "a/d"), "../d/");
+    }
 
     #[test]
     fn the_generalisation_cells_span_the_ranges_a_deployed_policy_must_cope_with() {

@@ -25,14 +25,14 @@ pub struct BcConfig {
     pub epochs: usize,
     /// Epochs of the orientation actor. Its samples are a hundredth of the position actor's
     /// (which are repeated), so its epochs are cheap, and it needs many: its loss falls from
-    /// 0.008 at 200 epochs to 0.0006 at 3000 (docs/learning.md).
+    /// 0.008 at 200 epochs to 0.0006 at 3000 (docs/learning-reference.md).
     pub orientation_epochs: usize,
     pub batch_size: usize,
     pub learning_rate: f64,
     /// The last `anneal_fraction` of each actor's epochs (rounded up) run at `learning_rate ×
     /// anneal_factor`. At a constant rate the weights end anywhere in SGD's noise around the
     /// optimum, and this policy is sensitive at the micrometre level: 3 epochs at 0.02 from the
-    /// bundled policy gave success 0.701, 3 at 0.002 gave 0.982 (docs/learning.md).
+    /// bundled policy gave success 0.701, 3 at 0.002 gave 0.982 (docs/learning-reference.md).
     pub anneal_fraction: f64,
     pub anneal_factor: f64,
     pub seed: u64,
@@ -44,13 +44,13 @@ pub struct BcConfig {
     /// in both actors' losses for samples with the tip in the bore (P_z ≥ `bore_from_pz_mm`).
     /// There the sideways corrections are hundredths of a millimetre, and unweighted the
     /// actor gets about half of each one wrong; at 30 its error there is a third as large
-    /// (docs/learning.md).
+    /// (docs/learning-reference.md).
     pub bore_lateral_weight: f64,
     /// P_z (mm) at the entrance of the bore: the tip is in the bore at or above it.
     pub bore_from_pz_mm: f64,
     /// Each position step at or past the standoff (P_z ≥ `insertion_from_pz_mm`) appears this
     /// many times in the position actor's samples: insertion needs micrometre precision that
-    /// an unweighted loss spends on the approach (docs/learning.md: success 0.050
+    /// an unweighted loss spends on the approach (docs/learning-reference.md: success 0.050
     /// with 1, 0.326 with 20).
     pub insertion_repeat: usize,
     /// P_z (mm) from which a position step counts as insertion: 1.5 mm above the entrance.
@@ -64,7 +64,7 @@ pub struct BcConfig {
     pub orientation_label_floor: Option<f64>,
     /// The same for the position actor. Its last step to the seat is a few hundredths of a
     /// millimetre, a hundredth of an insertion step: unweighted, the actor answered it with no
-    /// move and held just short of the depth tolerance (docs/learning.md).
+    /// move and held just short of the depth tolerance (docs/learning-reference.md).
     pub position_label_floor: Option<f64>,
 }
 
@@ -226,7 +226,7 @@ pub struct LossWeights {
 
 /// The orientation label floor of the recipe for any cell (`celld train policy`, and the
 /// service's training `for_any_cell`): it lifted the cross-cell policy on the cells it was not
-/// trained on (docs/learning.md § Why the defaults are what they are).
+/// trained on (docs/learning-reference.md § Why the defaults are what they are).
 pub const ACROSS_CELLS_ORIENTATION_LABEL_FLOOR: f64 = 0.2;
 
 /// Weights each sample's squared error by 1 / max(|label|∞, `floor`)², over the mean of that

@@ -10,11 +10,11 @@
 //! label is proportional to the move, a smooth function of the state that an MLP fits well;
 //! above it the actor gives a direction and the selector the size. A lower floor makes the
 //! selector size the fine moves, and a sigmoid output is not precise enough for that: the last
-//! insertion step overshot and tilts of 0.02–0.04° were never corrected (docs/learning.md:
+//! insertion step overshot and tilts of 0.02–0.04° were never corrected (docs/learning-reference.md:
 //! success 0.135 with floors of 0.05 / 0.98, 0.374 with 0.2 / 0.2). The position
 //! floor is 0.2 (1 mm); the orientation floor is 0.5 (0.45°), so that the selector gives every
 //! tilt correction below 0.45° the same step size and the orientation actor sizes them all
-//! (0.958 success in 50.9 steps against 0.935 in 58.1 with 0.2; docs/learning.md).
+//! (0.958 success in 50.9 steps against 0.935 in 58.1 with 0.2; docs/learning-reference.md).
 //!
 //! A hold (the expert's deliberate zero move, looking again before it goes in) is labelled with
 //! the scale [`HOLD_SCALE`] and no direction: the selector learns to wait, the actors never see
@@ -24,7 +24,7 @@
 //! get to them; a full 5 mm step comes back as 0.95 · 0.98 · 5 = 4.66 mm, which the policy reads
 //! as the full step (the shield's `full_step` rule). With the direction's limit at 0.98 and
 //! the scale's at 0.995, the policy stalled on the approach and at the bottom (success 0.953 in
-//! 64 steps against 0.988 in 48.7; docs/learning.md).
+//! 64 steps against 0.988 in 48.7; docs/learning-reference.md).
 
 use super::demos::{DemoEpisode, DemoStep};
 use crate::policy::Actor;
@@ -116,7 +116,7 @@ pub struct GoalScales {
 }
 
 impl Default for GoalScales {
-    /// The best of docs/learning.md's experiments with the normaliser.
+    /// The best of docs/learning-reference.md's experiments with the normaliser.
     fn default() -> Self {
         GoalScales {
             lateral_mm: 0.3,

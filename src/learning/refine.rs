@@ -39,7 +39,7 @@ use step_size::StepSizeConfig;
 
 /// The default trust region around the BC actors (tanh units, 6 µm of a full 3 mm step). Plain
 /// TD3 wrecks the BC policy within 20 episodes; regions of 0.001 to 0.01 keep it over 500
-/// episodes, and none of them raised its success measurably (docs/learning.md).
+/// episodes, and none of them raised its success measurably (docs/learning-reference.md).
 pub const TRUST_REGION: f64 = 0.002;
 
 /// Episodes of each validation by default. The refinement keeps its best validation, and
@@ -120,7 +120,7 @@ impl Default for RefineConfig {
 pub const PARALLEL_EPISODES: usize = 8;
 
 impl RefineConfig {
-    /// TD3 that learns beside its demonstrator (docs/learning.md): asymmetric critics,
+    /// TD3 that learns beside its demonstrator (docs/learning-reference.md): asymmetric critics,
     /// `demonstrations` episodes of `demonstrator` in the replay, critics pre-trained on them,
     /// and Q-filtered TD3+BC actor updates (within the trust region, if there is one).
     pub fn beside_demonstrator(self, demonstrator: &'static str, demonstrations: usize) -> Self {

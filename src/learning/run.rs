@@ -57,7 +57,7 @@ pub const LSTM_LEARNING_RATE: f64 = 5e-3;
 /// run `for_any_cell`): a few epochs from the last pass's policy at a low rate, with the
 /// position actor's errors counted relative to its labels as well as the orientation actor's.
 /// The first pass answers the last few hundredths of a millimetre to the seat with no move;
-/// the polish teaches it that move (docs/learning.md § Commands).
+/// the polish teaches it that move (docs/learning-reference.md § Training in detail).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Polish {
     /// [`BcConfig::position_label_floor`].

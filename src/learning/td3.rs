@@ -78,7 +78,7 @@ impl Td3Config {
     /// keeps the current one. Table 1's 0.2 (clipped at 0.1) suits exploration of the same
     /// order; next to the refinement's σ 0.002 it asks the critics for the value of moves up
     /// to fifty times further from the policy's than any explored. Matching it to the
-    /// exploration did not keep plain TD3 from undoing BC (docs/learning.md).
+    /// exploration did not keep plain TD3 from undoing BC (docs/learning-reference.md).
     pub fn with_target_noise(self, sigma: Option<f64>) -> Self {
         match sigma {
             Some(sigma) => Td3Config {

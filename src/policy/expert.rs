@@ -52,7 +52,7 @@ pub struct ExpertTuning {
     pub prestandoff_mm: f64,
     /// Human variability: each step's length is scaled by a factor drawn from [this, 1]. It
     /// also shows a learner the states around the demonstrator's path: a policy learnt from
-    /// `expert-careful` without it stalled near the bottom (docs/learning.md).
+    /// `expert-careful` without it stalled near the bottom (docs/learning-reference.md).
     pub min_step_factor: f64,
     /// What decides that the shaft may go in, and how long the insertion steps are.
     pub insertion_gate: InsertionGate,
@@ -114,7 +114,7 @@ impl ExpertTuning {
     /// The demonstrator `celld train` records by default (`expert-state-only`): it decides
     /// on the 12-value state and a count of holds alone: 5 holds at the standoff, insertion
     /// steps of at most 3 mm, no drift compensation. On the Table 5 protocol it is as good as
-    /// the default expert (docs/learning.md).
+    /// the default expert (docs/learning-reference.md).
     pub fn state_only() -> Self {
         ExpertTuning {
             insertion_gate: InsertionGate::Holds {
@@ -132,7 +132,7 @@ impl ExpertTuning {
     /// of at most 2 mm over the first 35 mm, 5 mm after. The filter learns the sideways drift
     /// per mm of insertion from the insertion itself, so a long step early in the bore carries
     /// a lateral error the clearance cannot take; the `expert` shortens those steps by the
-    /// filter's σ, this one by the depth it sees (docs/learning.md).
+    /// filter's σ, this one by the depth it sees (docs/learning-reference.md).
     pub fn careful() -> Self {
         ExpertTuning {
             insertion_gate: InsertionGate::Holds {
@@ -150,7 +150,7 @@ impl ExpertTuning {
     /// supervisor's bound on the probability of contact paces the insertion, not the
     /// demonstrator's holds: on the reference cell with 10 kept robots it succeeds 1.000 in
     /// 28.2 steps against `expert-careful`'s 41.9, and as often at twice and four times the
-    /// noise (docs/learning.md). Like `expert-careful` it decides on the 12-value state alone,
+    /// noise (docs/learning-reference.md). Like `expert-careful` it decides on the 12-value state alone,
     /// and with no count of holds the selector has less to learn.
     pub fn swift() -> Self {
         ExpertTuning {

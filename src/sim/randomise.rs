@@ -46,7 +46,7 @@ impl Default for CellRanges {
     /// away anywhere around the part, 0–35° above it; calibration error up to 3 times the cell
     /// file's. Camera noise is drawn up to twice the data sheet's, not four times: a policy
     /// that learnt from demonstrations drawn up to four times did worse at four times the noise
-    /// than one that learnt up to twice (docs/learning.md, § Across cells).
+    /// than one that learnt up to twice (docs/learning-reference.md, § Across cells).
     fn default() -> Self {
         CellRanges {
             bore_diameter_mm: (100.0, 250.0),

@@ -2,17 +2,14 @@
 //! with all its rules and with none (`--rules none`), and how often each rule changed its
 //! decisions (docs/policy-rules.md).
 
-use super::{Cell, failures, steps};
+use super::data::Cell;
+use super::page::{failures, steps};
 use assembly_cell::policy::shield::RuleId;
 use std::fmt::Write as _;
 
 /// `with_rules`: Table 5's cells (the learned policies among them are read); `without`: the
 /// same policies on the same episodes with no rule.
 pub(super) fn render(md: &mut String, with_rules: &[Cell], without: &[Cell]) {
-    let _ = writeln!(
-        md,
-        "## What the networks decide: every learned policy on phi170, with its rules and without\n"
-    );
     let _ = writeln!(
         md,
         "The rules between a learned policy's proposal and the supervisor (docs/policy-rules.md), \
@@ -38,6 +35,7 @@ pub(super) fn render(md: &mut String, with_rules: &[Cell], without: &[Cell]) {
         let changed = ruled
             .summary
             .rules
+            .as_ref()
             .map_or("-".to_string(), |r| format!("{:.3}", r.changed_share()));
         let _ = writeln!(
             md,
@@ -66,7 +64,8 @@ pub(super) fn render(md: &mut String, with_rules: &[Cell], without: &[Cell]) {
                 ruled
                     .summary
                     .rules
-                    .map_or("-".to_string(), |r| format!("{:.3}", r.share(id)))
+                    .as_ref()
+                    .map_or("-".to_string(), |r| format!("{:.3}", r.share(id.name())))
             })
             .collect();
         let _ = writeln!(md, "| `{id}` | {} |", shares.join(" | "));

@@ -68,7 +68,7 @@ pub enum TrainCommand {
 // `TrainingSettings::default()` (and `run::LSTM_BATCH_SIZE`, `run::LSTM_LEARNING_RATE`), so
 // `celld train all` and `POST /api/training` train alike; the others from the stage's own
 // configuration (`BcConfig`, `RefineConfig`, `Td3Config`, `GoalScales`). Why each default is
-// what it is: docs/learning.md. (Plain comments: a doc comment here would become the
+// what it is: docs/learning-reference.md. (Plain comments: a doc comment here would become the
 // subcommands' help.)
 #[derive(Args, Clone)]
 pub struct TrainArgs {
@@ -537,7 +537,7 @@ impl Run {
     /// The demonstrator's own episodes each run on a robot new to the cell, whatever
     /// --robots says: the episodes in which the cell learns its robot's drift show the
     /// learner more states around the demonstrator's path, and behaviour cloning from them
-    /// succeeded more often (docs/learning.md).
+    /// succeeded more often (docs/learning-reference.md).
     fn demonstration_options(&self) -> EnvOptions {
         EnvOptions {
             kept_robots: 0,

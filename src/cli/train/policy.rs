@@ -51,7 +51,7 @@ const DAGGER_ROUND: &[&str] = &["--dagger-actors-only"];
 /// actor's errors relative to its labels down to 0.3 as well as the orientation actor's, and
 /// one epoch of the selector at a tenth of its rate. The first pass answers the last few
 /// hundredths of a millimetre to the seat with no move; the polish teaches it that move. From
-/// scratch, the same weighting left a shallow Φ250 cell at 0.45 (docs/learning.md § Why the
+/// scratch, the same weighting left a shallow Φ250 cell at 0.45 (docs/learning-reference.md § Why the
 /// defaults are what they are).
 fn polish_flags() -> Vec<String> {
     [
@@ -94,7 +94,7 @@ fn polish_td3_flags() -> Vec<String> {
 /// DAgger rounds after the first pass by default: none. Since the demonstrator corrects the
 /// tilt to what each cell takes, one round has raised the deep, tight cells and lowered others,
 /// by how much depending on the episodes it drew (a shallow Φ250 cell from 0.944 to 0.908 in
-/// one run and to 0.420 in another; docs/learning.md § Commands).
+/// one run and to 0.420 in another; docs/learning-reference.md § Training in detail).
 const DEFAULT_DAGGER_ROUNDS: usize = 0;
 
 /// Flags a round sets itself; after `--` they would break the chain of rounds.

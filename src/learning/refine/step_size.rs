@@ -17,7 +17,7 @@
 //! ([`StepSizeConfig::progress_reward_per_mm`]). The paper's reward alone barely prefers a
 //! shorter episode: each step earns its positive r_P and r_O terms, which about make up for
 //! the success bonus coming a step later, and without the shaping the agent left the steps as
-//! they were (docs/learning.md).
+//! they were (docs/learning-reference.md).
 
 use crate::learning::td3::{Td3, Td3Config};
 use crate::sim::Observation;

@@ -1,5 +1,5 @@
 //! Rule 5: a position move goes no deeper than the seated depth the estimate sees, and no
-//! deeper at all right after a move refused for a predicted contact (docs/learning.md).
+//! deeper at all right after a move refused for a predicted contact (docs/learning-reference.md).
 //!
 //! Prevents: the demonstrators never go past the goal, so a cloned actor's answer there is
 //! arbitrary: one that overshot its last step by a few tenths of a millimetre kept pushing
