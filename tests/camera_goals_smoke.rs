@@ -5,7 +5,7 @@
 //! what `examples/camera_goals.rs` measures over 100 jobs. Without pyigtl or numpy the test
 //! says so and passes; with `CI` set it fails.
 
-#[path = "../examples/common/camera_jobs.rs"]
+#[path = "support/camera_jobs.rs"]
 mod camera_jobs;
 mod drivers_support;
 

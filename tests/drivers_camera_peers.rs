@@ -7,7 +7,7 @@
 //! set, a missing one fails it).
 
 // The tracker-relay job runner and its settings, shared with examples/camera_goals.rs.
-#[path = "../examples/common/camera_jobs.rs"]
+#[path = "support/camera_jobs.rs"]
 #[allow(dead_code)]
 mod camera_jobs;
 mod drivers_support;
