@@ -12,7 +12,6 @@ pub mod hierarchical;
 pub mod inputs;
 pub mod learned;
 pub mod mlp;
-pub mod paired;
 pub mod record;
 pub mod run;
 pub mod shield;

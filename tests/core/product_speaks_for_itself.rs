@@ -60,10 +60,19 @@ fn the_rule_catches_what_it_should_and_nothing_else() {
 }
 
 #[test]
-fn readme_docs_code_benches_and_dashboard_carry_no_development_history() {
+fn readme_docs_code_examples_and_dashboard_carry_no_development_history() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut files = Vec::new();
-    for place in ["README.md", "docs", "src", "benches", "static"] {
+    for place in [
+        "README.md",
+        "docs",
+        "src",
+        "benches",
+        "static",
+        "examples",
+        "research",
+        "scripts",
+    ] {
         files_under(&root.join(place), &mut files);
     }
     assert!(files.len() > 50, "only {} files found", files.len());

@@ -11,6 +11,7 @@ mod serve_support;
 
 mod api_conformance;
 mod dashboard_browser;
+mod examples_run;
 mod serve_api;
 mod serve_demonstrations;
 mod serve_faults;

@@ -1,6 +1,6 @@
 //! Jobs through the drivers against an in-process `celld twin-server`, and pyigtl as a live
-//! tracker in front of its camera: what `examples/camera_goals.rs` and
-//! `tests/camera_goals_smoke.rs` share.
+//! tracker in front of its camera: what `research/src/bin/camera_goals.rs`,
+//! `tests/camera_goals_smoke.rs` and `tests/drivers_camera_peers.rs` share.
 
 use assembly_cell::camera::StateEstimator;
 use assembly_cell::cell::CellBackend;
@@ -13,7 +13,7 @@ use assembly_cell::geometry::CellFrames;
 use assembly_cell::sim::InitialConditions;
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::Path;
 use std::process::{Child, Command, Stdio};
 
 /// One `expert` job of episode `seed` on `backend`, run to its end: the end, and each step's
@@ -92,8 +92,12 @@ impl PyTrackerRelay {
         let dir = tempfile::tempdir()?;
         let path = dir.path().join("tracker.json");
         std::fs::write(&path, spec.to_string())?;
-        let script =
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/drivers/pyigtl_tracker_relay.py");
+        // The repository's root: this crate's, or the one above it for `research/`.
+        let script = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .ancestors()
+            .map(|dir| dir.join("tests/drivers/pyigtl_tracker_relay.py"))
+            .find(|script| script.exists())
+            .ok_or_else(|| anyhow::anyhow!("tests/drivers/pyigtl_tracker_relay.py is not found"))?;
         let mut child = Command::new("python3")
             .arg(script)
             .arg(&path)

@@ -12,13 +12,12 @@
 //!   quarter;
 //! - a number of mm: no longer than that, until a move is made.
 //!
-//! `cargo run --release --example after_an_uncertain_refusal -- CONTROLLER MODE [NOISE
+//! `cargo run --release -p cell-research --bin after_an_uncertain_refusal -- CONTROLLER MODE [NOISE
 //! [EPISODES [SEEDS]]]` (built-in controllers; defaults 2, 4000, 30; SEEDS comma-separated,
 //! their episodes summed). 10 kept robots, as `celld eval`. For a controller that is not a
 //! learned policy `deployed` and `none` are the same.
 
-mod common;
-use common::arg;
+use cell_research::arg;
 
 use assembly_cell::collision::supervisor::VetoReason;
 use assembly_cell::config::cell::CellConfig;
@@ -111,7 +110,7 @@ fn main() -> anyhow::Result<()> {
     let episodes: usize = arg(4, 4000)?;
     let seeds_text: String = arg(5, "30".to_string())?;
     let mode = Mode::parse(&mode_text)?;
-    let seeds = common::seeds(&seeds_text)?;
+    let seeds = cell_research::seeds(&seeds_text)?;
     let cell = CellConfig::reference();
     let make_inner: policy::ControllerFactory = match policy::bundled_policy(&controller) {
         Some(bytes) if !matches!(mode, Mode::Deployed) => {

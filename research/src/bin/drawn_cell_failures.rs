@@ -3,7 +3,8 @@
 //! episode that ended in OUTCOME with the cell it ran on (bore, radial clearance, depth, holes,
 //! camera noise, calibration error, latency) and its true errors at the end.
 //!
-//! `cargo run --release --example drawn_cell_failures -- CONTROLLER SEED [OUTCOME] [NOISE]`
+//! `cargo run --release -p cell-research --bin drawn_cell_failures --
+//! CONTROLLER SEED [OUTCOME] [NOISE]`
 //! (built-in controllers; defaults `contact` and 4).
 
 use assembly_cell::config::cell::CellConfig;

@@ -17,14 +17,14 @@
 //!   (`policy::learned::no_nearer_than_the_standoff_mm`, decision 0043); for another
 //!   controller the same as `none`.
 //!
-//! `cargo run --release --example certainty_gate -- CONTROLLER MODE [NOISE [EPISODES [SEEDS
+//! `cargo run --release -p cell-research --bin certainty_gate --
+//! CONTROLLER MODE [NOISE [EPISODES [SEEDS
 //! [FAULT]]]]` (built-in controllers; defaults 4, 4000, 10, none; SEEDS comma-separated; FAULT a
 //! fault's code, as `celld eval --fault`). One JSON line per seed:
 //! successes, average steps of the successes and the failures by reason. 10 kept robots, as
 //! `celld eval`, on the reference cell.
 
-mod common;
-use common::arg;
+use cell_research::arg;
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::evaluate;
@@ -135,7 +135,7 @@ fn main() -> anyhow::Result<()> {
             tuning: ExpertTuning::default(),
         }) as Box<dyn Controller>
     };
-    for seed in common::seeds(&seeds)? {
+    for seed in cell_research::seeds(&seeds)? {
         let (summary, _) = evaluate(&cell, options, episodes, seed, &make, &|_| {});
         let line = json!({
             "controller": controller,

@@ -4,7 +4,8 @@
 //! needs the σ at the tip below 0.05 mm / 4.57 ≈ 0.011 mm (1e-4 per move, a perfectly centred
 //! estimate) before the shaft may reach the bottom (docs/estimation.md).
 //!
-//! `cargo run --release --example still_frames -- 4` (the camera's noise × its data sheet).
+//! `cargo run --release -p cell-research --bin still_frames --
+//! 4` (the camera's noise × its data sheet).
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;

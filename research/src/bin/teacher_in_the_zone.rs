@@ -5,7 +5,8 @@
 //! noise it splits the learned policies' gap to their demonstrators by zone and by part of the
 //! move (docs/experiments/2026-11-29-a1746d1-where-the-policies-lose-at-four-times-the-noise.md).
 //!
-//! `cargo run --release --example teacher_in_the_zone -- POLICY DEMONSTRATOR MODE [FROM [TO
+//! `cargo run --release -p cell-research --bin teacher_in_the_zone --
+//! POLICY DEMONSTRATOR MODE [FROM [TO
 //! [NOISE [EPISODES [SEED]]]]]` (built-in controllers; defaults 0.2, ∞, 4, 4000, 2). MODE:
 //! - `none`: the policy alone, as `celld eval` runs it;
 //! - `all`: the demonstrator's whole move;
@@ -19,8 +20,7 @@
 //! The demonstrator runs beside the policy on the same observations, with its own state (its
 //! holds at the standoff), reset with the same seed. 10 kept robots, as `celld eval`.
 
-mod common;
-use common::arg;
+use cell_research::arg;
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;

@@ -4,7 +4,8 @@
 //! prints how often each rule changed a decision at all; this counts, per zone, the changes of
 //! more than a tenth of the network's move.
 //!
-//! `cargo run --release --example what_the_network_decides -- CONTROLLER [NOISE] [EPISODES]
+//! `cargo run --release -p cell-research --bin what_the_network_decides --
+//! CONTROLLER [NOISE] [EPISODES]
 //! [SEED]` (a bundled hierarchical policy, by default `hierarchical-swift-cells`, or a
 //! hierarchical policy file; defaults 1, 1000, 1; the reference cell, 10 kept robots, as
 //! `celld eval`). Per zone (the tip more than 5 mm above the entrance, within 5 mm of it, in
@@ -13,8 +14,7 @@
 //! of the network's own move (sideways, along the axis, a turn), beside the mean size of the
 //! network's move and of the one made.
 
-mod common;
-use common::{arg, zone};
+use cell_research::{arg, zone};
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{

@@ -3,12 +3,11 @@
 //! frames, or in episodes of a controller (10 kept robots, as `celld eval`), with how many of
 //! the episodes that failed were suspected at some step (docs/estimation.md §1a).
 //!
-//! `cargo run --release --example shift_watch -- still [NOISE] [EPISODES] [FRAMES]`
-//! `cargo run --release --example shift_watch -- CONTROLLER [NOISE] [EPISODES] [SEED]`
+//! `cargo run --release -p cell-research --bin shift_watch -- still [NOISE] [EPISODES] [FRAMES]`
+//! `cargo run --release -p cell-research --bin shift_watch -- CONTROLLER [NOISE] [EPISODES] [SEED]`
 //! (defaults: noise 1, 400 still episodes of 300 frames; 4000 episodes of a controller, seed 1).
 
-mod common;
-use common::arg;
+use cell_research::arg;
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::geometry::Move;

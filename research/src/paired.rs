@@ -8,7 +8,7 @@
 //! equally likely to be either's: the sign test on those counts is exact, and is the most a
 //! run of episodes can say about which fails less.
 
-use super::eval::EpisodeReport;
+use assembly_cell::policy::eval::EpisodeReport;
 
 /// How two controllers' failures fall on the episodes they both ran.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -123,7 +123,7 @@ pub fn sign_test_p(a: usize, b: usize) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::PoseErrors;
+    use assembly_cell::sim::PoseErrors;
     use proptest::prelude::*;
 
     fn report(index: usize, outcome: &str) -> EpisodeReport {

@@ -6,14 +6,13 @@
 //! (mm) as the controller saw them; the move asked (mm); the supervisor's refusal; and the
 //! step's `detected` field (docs/estimation.md §5).
 //!
-//! `cargo run --release --example failure_trace -- CONTROLLER NOISE OUTCOME SEEDS [STEPS
+//! `cargo run --release -p cell-research --bin failure_trace --
+//! CONTROLLER NOISE OUTCOME SEEDS [STEPS
 //! [FAULT [CELL [CALIBRATION [ROBOTS]]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a
 //! fault's code, as `celld eval --fault`, or `none`; CELL a cell file or `reference`;
 //! CALIBRATION the calibration error's multiple, as `celld eval --calibration-scale`, default
 //! 1; ROBOTS the kept robots, as `celld eval --robots`, default 10, 0 for a new robot every
 //! episode).
-
-mod common;
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
@@ -96,8 +95,8 @@ fn main() -> anyhow::Result<()> {
     let noise_scale: f64 = noise
         .parse()
         .map_err(|_| anyhow::anyhow!("NOISE: {noise}"))?;
-    let seeds = common::seeds(seeds)?;
-    let keep: usize = common::arg(5, 40)?;
+    let seeds = cell_research::seeds(seeds)?;
+    let keep: usize = cell_research::arg(5, 40)?;
     let fault: Option<Fault> = match args.get(6).map(String::as_str) {
         None | Some("none") => None,
         Some(code) => Some(code.parse()?),
@@ -106,8 +105,8 @@ fn main() -> anyhow::Result<()> {
         None | Some("reference") => CellConfig::reference(),
         Some(path) => CellConfig::load(Path::new(path))?,
     };
-    let calibration_scale: f64 = common::arg(8, 1.0)?;
-    let kept_robots: u32 = common::arg(9, 10)?;
+    let calibration_scale: f64 = cell_research::arg(8, 1.0)?;
+    let kept_robots: u32 = cell_research::arg(9, 10)?;
     let options = EnvOptions {
         noise_scale,
         calibration_scale,

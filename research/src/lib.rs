@@ -1,11 +1,8 @@
-//! What the measuring examples share: reading their positional arguments, and the zones they
-//! count steps in.
+//! The research diagnostics' shared code: reading their positional arguments, the
+//! controllers they name, the zones they count steps in, and two controllers' failures paired
+//! episode by episode ([`paired`]). The programs are in `src/bin/` (README.md lists them).
 
-// Each example uses what it needs of this module.
-#![allow(dead_code)]
-
-#[path = "../../tests/support/camera_jobs.rs"]
-pub mod camera_jobs;
+pub mod paired;
 
 /// Positional argument `index` (1 is the first), or `default` when it is not given; an error
 /// naming it when it is given but does not parse.
@@ -55,7 +52,7 @@ pub fn controller_factory(
     }
 }
 
-/// Where the tip is by the estimate, as the examples count steps: `far` more than 5 mm above
+/// Where the tip is by the estimate, as the diagnostics count steps: `far` more than 5 mm above
 /// the bore's entrance, `entrance` within 5 mm of it, `bore` more than 0.2 mm in.
 pub fn zone(observation: &assembly_cell::sim::Observation) -> &'static str {
     match observation.insertion_mm() {

@@ -4,15 +4,15 @@
 //! episodes that succeed. With the
 //! camera's noise four times its data sheet's, it shows what the waits for certainty cost.
 //!
-//! `cargo run --release --example where_the_steps_go -- CONTROLLER [NOISE] [EPISODES] [SEED]
+//! `cargo run --release -p cell-research --bin where_the_steps_go --
+//! CONTROLLER [NOISE] [EPISODES] [SEED]
 //! [DEADBAND [FROM_MM]]` (a built-in controller or a policy file; defaults 1, 1000, 1). With
 //! DEADBAND = k, a move that goes deeper once the tip is FROM_MM (default 0.2) into the bore
 //! (negative: above it) loses its sideways part when that part is under k × the estimate's
 //! sideways σ, keeping the steering against the learned drift: the controller waits for the
 //! estimate rather than centring on its noise. 10 kept robots, as `celld eval`.
 
-mod common;
-use common::{arg, zone};
+use cell_research::{arg, zone};
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
@@ -62,7 +62,7 @@ fn main() -> anyhow::Result<()> {
     let deadband: f64 = arg(5, 0.0)?;
     let from_mm: f64 = arg(6, 0.2)?;
     let cell = CellConfig::reference();
-    let make = common::controller_factory(&controller, &cell)?;
+    let make = cell_research::controller_factory(&controller, &cell)?;
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,

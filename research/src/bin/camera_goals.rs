@@ -10,18 +10,22 @@
 //!   the driver takes streaming. Against the same seeds in the in-process twin. Goal: no job
 //!   ends `camera_shift`, successes and steps as the twin's.
 //!
-//! `cargo run --release --example camera_goals -- [streaming|tracker|both] [JOBS] [IDLE_S]`
+//! `cargo run --release -p cell-research --bin camera_goals --
+//! [streaming|tracker|both] [JOBS] [IDLE_S]`
 //! (defaults: both, 100, 10).
 
-mod common;
-use common::arg;
-use common::camera_jobs::{PyTrackerRelay, driver_settings, run_job};
+// Shared with tests/camera_goals_smoke.rs and tests/drivers_camera_peers.rs.
+#[path = "../../../tests/support/camera_jobs.rs"]
+mod camera_jobs;
+
+use camera_jobs::{PyTrackerRelay, driver_settings, run_job};
 
 use assembly_cell::cell::job::JobStatus;
 use assembly_cell::cell::{CellBackend, DriverBackend, TwinBackend};
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::drivers::twin_server::{TwinServer, TwinServerOptions};
 use assembly_cell::sim::judge::Judge;
+use cell_research::arg;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 

@@ -9,10 +9,8 @@
 //!   one, then the robot is replaced without the cell being told, and the first episode on the
 //!   new one is counted: named `robot_changed`, and how it ended.
 //!
-//! `cargo run --release --example robot_changed -- kept expert 1 3 1,2,3,4`
-//! `cargo run --release --example robot_changed -- swapped 1 1 100`
-
-mod common;
+//! `cargo run --release -p cell-research --bin robot_changed -- kept expert 1 3 1,2,3,4`
+//! `cargo run --release -p cell-research --bin robot_changed -- swapped 1 1 100`
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
@@ -106,7 +104,7 @@ fn swapped(cell: &CellConfig, options: EnvOptions, pairs: u64) -> anyhow::Result
 
 fn main() -> anyhow::Result<()> {
     let usage = "usage: robot_changed kept CONTROLLER NOISE CALIBRATION SEEDS | swapped NOISE CALIBRATION PAIRS";
-    let mode: String = common::arg(1, String::new())?;
+    let mode: String = cell_research::arg(1, String::new())?;
     let cell = CellConfig::reference();
     let with = |noise_scale, calibration_scale| EnvOptions {
         noise_scale,
@@ -116,14 +114,14 @@ fn main() -> anyhow::Result<()> {
     };
     match mode.as_str() {
         "kept" => {
-            let name: String = common::arg(2, "expert".to_string())?;
-            let options = with(common::arg(3, 1.0)?, common::arg(4, 1.0)?);
-            let seeds = common::seeds(&common::arg(5, "1".to_string())?)?;
+            let name: String = cell_research::arg(2, "expert".to_string())?;
+            let options = with(cell_research::arg(3, 1.0)?, cell_research::arg(4, 1.0)?);
+            let seeds = cell_research::seeds(&cell_research::arg(5, "1".to_string())?)?;
             kept(&cell, options, &name, &seeds)
         }
         "swapped" => {
-            let options = with(common::arg(2, 1.0)?, common::arg(3, 1.0)?);
-            swapped(&cell, options, common::arg(4, 100)?)
+            let options = with(cell_research::arg(2, 1.0)?, cell_research::arg(3, 1.0)?);
+            swapped(&cell, options, cell_research::arg(4, 100)?)
         }
         _ => anyhow::bail!(usage),
     }

@@ -3,19 +3,17 @@
 //! cell, 10 kept robots) for every seed, pairs the episodes, and counts those both failed and
 //! those each failed alone, by how they ended. McNemar's exact test on the episodes failed
 //! alone says whether the difference is beyond chance, and how few failures of its own a
-//! candidate would need for a lead there (`policy::paired`). Steps are compared over the
+//! candidate would need for a lead there (`cell_research::paired`). Steps are compared over the
 //! episodes both succeeded in.
 //!
-//! `cargo run --release --example paired_failures -- REFERENCE CANDIDATES NOISE SEEDS
+//! `cargo run --release -p cell-research --bin paired_failures -- REFERENCE CANDIDATES NOISE SEEDS
 //! [EPISODES]` (CANDIDATES comma-separated built-in names or policy files; SEEDS
 //! comma-separated, each a seed or a range such as `62-189`; EPISODES per seed, default 4000).
 
-mod common;
-
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{EpisodeReport, evaluate};
-use assembly_cell::policy::paired::{PairedFailures, paired_episodes};
 use assembly_cell::sim::EnvOptions;
+use cell_research::paired::{PairedFailures, paired_episodes};
 use std::collections::BTreeMap;
 
 /// One candidate's pairing with the reference over every seed so far.
@@ -56,21 +54,26 @@ impl Tally {
 }
 
 fn main() -> anyhow::Result<()> {
-    let reference_name: String = common::arg(1, "expert".to_string())?;
-    let candidates: String = common::arg(2, "hierarchical-swift-cells".to_string())?;
-    let noise_scale: f64 = common::arg(3, 2.0)?;
-    let seeds = common::seeds(&common::arg(4, "62".to_string())?)?;
-    let episodes: usize = common::arg(5, 4000)?;
+    let reference_name: String = cell_research::arg(1, "expert".to_string())?;
+    let candidates: String = cell_research::arg(2, "hierarchical-swift-cells".to_string())?;
+    let noise_scale: f64 = cell_research::arg(3, 2.0)?;
+    let seeds = cell_research::seeds(&cell_research::arg(4, "62".to_string())?)?;
+    let episodes: usize = cell_research::arg(5, 4000)?;
     let cell = CellConfig::reference();
     let options = EnvOptions {
         noise_scale,
         kept_robots: 10,
         ..EnvOptions::from_cell(&cell)
     };
-    let reference = common::controller_factory(&reference_name, &cell)?;
+    let reference = cell_research::controller_factory(&reference_name, &cell)?;
     let candidates = candidates
         .split(',')
-        .map(|name| Ok((name.to_string(), common::controller_factory(name, &cell)?)))
+        .map(|name| {
+            Ok((
+                name.to_string(),
+                cell_research::controller_factory(name, &cell)?,
+            ))
+        })
         .collect::<anyhow::Result<Vec<_>>>()?;
     let mut tallies: Vec<Tally> = candidates.iter().map(|_| Tally::default()).collect();
     for &seed in &seeds {
