@@ -18,7 +18,7 @@
 # runs/bundled/ (ignored by git); a stage refuses to overwrite an earlier run's output, so
 # delete runs/bundled to start over.
 #
-# It takes about an hour and three quarters of CPU (docs/learning.md § The bundled policies, and the
+# It takes about an hour and three quarters of CPU (docs/learning-reference.md § The bundled policies, and the
 # records it links, have the runs' times).
 # Run it from anywhere inside the repository:  scripts/bundled-policies.sh
 source "$(dirname "$0")/common.sh"

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes the PyTorch-layout policy fixture of tests/policy_file.rs (docs/design.md §6).
+"""Writes the PyTorch-layout policy fixture of tests/core/policy_file.rs (docs/design.md §6).
 
   tests/fixtures/policy_small.safetensors      seeded random weights, H = 16, D = 32, f32, the
                                                PyTorch state_dict names and the §6 metadata

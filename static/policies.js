@@ -91,7 +91,7 @@ export async function render(page) {
       id: 'policy',
       title: 'Upload a policy',
       action: 'Upload',
-      note: 'A safetensors file in the layout of docs/design.md §6, or a flat TD3 policy (docs/learning.md) (PyTorch state_dict names, f32). It is checked before anything is stored, and registered as a candidate: evaluate it, then activate it.',
+      note: 'A safetensors file in the layout of docs/design.md §6, or a flat TD3 policy (docs/learning-reference.md) (PyTorch state_dict names, f32). It is checked before anything is stored, and registered as a candidate: evaluate it, then activate it.',
       accept: '.safetensors',
       extension: /\.safetensors$/,
       path: '/api/policies',

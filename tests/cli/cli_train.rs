@@ -729,7 +729,7 @@ fn train_policy_is_train_all_then_a_dagger_round_that_teaches_the_actors_then_a_
     let run = celld(&args);
     assert!(run.status.success(), "{}", stderr(&run));
 
-    // The same three runs by hand, with the recipe docs/learning.md states.
+    // The same three runs by hand, with the recipe docs/learning-reference.md states.
     let recipe = [
         "--seed",
         "7",

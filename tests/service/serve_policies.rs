@@ -409,7 +409,7 @@ fn the_gate_holds_unless_forced_with_a_reason() {
     let dir = tempfile::tempdir().unwrap();
     let server = Server::start(dir.path(), &[]);
     let admin = server.admin.clone();
-    // The flat TD3 baseline never succeeds (docs/learning.md): evaluated, it is below the gate.
+    // The flat TD3 baseline never succeeds (docs/learning-reference.md): evaluated, it is below the gate.
     let (_, td3) = upload(&server, &admin, "td3", TD3);
     let id = td3["id"].as_i64().unwrap();
 

@@ -1,6 +1,6 @@
 //! Jobs through the drivers against an in-process `celld twin-server`, and pyigtl as a live
 //! tracker in front of its camera: what `research/src/bin/camera_goals.rs`,
-//! `tests/camera_goals_smoke.rs` and `tests/drivers_camera_peers.rs` share.
+//! `tests/drivers/camera_goals_smoke.rs` and `tests/drivers/drivers_camera_peers.rs` share.
 
 use assembly_cell::camera::StateEstimator;
 use assembly_cell::cell::CellBackend;

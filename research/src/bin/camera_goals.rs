@@ -14,7 +14,7 @@
 //! [streaming|tracker|both] [JOBS] [IDLE_S]`
 //! (defaults: both, 100, 10).
 
-// Shared with tests/camera_goals_smoke.rs and tests/drivers_camera_peers.rs.
+// Shared with tests/drivers/camera_goals_smoke.rs and tests/drivers/drivers_camera_peers.rs.
 #[path = "../../../tests/support/camera_jobs.rs"]
 mod camera_jobs;
 
