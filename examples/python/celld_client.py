@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """A client of `celld serve` driven by its OpenAPI description (Python standard library only).
 
-It fetches /api/openapi.json and calls the operations it describes by tag and operationId
-(`jobs.list`, `jobs.create`, `policies.read`...: an operationId is unique within its tag),
+It fetches /api/openapi.json and calls the operations it describes by operationId
+(`jobs_list`, `jobs_create`, `policies_read`...),
 sending each parameter where the description puts it (path or query) and the body as the
 operation takes it (JSON, or raw bytes for an upload). A refusal raises ApiError with the
 status and the service's own `code` and `message`.
@@ -62,14 +62,13 @@ class Celld:
         self.operations = {}
         for path, item in self.description["paths"].items():
             for method, spec in item.items():
-                tag = (spec.get("tags") or ["default"])[0]
-                name = f"{tag}.{spec['operationId']}"
+                name = spec["operationId"]
                 if name in self.operations:
                     raise ValueError(f"the description names {name} twice")
                 self.operations[name] = Operation(method, path, spec)
 
     def call(self, name, body=None, **parameters):
-        """Calls operation `name` (`tag.operationId`) with its path and query parameters and
+        """Calls operation `name` (its operationId) with its path and query parameters and
         an optional body (JSON-able, or bytes for an upload); answers the decoded JSON, or the
         text of a non-JSON answer."""
         operation = self.operations.get(name)
@@ -171,10 +170,10 @@ def main():
                 print(f"{name:28} {operation.method:6} {operation.path}  {operation.summary()}")
             return 0
 
-        me = celld.call("service.me")
+        me = celld.call("service_me")
         print(f"signed in as `{me['name']}` ({me['role']}); "
               f"{len(celld.operations)} operations described")
-        page = celld.call("jobs.list", limit=5)
+        page = celld.call("jobs_list", limit=5)
         print(f"{len(page['items'])} of {page['total']} jobs")
         for job in page["items"]:
             print("  " + job_line(job))
@@ -182,16 +181,16 @@ def main():
         request = {"controller": args.controller}
         if args.seed is not None:
             request["seed"] = args.seed
-        job = celld.call("jobs.create", request)
+        job = celld.call("jobs_create", request)
         print(f"job {job['id']} {job['status']}: controller {job['controller']}, seed {job['seed']}")
         status = job["status"]
         while job["status"] in ("queued", "running"):
             time.sleep(0.2)
-            job = celld.call("jobs.read", id=job["id"])
+            job = celld.call("jobs_read", id=job["id"])
             if job["status"] != status:
                 status = job["status"]
                 print(f"job {job['id']} {status}")
-        steps = celld.call("jobs.read_steps", id=job["id"])["items"]
+        steps = celld.call("jobs_read_steps", id=job["id"])["items"]
         reason = f" ({job['failure_reason']})" if job.get("failure_reason") else ""
         reward = "-" if job.get("reward") is None else f"{job['reward']:.3f}"
         print(f"job {job['id']} ended {job['status']}{reason}: {job['steps']} steps "

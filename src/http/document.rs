@@ -80,7 +80,10 @@ pub fn base() -> Document {
 }
 
 /// Completes the collected document: every operation answers its refusals and failures with
-/// an [`ErrorBody`], whatever the status (`default`), besides the statuses it lists.
+/// an [`ErrorBody`], whatever the status (`default`), besides the statuses it lists; and its
+/// operationId is its tag and handler (`jobs_list`, `policies_read`), since OpenAPI asks it
+/// to be unique across the document and generated clients name their functions by it, while
+/// each resource names its handlers `list`, `read`, `cancel`.
 pub fn finish(mut document: Document) -> Document {
     let error = ResponseBuilder::new()
         .description("Refused or failed: the status and the body say why")
@@ -99,6 +102,12 @@ pub fn finish(mut document: Document) -> Document {
             &mut item.put,
         ];
         for operation in operations.into_iter().flatten() {
+            if let (Some(tag), Some(id)) = (
+                operation.tags.as_ref().and_then(|tags| tags.first()),
+                operation.operation_id.as_ref(),
+            ) {
+                operation.operation_id = Some(format!("{tag}_{id}"));
+            }
             operation
                 .responses
                 .responses
@@ -119,14 +128,22 @@ pub fn browser() -> Router<Context> {
 #[cfg(test)]
 mod tests {
     #[test]
-    fn every_operation_has_an_error_answer_and_every_reference_resolves() {
+    fn every_operation_has_an_error_answer_and_its_own_id_and_every_reference_resolves() {
         let text = crate::http::openapi_json();
         let value: serde_json::Value = serde_json::from_str(text).unwrap();
         let schemas = &value["components"]["schemas"];
         let mut operations = 0;
+        let mut ids = std::collections::BTreeSet::new();
         for (path, item) in value["paths"].as_object().unwrap() {
             for (method, operation) in item.as_object().unwrap() {
                 operations += 1;
+                let id = operation["operationId"].as_str().unwrap();
+                let tag = operation["tags"][0].as_str().unwrap();
+                assert!(
+                    id.starts_with(&format!("{tag}_")),
+                    "{method} {path}: {id} is not named by its tag {tag}"
+                );
+                assert!(ids.insert(id.to_string()), "{method} {path}: {id} twice");
                 assert!(
                     operation["responses"]["default"].is_object(),
                     "{method} {path} has no default (error) response"
