@@ -576,3 +576,133 @@ pub fn run(args: CheckArgs) -> Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn summary(successes: usize, episodes: usize, avg_steps: Option<f64>) -> EvalSummary {
+        EvalSummary {
+            controller: "c".into(),
+            cell: "phi170".into(),
+            episodes,
+            seed: 1,
+            init_pos_mm: 50.0,
+            init_ori_deg: 1.0,
+            noise_scale: 1.0,
+            calibration_scale: 1.0,
+            fault: None,
+            kept_robots: DEFAULT_KEPT_ROBOTS,
+            successes,
+            success_rate: successes as f64 / episodes as f64,
+            avg_steps,
+            avg_steps_all: 0.0,
+            avg_reward: 0.0,
+            avg_vetoes: 0.0,
+            failures: BTreeMap::new(),
+            rules: None,
+            drawn_cells: None,
+            wall_s: 0.0,
+        }
+    }
+
+    #[test]
+    fn each_bound_holds_on_its_side_and_misses_on_the_other() {
+        // Hand-computed: expert 397 of 400 (0.9925); within 0.01 is 0.9825 or more.
+        let expert = summary(397, 400, Some(30.0));
+        let cases = [
+            (
+                Bound::BehindExpertAtMost(0.01),
+                summary(394, 400, Some(1.0)),
+                true,
+            ),
+            (
+                Bound::BehindExpertAtMost(0.01),
+                summary(392, 400, Some(1.0)),
+                false,
+            ),
+            (
+                Bound::NoMoreFailuresThanExpert,
+                summary(397, 400, None),
+                true,
+            ),
+            (
+                Bound::NoMoreFailuresThanExpert,
+                summary(396, 400, None),
+                false,
+            ),
+            (Bound::SuccessAtLeast(0.62), summary(31, 50, None), true),
+            (Bound::SuccessAtLeast(0.62), summary(30, 50, None), false),
+            (Bound::StepsAtMost(40.0), summary(1, 1, Some(40.0)), true),
+            (Bound::StepsAtMost(40.0), summary(1, 1, Some(40.5)), false),
+            (Bound::StepsAtMost(40.0), summary(0, 1, None), false),
+            (Bound::FewerStepsThanExpert, summary(1, 1, Some(29.9)), true),
+            (
+                Bound::FewerStepsThanExpert,
+                summary(1, 1, Some(30.0)),
+                false,
+            ),
+            (Bound::StaysInWorkspace, summary(1, 2, None), true),
+        ];
+        for (bound, learned, held) in cases {
+            let measured = bound.judge(&learned, Some(&expert));
+            assert_eq!(measured.held, held, "{bound:?}: {}", measured.text);
+        }
+        let mut out = summary(1, 2, None);
+        out.failures.insert("motion_limit".into(), 1);
+        let measured = Bound::StaysInWorkspace.judge(&out, None);
+        assert!(!measured.held);
+        assert_eq!(measured.text, "out of workspace 1 = 0");
+        let none = Bound::StepsAtMost(40.0).judge(&summary(0, 3, None), None);
+        assert_eq!(none.text, "steps - (no success) ≤ 40");
+    }
+
+    #[test]
+    fn only_picks_goals_and_policies_and_refuses_other_names() {
+        let names = |only: &[&str]| -> Vec<(&str, Vec<&str>)> {
+            let only: Vec<String> = only.iter().map(|s| s.to_string()).collect();
+            let chosen = selected(&only).unwrap();
+            chosen.into_iter().map(|(g, p)| (g.name, p)).collect()
+        };
+        assert_eq!(names(&[]).len(), GOALS.len());
+        assert_eq!(
+            names(&["reference-fast"]),
+            [("reference-fast", SWIFT.to_vec())]
+        );
+        assert_eq!(
+            names(&["hierarchical-cells"]),
+            ["deep-tight", "reference", "noise-x2", "noise-x4"]
+                .map(|g| (g, vec!["hierarchical-cells"]))
+        );
+        assert_eq!(
+            names(&["noise-x4", "hierarchical-swift-cells"]),
+            [("noise-x4", vec!["hierarchical-swift-cells"])]
+        );
+        let err = |only: &[&str]| {
+            let only: Vec<String> = only.iter().map(|s| s.to_string()).collect();
+            selected(&only).err().unwrap().to_string()
+        };
+        assert!(err(&["expert"]).contains("--only expert: not a goal"));
+        assert!(err(&["reference-fast", "hierarchical-cells"]).contains("no goal checks those"));
+    }
+
+    /// Evaluations are kept by condition name: a name stands for one cell and camera, and
+    /// the smoke check runs fewer episodes than the full one.
+    #[test]
+    fn a_condition_name_is_one_cell_and_noise_and_the_smoke_runs_fewer_episodes() {
+        let conditions: Vec<&Condition> = GOALS.iter().flat_map(|g| g.conditions).collect();
+        for a in &conditions {
+            assert!(a.smoke.episodes < a.full.episodes, "{}", a.name);
+            a.cell.load().unwrap();
+            for b in conditions.iter().filter(|b| b.name == a.name) {
+                let origin = |c: &Condition| match c.cell {
+                    Cell::Reference => "reference",
+                    Cell::File(origin, _) => origin,
+                };
+                assert_eq!(origin(a), origin(b), "{}", a.name);
+                assert_eq!(a.noise_scale, b.noise_scale, "{}", a.name);
+                assert!(a.full == b.full && a.smoke == b.smoke, "{}", a.name);
+            }
+        }
+    }
+}
