@@ -492,7 +492,7 @@ pub fn run(args: CheckArgs) -> Result<()> {
                 "{bar:40} {pos}/{len} episodes  {elapsed} (eta {eta})  {msg}",
             );
             for (name, condition) in to_run {
-                progress.set_message(format!("{} {name} on {}", goal.name, condition.name));
+                progress.set_message(format!("{name} on {}", condition.name));
                 let cell = condition.cell.load()?;
                 let factory: ControllerFactory = match replaced.get(name) {
                     Some((_, policy)) => {
@@ -684,6 +684,23 @@ mod tests {
         };
         assert!(err(&["expert"]).contains("--only expert: not a goal"));
         assert!(err(&["reference-fast", "hierarchical-cells"]).contains("no goal checks those"));
+    }
+
+    #[test]
+    fn the_help_names_every_goal_and_policy() {
+        use clap::{CommandFactory, Parser};
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            check: CheckArgs,
+        }
+        let help = Cli::command().render_long_help().to_string();
+        for goal in GOALS {
+            assert!(help.contains(goal.name), "{}: {help}", goal.name);
+            for policy in goal.policies {
+                assert!(help.contains(policy), "{policy}: {help}");
+            }
+        }
     }
 
     /// Evaluations are kept by condition name: a name stands for one cell and camera, and
