@@ -53,6 +53,8 @@ enum Command {
     /// Manage API tokens.
     #[command(subcommand)]
     Token(cli::serve::TokenCommand),
+    /// Check the bundled policies against their goals; exits non-zero when one is missed.
+    Check(cli::check::CheckArgs),
 }
 
 #[derive(Subcommand)]
@@ -189,6 +191,7 @@ fn main() -> ExitCode {
         Command::Token(command) => cli::serve::token(command),
         Command::TwinServer(args) => cli::twin_server::run(args),
         Command::Latency(args) => cli::latency::run(args),
+        Command::Check(args) => cli::check::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,5 +1,6 @@
 //! Subcommands of `celld` beyond `eval` and `policy`.
 
+pub mod check;
 pub mod latency;
 pub mod progress;
 pub mod report;
