@@ -1,13 +1,23 @@
 //! The research diagnostics' shared code: reading their positional arguments, the
 //! controllers they name, the zones they count steps in, and two controllers' failures paired
-//! episode by episode ([`paired`]). The programs are in `src/bin/` (README.md lists them).
+//! episode by episode ([`paired`]). The programs are in `src/programs/`, run by name through
+//! the one binary, `src/main.rs` (README.md lists them).
 
 pub mod paired;
 
-/// Positional argument `index` (1 is the first), or `default` when it is not given; an error
-/// naming it when it is given but does not parse.
+/// The command line as the program named by the first argument sees it: its own arguments
+/// after the binary's path, as if it were a binary of its own.
+pub fn args() -> impl Iterator<Item = String> {
+    let mut all = std::env::args();
+    let binary = all.next();
+    all.next(); // the program's name
+    binary.into_iter().chain(all)
+}
+
+/// Positional argument `index` (1 is the first) of the program, or `default` when it is not
+/// given; an error naming it when it is given but does not parse.
 pub fn arg<T: std::str::FromStr>(index: usize, default: T) -> anyhow::Result<T> {
-    match std::env::args().nth(index) {
+    match args().nth(index) {
         None => Ok(default),
         Some(text) => text.parse().map_err(|_| {
             anyhow::anyhow!(

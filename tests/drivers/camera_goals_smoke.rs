@@ -2,7 +2,7 @@
 //! twin-server's camera streaming at 30 Hz: jobs through its TRANSFORM frames, taken streaming,
 //! end as the same jobs in the in-process twin, the twin-server's truth agrees with each
 //! verdict (judged on the estimate), and none confirms a camera shift. A short run of
-//! what `cargo run --release -p cell-research --bin camera_goals` measures over 100 jobs. Without pyigtl or numpy the test
+//! what `cargo run --release -p cell-research -- camera_goals` measures over 100 jobs. Without pyigtl or numpy the test
 //! says so and passes; with `CI` set it fails.
 
 use crate::camera_jobs;

@@ -3,7 +3,7 @@
 //! episode that ended in OUTCOME with the cell it ran on (bore, radial clearance, depth, holes,
 //! camera noise, calibration error, latency) and its true errors at the end.
 //!
-//! `cargo run --release -p cell-research --bin drawn_cell_failures --
+//! `cargo run --release -p cell-research -- drawn_cell_failures
 //! CONTROLLER SEED [OUTCOME] [NOISE]`
 //! (built-in controllers; defaults `contact` and 4).
 
@@ -15,8 +15,8 @@ use assembly_cell::sim::randomise::{CellRanges, cell_for};
 const EPISODES: usize = 4000;
 const ROBOTS: u32 = 400;
 
-fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().collect();
+pub fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = cell_research::args().collect();
     let (Some(name), Some(seed)) = (args.get(1), args.get(2)) else {
         anyhow::bail!("usage: drawn_cell_failures CONTROLLER SEED [OUTCOME] [NOISE]");
     };

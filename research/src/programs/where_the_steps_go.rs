@@ -4,7 +4,7 @@
 //! episodes that succeed. With the
 //! camera's noise four times its data sheet's, it shows what the waits for certainty cost.
 //!
-//! `cargo run --release -p cell-research --bin where_the_steps_go --
+//! `cargo run --release -p cell-research -- where_the_steps_go
 //! CONTROLLER [NOISE] [EPISODES] [SEED]
 //! [DEADBAND [FROM_MM]]` (a built-in controller or a policy file; defaults 1, 1000, 1). With
 //! DEADBAND = k, a move that goes deeper once the tip is FROM_MM (default 0.2) into the bore
@@ -54,7 +54,7 @@ impl Controller for Deadband {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let controller: String = arg(1, "expert".to_string())?;
     let noise_scale: f64 = arg(2, 1.0)?;
     let episodes: usize = arg(3, 1000)?;

@@ -6,7 +6,7 @@
 //! (mm) as the controller saw them; the move asked (mm); the supervisor's refusal; and the
 //! step's `detected` field (docs/estimation.md §5).
 //!
-//! `cargo run --release -p cell-research --bin failure_trace --
+//! `cargo run --release -p cell-research -- failure_trace
 //! CONTROLLER NOISE OUTCOME SEEDS [STEPS
 //! [FAULT [CELL [CALIBRATION [ROBOTS]]]]]` (SEEDS comma-separated; STEPS default 40; FAULT a
 //! fault's code, as `celld eval --fault`, or `none`; CELL a cell file or `reference`;
@@ -84,8 +84,8 @@ fn traces(
         .collect()
 }
 
-fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().collect();
+pub fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = cell_research::args().collect();
     let usage = "usage: failure_trace CONTROLLER NOISE OUTCOME SEEDS [STEPS [FAULT [CELL [CALIBRATION [ROBOTS]]]]]";
     let (Some(name), Some(noise), Some(wanted), Some(seeds)) =
         (args.get(1), args.get(2), args.get(3), args.get(4))

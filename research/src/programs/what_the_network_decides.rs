@@ -4,7 +4,7 @@
 //! prints how often each rule changed a decision at all; this counts, per zone, the changes of
 //! more than a tenth of the network's move.
 //!
-//! `cargo run --release -p cell-research --bin what_the_network_decides --
+//! `cargo run --release -p cell-research -- what_the_network_decides
 //! CONTROLLER [NOISE] [EPISODES]
 //! [SEED]` (a bundled hierarchical policy, by default `hierarchical-swift-cells`, or a
 //! hierarchical policy file; defaults 1, 1000, 1; the reference cell, 10 kept robots, as
@@ -103,7 +103,7 @@ impl Controller for Watched {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let controller: String = arg(1, "hierarchical-swift-cells".to_string())?;
     let noise_scale: f64 = arg(2, 1.0)?;
     let episodes: usize = arg(3, 1000)?;

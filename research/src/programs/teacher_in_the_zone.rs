@@ -5,7 +5,7 @@
 //! noise it splits the learned policies' gap to their demonstrators by zone and by part of the
 //! move (docs/experiments/2026-11-29-a1746d1-where-the-policies-lose-at-four-times-the-noise.md).
 //!
-//! `cargo run --release -p cell-research --bin teacher_in_the_zone --
+//! `cargo run --release -p cell-research -- teacher_in_the_zone
 //! POLICY DEMONSTRATOR MODE [FROM [TO
 //! [NOISE [EPISODES [SEED]]]]]` (built-in controllers; defaults 0.2, ∞, 4, 4000, 2). MODE:
 //! - `none`: the policy alone, as `celld eval` runs it;
@@ -89,7 +89,7 @@ impl Controller for InTheZone {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let learned: String = arg(1, "hierarchical-cells".to_string())?;
     let teacher: String = arg(2, "expert-careful".to_string())?;
     let mode: String = arg(3, "none".to_string())?;

@@ -10,7 +10,7 @@
 //!   the driver takes streaming. Against the same seeds in the in-process twin. Goal: no job
 //!   ends `camera_shift`, successes and steps as the twin's.
 //!
-//! `cargo run --release -p cell-research --bin camera_goals --
+//! `cargo run --release -p cell-research -- camera_goals
 //! [streaming|tracker|both] [JOBS] [IDLE_S]`
 //! (defaults: both, 100, 10).
 
@@ -267,7 +267,7 @@ fn tracker(cell: &CellConfig, jobs: u64) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let which: String = arg(1, "both".to_string())?;
     let jobs: u64 = arg(2, 100)?;
     let idle_s: f64 = arg(3, 10.0)?;

@@ -4,7 +4,7 @@
 //! needs the σ at the tip below 0.05 mm / 4.57 ≈ 0.011 mm (1e-4 per move, a perfectly centred
 //! estimate) before the shaft may reach the bottom (docs/estimation.md).
 //!
-//! `cargo run --release -p cell-research --bin still_frames --
+//! `cargo run --release -p cell-research -- still_frames
 //! 4` (the camera's noise × its data sheet).
 
 use assembly_cell::config::cell::CellConfig;
@@ -26,8 +26,8 @@ fn sideways_sd_mm(c: &Matrix6<f64>, z_mm: f64) -> f64 {
     largest_sd(&(j * c * j.transpose()))
 }
 
-fn main() {
-    let noise_scale: f64 = std::env::args()
+pub fn main() {
+    let noise_scale: f64 = cell_research::args()
         .nth(1)
         .and_then(|a| a.parse().ok())
         .unwrap_or(1.0);

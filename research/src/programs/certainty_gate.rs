@@ -17,7 +17,7 @@
 //!   (`policy::learned::no_nearer_than_the_standoff_mm`, decision 0043); for another
 //!   controller the same as `none`.
 //!
-//! `cargo run --release -p cell-research --bin certainty_gate --
+//! `cargo run --release -p cell-research -- certainty_gate
 //! CONTROLLER MODE [NOISE [EPISODES [SEEDS
 //! [FAULT]]]]` (built-in controllers; defaults 4, 4000, 10, none; SEEDS comma-separated; FAULT a
 //! fault's code, as `celld eval --fault`). One JSON line per seed:
@@ -89,13 +89,16 @@ impl Controller for Gated {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let controller: String = arg(1, "hierarchical-cells".to_string())?;
     let mode: String = arg(2, "none".to_string())?;
     let noise_scale: f64 = arg(3, 4.0)?;
     let episodes: usize = arg(4, 4000)?;
     let seeds: String = arg(5, "10".to_string())?;
-    let fault: Option<Fault> = std::env::args().nth(6).map(|c| c.parse()).transpose()?;
+    let fault: Option<Fault> = cell_research::args()
+        .nth(6)
+        .map(|c| c.parse())
+        .transpose()?;
     let (at_the_entrance, in_the_bore) = match mode.as_str() {
         "none" => (None, false),
         "entrance" => (Some(Entrance::NearlyHold), false),

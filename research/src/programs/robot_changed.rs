@@ -9,8 +9,8 @@
 //!   one, then the robot is replaced without the cell being told, and the first episode on the
 //!   new one is counted: named `robot_changed`, and how it ended.
 //!
-//! `cargo run --release -p cell-research --bin robot_changed -- kept expert 1 3 1,2,3,4`
-//! `cargo run --release -p cell-research --bin robot_changed -- swapped 1 1 100`
+//! `cargo run --release -p cell-research -- robot_changed kept expert 1 3 1,2,3,4`
+//! `cargo run --release -p cell-research -- robot_changed swapped 1 1 100`
 
 use assembly_cell::config::cell::CellConfig;
 use assembly_cell::policy::eval::{episode_seed, robot_blocks, run_episode_watched};
@@ -102,7 +102,7 @@ fn swapped(cell: &CellConfig, options: EnvOptions, pairs: u64) -> anyhow::Result
     Ok(())
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let usage = "usage: robot_changed kept CONTROLLER NOISE CALIBRATION SEEDS | swapped NOISE CALIBRATION PAIRS";
     let mode: String = cell_research::arg(1, String::new())?;
     let cell = CellConfig::reference();

@@ -6,7 +6,7 @@
 //! candidate would need for a lead there (`cell_research::paired`). Steps are compared over the
 //! episodes both succeeded in.
 //!
-//! `cargo run --release -p cell-research --bin paired_failures -- REFERENCE CANDIDATES NOISE SEEDS
+//! `cargo run --release -p cell-research -- paired_failures REFERENCE CANDIDATES NOISE SEEDS
 //! [EPISODES]` (CANDIDATES comma-separated built-in names or policy files; SEEDS
 //! comma-separated, each a seed or a range such as `62-189`; EPISODES per seed, default 4000).
 
@@ -53,7 +53,7 @@ impl Tally {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let reference_name: String = cell_research::arg(1, "expert".to_string())?;
     let candidates: String = cell_research::arg(2, "hierarchical-swift-cells".to_string())?;
     let noise_scale: f64 = cell_research::arg(3, 2.0)?;

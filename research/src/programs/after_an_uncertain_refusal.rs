@@ -12,7 +12,7 @@
 //!   quarter;
 //! - a number of mm: no longer than that, until a move is made.
 //!
-//! `cargo run --release -p cell-research --bin after_an_uncertain_refusal -- CONTROLLER MODE [NOISE
+//! `cargo run --release -p cell-research -- after_an_uncertain_refusal CONTROLLER MODE [NOISE
 //! [EPISODES [SEEDS]]]` (built-in controllers; defaults 2, 4000, 30; SEEDS comma-separated,
 //! their episodes summed). 10 kept robots, as `celld eval`. For a controller that is not a
 //! learned policy `deployed` and `none` are the same.
@@ -103,7 +103,7 @@ impl Controller for AfterARefusal {
     }
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let controller: String = arg(1, "hierarchical-reference".to_string())?;
     let mode_text: String = arg(2, "deployed".to_string())?;
     let noise_scale: f64 = arg(3, 2.0)?;

@@ -3,8 +3,8 @@
 //! frames, or in episodes of a controller (10 kept robots, as `celld eval`), with how many of
 //! the episodes that failed were suspected at some step (docs/estimation.md §1a).
 //!
-//! `cargo run --release -p cell-research --bin shift_watch -- still [NOISE] [EPISODES] [FRAMES]`
-//! `cargo run --release -p cell-research --bin shift_watch -- CONTROLLER [NOISE] [EPISODES] [SEED]`
+//! `cargo run --release -p cell-research -- shift_watch still [NOISE] [EPISODES] [FRAMES]`
+//! `cargo run --release -p cell-research -- shift_watch CONTROLLER [NOISE] [EPISODES] [SEED]`
 //! (defaults: noise 1, 400 still episodes of 300 frames; 4000 episodes of a controller, seed 1).
 
 use cell_research::arg;
@@ -87,7 +87,7 @@ fn run(
         .collect()
 }
 
-fn main() -> anyhow::Result<()> {
+pub fn main() -> anyhow::Result<()> {
     let what: String = arg(1, "still".to_string())?;
     let noise_scale: f64 = arg(2, 1.0)?;
     let cell = CellConfig::reference();

@@ -1,0 +1,13 @@
+//! `celld serve` as its clients meet it: the HTTP API, its conformance to its own OpenAPI
+//! description, the dashboard in a browser, the client examples, policies, demonstrations,
+//! training, recovery and faults. Each test starts its own server on its own SQLite file.
+
+mod api_conformance;
+mod dashboard_browser;
+mod examples_run;
+mod serve_api;
+mod serve_demonstrations;
+mod serve_faults;
+mod serve_policies;
+mod serve_recovery;
+mod serve_training;
