@@ -2,6 +2,13 @@
 //! description, the dashboard in a browser, the client examples, policies, demonstrations,
 //! training, recovery and faults. Each test starts its own server on its own SQLite file.
 
+#[path = "../support/browser.rs"]
+mod browser_support;
+#[path = "../support/drivers.rs"]
+mod drivers_support;
+#[path = "../support/serve.rs"]
+mod serve_support;
+
 mod api_conformance;
 mod dashboard_browser;
 mod examples_run;
