@@ -1,5 +1,6 @@
 //! `celld check --smoke`: every goal the bundled policies are held to, on a few episodes each
-//! (the full check, `celld check`, runs them on the episodes of docs/learning.md's figures:
+//! (the full check, `celld check`, runs them on the episodes of the figures in
+//! docs/experiments/2026-12-07-81d9a69-where-the-policies-stand.md:
 //! docs/policy-rules.md, "Checking the goals"), and the check missing a goal, naming it and
 //! exiting non-zero, when a policy that cannot meet it stands in for a bundled one.
 

@@ -55,7 +55,8 @@ pub(super) struct Condition {
     pub(super) cell: Cell,
     /// The camera's point noise × its data sheet's.
     pub(super) noise_scale: f64,
-    /// The full check's episodes: docs/learning.md's figures are measured on these seeds.
+    /// The full check's episodes: the figures of
+    /// docs/experiments/2026-12-07-81d9a69-where-the-policies-stand.md are measured on these seeds.
     pub(super) full: Episodes,
     /// `--smoke`'s: a seed where every goal on this condition holds with the bundled files.
     pub(super) smoke: Episodes,
@@ -208,7 +209,8 @@ const DEEP_TIGHT: &[Condition] = &[
     ),
 ];
 
-/// The reference cell, on the first of the seeds of docs/learning.md's reference-cell figures.
+/// The reference cell, on the first of the seeds of the reference-cell figures of
+/// docs/experiments/2026-12-07-81d9a69-where-the-policies-stand.md.
 const REFERENCE: &[Condition] = &[Condition {
     name: "phi170",
     cell: Cell::Reference,
@@ -224,7 +226,8 @@ const REFERENCE: &[Condition] = &[Condition {
 }];
 
 /// The reference cell under a camera `noise_scale` times as noisy, on the first of the seeds
-/// of docs/learning.md's table at four times the noise, on more episodes.
+/// of the table at four times the noise in
+/// docs/experiments/2026-12-07-81d9a69-where-the-policies-stand.md, on more episodes.
 const fn noisy(name: &'static str, noise_scale: f64, smoke: Episodes) -> Condition {
     Condition {
         name,
@@ -240,8 +243,9 @@ const fn noisy(name: &'static str, noise_scale: f64, smoke: Episodes) -> Conditi
 
 /// Every goal `celld check` checks.
 ///
-/// Under the noisy camera, the leads docs/learning.md measures are a few thousandths at four
-/// times the noise (over 24,000 to 72,000 episodes) and none at twice; on 2000 episodes one
+/// Under the noisy camera, the leads
+/// docs/experiments/2026-12-07-81d9a69-where-the-policies-stand.md measures are a few thousandths
+/// at four times the noise (over 24,000 to 72,000 episodes) and none at twice; on 2000 episodes one
 /// seed's paired difference moves by about 0.005 at four times, so a policy is held within
 /// 0.01 of `expert` there and to fewer steps (10–20 fewer today), and at twice within 0.001,
 /// two episodes, where `expert` fails about one in 20,000.
