@@ -21,7 +21,7 @@ use crate::http;
 use crate::metrics::Metrics;
 use crate::policy;
 use crate::storage::tokens::{self, Role};
-use crate::storage::{Db, jobs, policies, recorder, training};
+use crate::storage::{Db, jobs, machine, policies, recorder, training};
 use crate::workflows::queue::WorkQueue;
 use crate::workflows::{self, Context, TelemetryMessage};
 use anyhow::{Context as _, Result, bail};
@@ -93,6 +93,9 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         None
     };
     let estop_latched = db.cell_flag("estop").await?;
+    let counters = machine::counters(&db)
+        .await
+        .context("reading the production counters")?;
 
     let metrics = Metrics::default();
     let (telemetry, _) = broadcast::channel(settings.control.telemetry_buffer);
@@ -117,6 +120,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             max_stale_steps: settings.control.max_stale_steps,
         },
         estop_latched,
+        counters,
         cpu: placement.as_ref().map(|p| p.control),
     };
     let cpu = placement.as_ref().map(|p| p.control);
@@ -322,6 +326,7 @@ fn event_sink(
                     })),
                 )
             }
+            CellEvent::Machine(update) => ("machine", serde_json::to_string(update)),
         };
         if telemetry.receiver_count() > 0
             && let Ok(data) = data

@@ -1,5 +1,5 @@
-// The live cell: e-stop state, the running job as it happens (from the telemetry stream), and,
-// for operators, starting a job, cancel, e-stop and reset.
+// The live cell: its PackML state and counters, e-stop state, the running job as it happens
+// (from the telemetry stream), and, for operators, starting a job, cancel, stop, e-stop and reset.
 
 import { StepPlots } from './charts.js';
 import {
@@ -10,6 +10,8 @@ export async function render(page) {
   const plots = new StepPlots('live');
   const estopState = h('div', { id: 'estop-state', class: 'estop-state', text: '…' });
   const driverState = h('div', { id: 'driver-state', class: 'estop-state', text: '…' });
+  const machineState = h('div', { id: 'machine-state', class: 'big', text: '…' });
+  const machineFacts = h('div', { id: 'machine-facts' });
   const cellFacts = h('div', { id: 'cell-facts' });
   const jobLine = h('div', { id: 'live-job', class: 'big', text: 'No job yet' });
   const jobFacts = h('div', { id: 'live-job-facts' });
@@ -20,7 +22,7 @@ export async function render(page) {
   page.main.append(
     h('h1', { text: 'Live cell' }),
     h('div', { class: 'grid' },
-      h('section', { class: 'card' }, h('h2', { text: 'Cell' }), estopState, driverState, cellFacts),
+      h('section', { class: 'card' }, h('h2', { text: 'Cell' }), machineState, machineFacts, estopState, driverState, cellFacts),
       h('section', { class: 'card' }, h('h2', { text: 'Current job' }), jobLine, jobFacts),
       controls),
     h('div', { style: 'height:1rem' }),
@@ -69,18 +71,33 @@ export async function render(page) {
     driverState.className = `estop-state ${latch ? 'latched' : 'clear'}`;
     driverState.dataset.latched = Boolean(latch);
     const latched = cell.estop_latched || Boolean(latch);
+    const machine = cell.machine;
+    const counters = machine.counters;
+    machineState.textContent = machine.state;
+    machineState.dataset.state = machine.state;
+    const mean = counters.good ? counters.total_cycle_time_s / counters.good : null;
+    machineFacts.replaceChildren(facts([
+      ['stop reason', machine.stop_reason ? `${machine.stop_reason.message} (${machine.stop_reason.code})` : 'none'],
+      ['parts', `${counters.processed} processed, ${counters.good} good, ${counters.defective} defective`],
+      ['defective by reason', Object.entries(counters.defective_by_reason).map(([k, v]) => `${k} ${v}`).join(', ') || 'none'],
+      ['cycle time', mean === null ? '–' : `last ${fmt(counters.last_cycle_time_s, 2)} s, mean ${fmt(mean, 2)} s`],
+      ['e-stops', counters.estops],
+    ]));
+    const stopped = ['Stopped', 'Aborted'].includes(machine.state);
     const pose = cell.last_pose;
     cellFacts.replaceChildren(facts([
       ['cell', cell.cell],
       ['backend', cell.backend],
       ['running', cell.current_job ?? 'none'],
       ['queue', cell.queue.length ? cell.queue.join(', ') : 'empty'],
-      ['accepting jobs', cell.accepting_jobs ? 'yes' : `no (${latched ? 'latched' : 'shutting down'})`],
+      ['accepting jobs', cell.accepting_jobs ? 'yes' : `no (${latched ? 'latched' : stopped ? machine.state : 'shutting down'})`],
       ['last pose error', pose ? `(${pose.position_mm.map((v) => fmt(v, 3)).join(', ')}) mm, (${pose.orientation_deg.map((v) => fmt(v, 3)).join(', ')}) deg` : '–'],
     ]));
-    page.main.querySelectorAll('[data-needs-clear]').forEach((b) => { b.disabled = latched; });
+    page.main.querySelectorAll('[data-needs-clear]').forEach((b) => { b.disabled = latched || stopped; });
     const reset = page.main.querySelector('#reset');
-    if (reset) reset.disabled = !latched;
+    if (reset) reset.disabled = !latched && !stopped;
+    const stop = page.main.querySelector('#stop');
+    if (stop) stop.disabled = stopped || ['Stopping', 'Aborting', 'Clearing'].includes(machine.state);
     const cancel = page.main.querySelector('#cancel-job');
     if (cancel) cancel.disabled = cell.current_job === null && cell.queue.length === 0;
     return cell;
@@ -100,7 +117,7 @@ export async function render(page) {
         api(`/api/jobs/${data.job_id}`).then((job) => { if (job.id === shown.id) showJob(job); }).catch((e) => showError(e, 'Reading the job'));
       }
       refreshCell().catch(() => {});
-    } else if (kind === 'cell') {
+    } else if (kind === 'cell' || kind === 'machine') {
       refreshCell().catch(() => {});
     } else if (kind === 'lagged' && shown.id !== null) {
       plots.gap = true;
@@ -143,6 +160,7 @@ export async function render(page) {
       h('div', { class: 'row' },
         h('button', { id: 'estop', class: 'estop', type: 'button', onclick: estop, text: 'E-STOP' }),
         h('button', { id: 'cancel-job', class: 'danger', type: 'button', onclick: cancel, text: 'Cancel job' }),
+        h('button', { id: 'stop', class: 'danger', type: 'button', onclick: stop, text: 'Stop' }),
         h('button', { id: 'reset', class: 'secondary', type: 'button', onclick: reset, text: 'Reset' })));
   }
 
@@ -193,6 +211,18 @@ export async function render(page) {
     } catch (error) {
       showError(error, 'Cancelling');
     }
+  }
+
+  // PackML Stop: the robot holds, running and queued jobs are cancelled; a reset takes jobs again.
+  async function stop() {
+    if (!confirm('Stop the cell? The robot holds, the running and queued jobs are cancelled, and the cell takes no jobs until a reset.')) return;
+    try {
+      await api('/api/cell/stop', { method: 'POST' });
+      showBanner('Cell stopped: reset it to take jobs again.', 'info');
+    } catch (error) {
+      showError(error, 'Stop');
+    }
+    refreshCell().catch(() => {});
   }
 
   async function reset() {

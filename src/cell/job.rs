@@ -265,6 +265,16 @@ impl JobRun {
         &self.observation
     }
 
+    /// The controller's name (a built-in's, a bundled policy's or `policy:<id>`).
+    pub fn controller_name(&self) -> &str {
+        self.controller.name()
+    }
+
+    /// Steps settled so far.
+    pub fn steps(&self) -> u32 {
+        self.steps
+    }
+
     /// One control tick: settles the last move, then (unless that ended the job) decides and
     /// sends the next. `clock` is the shell's monotonic clock in seconds, read around the work
     /// to time it.

@@ -96,6 +96,7 @@ pub fn measure(cell: &CellConfig, count: usize) -> anyhow::Result<Vec<Samples>> 
             max_stale_steps: 4,
         },
         estop_latched: false,
+        counters: Default::default(),
         cpu: None,
     };
     let (handle, thread) = task::spawn(cell.clone(), Box::new(backend), loop_settings, sink);

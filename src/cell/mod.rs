@@ -11,6 +11,7 @@ pub mod drivers;
 pub mod ingestion;
 pub mod job;
 pub mod latch_latency;
+pub mod packml;
 pub mod task;
 
 pub use backend::{BackendError, CellBackend, DriverLatch, TwinBackend};
@@ -18,4 +19,4 @@ pub use drivers::{DriverBackend, DriverSettings};
 pub use job::{
     ControllerSource, JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord, StepUncertainty,
 };
-pub use task::{CellCommand, CellEvent, CellHandle, CellStatus};
+pub use task::{CellCommand, CellEvent, CellHandle, CellStatus, JobProgress, MachineUpdate};

@@ -8,7 +8,10 @@
 use super::backend::{CellBackend, DriverLatch, EmergencyStop};
 /// Kept at this path for the HTTP handlers that run background work behind the control thread.
 pub use super::cpu::lower_priority;
-use super::job::{JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord};
+use super::job::{JobEnd, JobRun, JobSpec, JobStatus, SafetyLimits, StepRecord, StepUncertainty};
+use super::packml::{
+    Command, Counters, Machine, MachineInput, MachineStatus, NotNow, StopReason, Transition,
+};
 use crate::config::cell::CellConfig;
 use serde::Serialize;
 use std::collections::VecDeque;
@@ -24,8 +27,10 @@ pub enum CellCommand {
         job_id: i64,
         reply: oneshot::Sender<bool>,
     },
-    /// Latches the e-stop: stops motion, fails the running job and cancels the queue.
+    /// Latches the e-stop (pressed by `by`): stops motion, fails the running job and cancels
+    /// the queue.
     EStop {
+        by: String,
         reply: oneshot::Sender<()>,
     },
     /// Clears the latches (the e-stop's, the driver's); starts nothing. Answers why not when
@@ -42,9 +47,20 @@ pub enum CellCommand {
     },
     /// The second half: clears the e-stop latch unless it was pressed again after the
     /// [`CellCommand::ResetHardware`] that answered `presses`; answers whether it cleared.
+    /// The machine state clears (Aborted → Stopped) and, with `and_reset`, resets (to Idle).
     ClearEStop {
         presses: u64,
+        and_reset: bool,
+        by: String,
         reply: oneshot::Sender<bool>,
+    },
+    /// A PackML command other than clear: stop (the robot holds, the running and queued jobs
+    /// are cancelled `stopped`), hold (the running job pauses after its current move),
+    /// unhold, reset. Refused, changing nothing, in a state that does not take it.
+    Machine {
+        command: Command,
+        by: String,
+        reply: oneshot::Sender<Result<(), NotNow>>,
     },
     /// The storage writer cannot store job `job_id`'s steps: if it is running, the robot holds
     /// and the job fails with `storage_failed`; queued jobs are cancelled with that reason.
@@ -74,6 +90,28 @@ pub enum CellEvent {
         estop_latched: bool,
         driver_latch: Option<DriverLatch>,
     },
+    /// The machine state changed, or its counters did.
+    Machine(Box<MachineUpdate>),
+}
+
+/// The PackML transitions one input made, and the machine after them.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MachineUpdate {
+    pub transitions: Vec<Transition>,
+    pub machine: MachineStatus,
+}
+
+/// The running job as a plant watches it.
+#[derive(Debug, Clone, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct JobProgress {
+    pub id: i64,
+    pub controller: String,
+    /// Steps taken.
+    pub step: u32,
+    /// Distance of the shaft's estimated position from the bore's axis point, mm (|P|).
+    pub pose_error_mm: f64,
+    /// σ of the estimate's sideways position, its worst direction, mm.
+    pub sigma_mm: f64,
 }
 
 /// The relative pose the cell last estimated: P (mm) and O (deg) of docs/design.md §5.
@@ -93,6 +131,10 @@ pub struct CellStatus {
     pub current_job: Option<i64>,
     pub queue: Vec<i64>,
     pub last_pose: Option<LastPose>,
+    /// The running job's progress.
+    pub job: Option<JobProgress>,
+    /// The PackML state, stop reason and production counters.
+    pub machine: MachineStatus,
 }
 
 /// The sending side of the control thread, cheap to clone.
@@ -110,6 +152,11 @@ pub struct CellStopped;
 impl CellHandle {
     pub fn status(&self) -> CellStatus {
         self.status.borrow().clone()
+    }
+
+    /// The status and each change of it.
+    pub fn watch(&self) -> watch::Receiver<CellStatus> {
+        self.status.clone()
     }
 
     /// Whether the control thread is still there (it owns the status sender, which a panic
@@ -149,6 +196,8 @@ pub struct LoopSettings {
     pub limits: SafetyLimits,
     /// Whether the e-stop was latched when the service last stopped.
     pub estop_latched: bool,
+    /// The production counters as last stored.
+    pub counters: Counters,
     /// The CPU the thread keeps to itself (`cell::cpu`); none: wherever the kernel puts it.
     pub cpu: Option<usize>,
 }
@@ -162,13 +211,30 @@ pub fn spawn(
 ) -> (CellHandle, std::thread::JoinHandle<()>) {
     let (commands, inbox) = mpsc::channel();
     let stop_now = backend.emergency_stop();
+    let driver_latch = backend.latch();
+    let latched = if settings.estop_latched {
+        Some(StopReason {
+            code: "estop".into(),
+            id: 1,
+            message: "the e-stop was latched when the service last stopped".into(),
+        })
+    } else {
+        driver_latch.as_ref().map(|latch| StopReason {
+            code: latch.code.to_string(),
+            id: 2,
+            message: format!("the robot driver is latched: {}", latch.reason),
+        })
+    };
+    let machine = Machine::new(latched, settings.counters.clone());
     let status = CellStatus {
         backend: backend.name().to_string(),
         estop_latched: settings.estop_latched,
-        driver_latch: backend.latch(),
+        driver_latch,
         current_job: None,
         queue: Vec::new(),
         last_pose: None,
+        job: None,
+        machine: machine.status(),
     };
     let (status_tx, status_rx) = watch::channel(status);
     let mut control = ControlLoop {
@@ -181,6 +247,8 @@ pub fn spawn(
         running: None,
         epoch: Instant::now(),
         estop_presses: 0,
+        machine,
+        job_started_s: 0.0,
     };
     let thread = std::thread::Builder::new()
         .name("celld-control".into())
@@ -218,6 +286,10 @@ struct ControlLoop {
     epoch: Instant,
     /// E-stops pressed since the thread started (see [`CellCommand::ClearEStop`]).
     estop_presses: u64,
+    /// The PackML state and counters.
+    machine: Machine,
+    /// When the running job started, on [`ControlLoop::now_s`]'s clock.
+    job_started_s: f64,
 }
 
 impl ControlLoop {
@@ -229,8 +301,7 @@ impl ControlLoop {
         let mut next_step = Instant::now();
         loop {
             // Wait for a command: forever when idle, until the next step when there is work.
-            let has_work = self.running.is_some()
-                || (!self.queue.is_empty() && !self.status.borrow().estop_latched);
+            let has_work = self.stepping() || (self.running.is_none() && self.may_start());
             let command = if has_work {
                 let wait = next_step.saturating_duration_since(Instant::now());
                 match inbox.recv_timeout(wait) {
@@ -261,11 +332,11 @@ impl ControlLoop {
                     self.handle(command);
                 }
             }
-            if self.running.is_none() && !self.status.borrow().estop_latched {
+            if self.running.is_none() && self.may_start() {
                 self.start_next();
                 next_step = Instant::now();
             }
-            if self.running.is_some() && Instant::now() >= next_step {
+            if self.stepping() && Instant::now() >= next_step {
                 self.step();
                 if let Some(period) = self.settings.period {
                     next_step += period;
@@ -277,17 +348,34 @@ impl ControlLoop {
         }
     }
 
+    /// Whether a running job takes steps: not while the cell holds.
+    fn stepping(&self) -> bool {
+        use super::packml::PackMlState::{Held, Holding};
+        self.running.is_some() && !matches!(self.machine.state(), Held | Holding)
+    }
+
+    /// Whether a queued job may start: something waits, nothing is latched, the cell is not
+    /// holding.
+    fn may_start(&self) -> bool {
+        use super::packml::PackMlState::Held;
+        !self.queue.is_empty()
+            && !self.status.borrow().estop_latched
+            && self.machine.state() != Held
+    }
+
     fn handle(&mut self, command: CellCommand) {
         match command {
             CellCommand::Enqueue(spec) => {
+                let state = self.machine.state();
                 if self.status.borrow().estop_latched {
-                    let end = JobEnd::unstarted(JobStatus::Cancelled, "estop");
-                    (self.sink)(CellEvent::JobEnded {
-                        job_id: spec.id,
-                        end,
-                    });
+                    self.end_unstarted(spec.id, JobStatus::Cancelled, "estop");
+                } else if !state.accepts_jobs() {
+                    // The workflow checks the state before queueing; this is the race where a
+                    // stop came between.
+                    self.end_unstarted(spec.id, JobStatus::Cancelled, "stopped");
                 } else {
                     self.queue.push_back(spec);
+                    self.feed(MachineInput::JobQueued);
                 }
             }
             CellCommand::Cancel { job_id, reply } => {
@@ -304,17 +392,14 @@ impl ControlLoop {
                 };
                 let _ = reply.send(found);
             }
-            CellCommand::EStop { reply } => {
+            CellCommand::EStop { by, reply } => {
                 self.backend.hold();
                 self.estop_presses += 1;
                 self.status.send_modify(|s| s.estop_latched = true);
                 self.send_latches();
-                if self.running.is_some() {
-                    self.finish(JobStatus::Failed, Some("estop"));
-                }
-                for spec in std::mem::take(&mut self.queue) {
-                    self.end_unstarted(spec.id, JobStatus::Cancelled, "estop");
-                }
+                self.feed(MachineInput::EStop { by: &by });
+                self.close_jobs(JobStatus::Failed, JobStatus::Cancelled, "estop");
+                self.feed(MachineInput::Done);
                 let _ = reply.send(());
             }
             CellCommand::Reset { reply } => {
@@ -326,6 +411,9 @@ impl ControlLoop {
                 // The reset may have cleared the driver's latch, or found it graver.
                 self.take_driver_latch();
                 self.send_latches();
+                if result.is_ok() {
+                    self.clear_machine(true, "celld");
+                }
                 let _ = reply.send(result);
             }
             CellCommand::ResetHardware { reply } => {
@@ -338,13 +426,22 @@ impl ControlLoop {
                 }
                 let _ = reply.send(result.map(|()| self.estop_presses));
             }
-            CellCommand::ClearEStop { presses, reply } => {
+            CellCommand::ClearEStop {
+                presses,
+                and_reset,
+                by,
+                reply,
+            } => {
                 let clear = presses == self.estop_presses;
                 if clear {
                     self.status.send_modify(|s| s.estop_latched = false);
                     self.send_latches();
+                    self.clear_machine(and_reset, &by);
                 }
                 let _ = reply.send(clear);
+            }
+            CellCommand::Machine { command, by, reply } => {
+                let _ = reply.send(self.command(command, &by));
             }
             CellCommand::StorageFailed { job_id } => {
                 if self.running.as_ref().is_some_and(|r| r.id == job_id) {
@@ -359,10 +456,94 @@ impl ControlLoop {
         }
     }
 
+    /// A PackML command: the machine's transition, then what the cell does for it.
+    fn command(&mut self, command: Command, by: &str) -> Result<(), NotNow> {
+        if command == Command::Clear && self.status.borrow().estop_latched {
+            // Clearing is the reset's first half and second half; a bare Clear here would
+            // leave the e-stop latched under a Stopped state.
+            return Err(self.machine.check(command).err().unwrap_or(NotNow {
+                command,
+                state: self.machine.state(),
+                valid: "Aborted, once the e-stop latch is cleared (a reset)".into(),
+            }));
+        }
+        self.machine.check(command)?;
+        self.feed(MachineInput::Command { command, by });
+        match command {
+            Command::Stop => {
+                self.backend.hold();
+                self.close_jobs(JobStatus::Cancelled, JobStatus::Cancelled, "stopped");
+                self.feed(MachineInput::Done);
+            }
+            Command::Hold => {
+                // The move sent last is settled, so the robot stands at a step's end.
+                self.settle_running();
+                self.feed(MachineInput::Done);
+            }
+            Command::Unhold => self.feed(MachineInput::Done),
+            Command::Clear | Command::Reset => {}
+        }
+        Ok(())
+    }
+
+    /// After the latches cleared: Aborted → Clearing → Stopped, then with `and_reset` (or
+    /// from Stopped or Complete) → Resetting → Idle.
+    fn clear_machine(&mut self, and_reset: bool, by: &str) {
+        use super::packml::PackMlState::Aborted;
+        if self.machine.state() == Aborted {
+            self.feed(MachineInput::Command {
+                command: Command::Clear,
+                by,
+            });
+        }
+        if and_reset && self.machine.check(Command::Reset).is_ok() {
+            self.feed(MachineInput::Command {
+                command: Command::Reset,
+                by,
+            });
+        }
+    }
+
+    /// Ends the running job as `running` and the queued ones as `queued`, both with `reason`.
+    fn close_jobs(&mut self, running: JobStatus, queued: JobStatus, reason: &str) {
+        if self.running.is_some() {
+            self.finish(running, Some(reason));
+        }
+        for spec in std::mem::take(&mut self.queue) {
+            self.end_unstarted(spec.id, queued, reason);
+        }
+    }
+
+    /// Passes an input to the machine; reports its transitions and new counters.
+    fn feed(&mut self, input: MachineInput) {
+        let counters_before = self.machine.status().counters;
+        let transitions = match self.machine.step(input) {
+            Ok(transitions) => transitions,
+            Err(not_now) => {
+                tracing::warn!(%not_now, "a machine command came in a state that does not take it");
+                return;
+            }
+        };
+        let machine = self.machine.status();
+        if transitions.is_empty() && machine.counters == counters_before {
+            return;
+        }
+        for transition in &transitions {
+            tracing::info!(from = transition.from.name(), to = transition.to.name(), cause = %transition.cause, "machine state");
+        }
+        self.status.send_modify(|s| s.machine = machine.clone());
+        (self.sink)(CellEvent::Machine(Box::new(MachineUpdate {
+            transitions,
+            machine,
+        })));
+    }
+
     fn start_next(&mut self) {
         while let Some(spec) = self.queue.pop_front() {
             (self.sink)(CellEvent::JobStarted { job_id: spec.id });
             let now = self.now_s();
+            self.job_started_s = now;
+            self.feed(MachineInput::JobStarted);
             match JobRun::start(
                 &spec,
                 &self.cell,
@@ -374,10 +555,7 @@ impl ControlLoop {
                     self.running = Some(run);
                     return;
                 }
-                Err(end) => (self.sink)(CellEvent::JobEnded {
-                    job_id: spec.id,
-                    end,
-                }),
+                Err(end) => self.job_ended(spec.id, end),
             }
         }
     }
@@ -389,13 +567,35 @@ impl ControlLoop {
         let epoch = self.epoch;
         let clock = move || epoch.elapsed().as_secs_f64();
         let report = run.step(self.backend.as_mut(), &clock);
+        let fresh = run.observation().measurement_fresh;
         if let Some(record) = report.record {
             (self.sink)(CellEvent::Step(Box::new(record)));
         }
         if let Some(end) = report.end {
             let job_id = run.id;
             self.running = None;
-            (self.sink)(CellEvent::JobEnded { job_id, end });
+            self.job_ended(job_id, end);
+        } else {
+            self.feed(MachineInput::CameraFresh(fresh));
+        }
+    }
+
+    /// Settles the running job's last move (storing its step); ends the job if that step did.
+    fn settle_running(&mut self) {
+        let Some(run) = self.running.as_mut() else {
+            return;
+        };
+        let epoch = self.epoch;
+        let clock = move || epoch.elapsed().as_secs_f64();
+        let (record, end) = run.settle(self.backend.as_mut(), &clock);
+        if let Some(record) = record {
+            (self.sink)(CellEvent::Step(Box::new(record)));
+        }
+        if let Some(end) = end {
+            self.backend.hold();
+            let job_id = run.id;
+            self.running = None;
+            self.job_ended(job_id, end);
         }
     }
 
@@ -410,24 +610,30 @@ impl ControlLoop {
                 (self.sink)(CellEvent::Step(Box::new(record)));
             }
             let end = run.end(status, reason);
-            (self.sink)(CellEvent::JobEnded {
-                job_id: run.id,
-                end,
-            });
+            self.job_ended(run.id, end);
         }
     }
 
     fn end_unstarted(&mut self, job_id: i64, status: JobStatus, reason: &str) {
-        let end = JobEnd::unstarted(status, reason);
+        self.job_ended(job_id, JobEnd::unstarted(status, reason));
+    }
+
+    /// Reports a job's end and counts it.
+    fn job_ended(&mut self, job_id: i64, end: JobEnd) {
+        let cycle_time_s = self.now_s() - self.job_started_s;
+        let more_queued = !self.queue.is_empty();
+        // Counted first, so that whoever reads the status on the end's event finds it counted.
+        self.feed(MachineInput::JobEnded {
+            end: &end,
+            cycle_time_s,
+            more_queued,
+        });
         (self.sink)(CellEvent::JobEnded { job_id, end });
     }
 
     fn shutdown(&mut self, reply: Option<oneshot::Sender<()>>) {
         self.backend.hold();
-        self.finish(JobStatus::Interrupted, Some("shutdown"));
-        for spec in std::mem::take(&mut self.queue) {
-            self.end_unstarted(spec.id, JobStatus::Interrupted, "shutdown");
-        }
+        self.close_jobs(JobStatus::Interrupted, JobStatus::Interrupted, "shutdown");
         self.publish();
         if let Some(reply) = reply {
             let _ = reply.send(());
@@ -444,7 +650,8 @@ impl ControlLoop {
         (self.sink)(event);
     }
 
-    /// Takes the backend's latch into the status; whether it changed.
+    /// Takes the backend's latch into the status; whether it changed. A new latch aborts the
+    /// machine (the driver holds the robot itself).
     fn take_driver_latch(&mut self) -> bool {
         let driver_latch = self.backend.latch();
         if driver_latch == self.status.borrow().driver_latch {
@@ -456,6 +663,11 @@ impl ControlLoop {
                 reason = latch.reason,
                 "the driver latched"
             );
+            self.feed(MachineInput::DriverLatched {
+                code: &latch.code,
+                reason: &latch.reason,
+            });
+            self.feed(MachineInput::Done);
         }
         self.status
             .send_modify(|status| status.driver_latch = driver_latch);
@@ -475,12 +687,25 @@ impl ControlLoop {
                 orientation_deg: [s[9], s[10], s[11]],
             }
         });
+        let job = self.running.as_ref().map(|r| {
+            let observation = r.observation();
+            let s = observation.state;
+            JobProgress {
+                id: r.id,
+                controller: r.controller_name().to_string(),
+                step: r.steps(),
+                pose_error_mm: (s[6] * s[6] + s[7] * s[7] + s[8] * s[8]).sqrt(),
+                sigma_mm: StepUncertainty::of(&observation.estimate).sd_lateral_mm,
+            }
+        });
         self.status.send_if_modified(|status| {
             let changed = status.current_job != current_job
                 || status.queue != queue
+                || status.job != job
                 || (last_pose.is_some() && status.last_pose != last_pose);
             status.current_job = current_job;
             status.queue = queue;
+            status.job = job;
             if last_pose.is_some() {
                 status.last_pose = last_pose;
             }
@@ -503,6 +728,7 @@ mod tests {
                 max_stale_steps: 4,
             },
             estop_latched: false,
+            counters: Counters::default(),
             cpu: None,
         };
         spawn(
@@ -515,6 +741,7 @@ mod tests {
 
     fn estop() -> CellCommand {
         CellCommand::EStop {
+            by: "test".into(),
             reply: oneshot::channel().0,
         }
     }
@@ -533,6 +760,7 @@ mod tests {
                 max_stale_steps: 4,
             },
             estop_latched: false,
+            counters: Counters::default(),
             cpu: None,
         };
         let (events, inbox) = mpsc::channel();
@@ -572,6 +800,7 @@ mod tests {
                     steps += 1;
                 }
                 CellEvent::JobEnded { job_id, end } => ends.push((job_id, end)),
+                CellEvent::Machine(_) => {}
                 other => panic!("unexpected {other:?}"),
             }
         }
@@ -603,7 +832,12 @@ mod tests {
         let clear = |presses| {
             let (reply, answer) = oneshot::channel();
             handle
-                .send(CellCommand::ClearEStop { presses, reply })
+                .send(CellCommand::ClearEStop {
+                    presses,
+                    and_reset: true,
+                    by: "test".into(),
+                    reply,
+                })
                 .unwrap();
             answer.blocking_recv().unwrap()
         };

@@ -19,6 +19,7 @@ pub mod audit;
 pub mod demonstrations;
 pub mod health;
 pub mod jobs;
+pub mod machine;
 pub mod policies;
 pub mod recorder;
 pub mod steps;

@@ -16,7 +16,7 @@
 //! writer probes every half second ([`health::probe`]) so the fault clears by itself.
 
 use super::demonstrations::{self, NewDemonstration};
-use super::{Db, DbError, health, jobs, steps};
+use super::{Db, DbError, health, jobs, machine, steps};
 use crate::cell::{CellEvent, StepRecord};
 use crate::learning::demos::DemoEpisode;
 use crate::policy::inputs::PolicyInputs;
@@ -170,7 +170,7 @@ impl Writer {
                 CellEvent::JobEnded { job_id, .. } => {
                     running.remove(job_id);
                 }
-                CellEvent::Latches { .. } => {}
+                CellEvent::Latches { .. } | CellEvent::Machine(_) => {}
             }
         }
         for job_id in running {
@@ -210,6 +210,7 @@ fn describe(event: &CellEvent) -> String {
             "e-stop latched = {estop_latched}, driver latched = {}",
             driver_latch.is_some()
         ),
+        CellEvent::Machine(update) => format!("machine state {}", update.machine.state.name()),
     }
 }
 
@@ -257,6 +258,7 @@ async fn write(
                     // The latch is stored by whoever latched it, before they answer
                     // (`workflows::cell`, which also retries an e-stop's failed write).
                     CellEvent::Latches { .. } => {}
+                    CellEvent::Machine(update) => machine::record(&mut tx, update).await?,
                     CellEvent::Step(_) => unreachable!(),
                 }
             }

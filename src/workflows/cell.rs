@@ -9,6 +9,7 @@
 //! latched and answers [`Error::StorageUnavailable`].
 
 use super::{Context, Error, Result};
+use crate::cell::packml::{Command, PackMlState};
 use crate::cell::{CellCommand, CellHandle};
 use crate::storage::{self, DbError, audit};
 use serde_json::{Value, json};
@@ -22,7 +23,10 @@ pub async fn estop(context: &Context, by: &str) -> Result<()> {
     context.cell.stop_now();
     context
         .cell
-        .ask(|reply| CellCommand::EStop { reply })
+        .ask(|reply| CellCommand::EStop {
+            by: by.to_string(),
+            reply,
+        })
         .await?;
     let detail = json!({"job": running});
     if let Err(e) = store_latch(context, by, "cell.estop", detail.clone()).await {
@@ -39,12 +43,19 @@ pub async fn estop(context: &Context, by: &str) -> Result<()> {
     Ok(())
 }
 
-/// Clears the e-stop latch and the driver's. Starts nothing: the next motion is the next job
-/// an operator creates. Hardware that is not ready again (unreachable, not referenced, moved)
-/// keeps both latches: [`Error::Unavailable`] with the reason. The cleared latch is stored
-/// before it is cleared in memory: if that write fails the cell stays latched
-/// ([`Error::StorageUnavailable`]); an e-stop pressed meanwhile wins (the cell stays latched).
+/// Clears the e-stop latch and the driver's, and brings the machine state from Aborted or
+/// Stopped to Idle (PackML's Clear, then Reset). Starts nothing: the next motion is the next
+/// job an operator creates.
 pub async fn reset(context: &Context, by: &str) -> Result<()> {
+    clear(context, by, true).await
+}
+
+/// PackML's Clear: clears the e-stop latch and the driver's (Aborted → Clearing → Stopped),
+/// and with `and_reset` goes on to Idle. Hardware that is not ready again (unreachable, not
+/// referenced, moved) keeps both latches: [`Error::Unavailable`] with the reason. The cleared
+/// latch is stored before it is cleared in memory: if that write fails the cell stays latched
+/// ([`Error::StorageUnavailable`]); an e-stop pressed meanwhile wins (the cell stays latched).
+pub async fn clear(context: &Context, by: &str, and_reset: bool) -> Result<()> {
     let _one_writer = context.latch_writes.lock().await;
     let presses = context
         .cell
@@ -59,7 +70,12 @@ pub async fn reset(context: &Context, by: &str) -> Result<()> {
             )));
         }
     };
-    write_latch(context, false, by, "cell.reset", json!({"refused": null}))
+    let action = if and_reset {
+        "cell.reset"
+    } else {
+        "cell.clear"
+    };
+    write_latch(context, false, by, action, json!({"refused": null}))
         .await
         .map_err(|e| {
             Error::StorageUnavailable(format!(
@@ -68,13 +84,50 @@ pub async fn reset(context: &Context, by: &str) -> Result<()> {
         })?;
     let cleared = context
         .cell
-        .ask(|reply| CellCommand::ClearEStop { presses, reply })
+        .ask(|reply| CellCommand::ClearEStop {
+            presses,
+            and_reset,
+            by: by.to_string(),
+            reply,
+        })
         .await?;
     if !cleared {
         // Pressed while the reset was stored: that later press wins, as it would had it come
         // just after; its own write (waiting for this one) stores the latch.
         tracing::info!("an e-stop came during the reset: the cell stays latched");
     }
+    Ok(())
+}
+
+/// A PackML command (stop, hold, unhold, clear, reset), audited. A state that does not take
+/// it refuses it ([`Error::Conflict`], naming the states that do).
+pub async fn command(context: &Context, by: &str, command: Command) -> Result<()> {
+    if command == Command::Clear {
+        let state = context.cell.status().machine.state;
+        if state != PackMlState::Aborted {
+            return Err(Error::conflict(format!(
+                "the cell is {}: clear is taken in Aborted",
+                state.name()
+            )));
+        }
+        return clear(context, by, false).await;
+    }
+    context
+        .cell
+        .ask(|reply| CellCommand::Machine {
+            command,
+            by: by.to_string(),
+            reply,
+        })
+        .await?
+        .map_err(|not_now| Error::conflict(not_now.to_string()))?;
+    audit::record(
+        &context.db,
+        by,
+        &format!("cell.{}", command.name()),
+        json!({}),
+    )
+    .await?;
     Ok(())
 }
 

@@ -54,7 +54,13 @@ pub async fn create(context: &Context, request: JobRequest, by: &str) -> Result<
             latch.code, latch.reason
         )));
     }
-    let queued = context.cell.status().queue.len();
+    if !status.machine.state.accepts_jobs() {
+        return Err(Error::conflict(format!(
+            "the cell is {}: reset it (POST /api/cell/reset) first",
+            status.machine.state.name()
+        )));
+    }
+    let queued = status.queue.len();
     if queued >= MAX_QUEUED_JOBS {
         return Err(Error::conflict(format!(
             "{queued} jobs are waiting already (at most {MAX_QUEUED_JOBS}): wait or cancel some"

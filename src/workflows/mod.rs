@@ -55,11 +55,15 @@ pub struct Context {
 }
 
 impl Context {
-    /// Whether a new job would be taken: the service is not shutting down and neither the
-    /// e-stop nor the driver is latched.
+    /// Whether a new job would be taken: the service is not shutting down, neither the
+    /// e-stop nor the driver is latched, and the machine state takes jobs (not Stopped or
+    /// Aborted).
     pub fn accepting_jobs(&self) -> bool {
         let status = self.cell.status();
-        !self.shutting_down() && !status.estop_latched && status.driver_latch.is_none()
+        !self.shutting_down()
+            && !status.estop_latched
+            && status.driver_latch.is_none()
+            && status.machine.state.accepts_jobs()
     }
 
     pub fn shutting_down(&self) -> bool {

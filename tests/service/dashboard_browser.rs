@@ -263,12 +263,20 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
     });
     let (_, cell) = server.get("/api/cell", Some(&server.admin));
     assert_eq!(cell["estop_latched"], true);
+    assert_eq!(cell["machine"]["state"], "Aborted");
+    browser.wait_until("the machine shows Aborted", WAIT, |b| {
+        b.exists("#machine-state[data-state=Aborted]")
+    });
     assert!(browser.find("#start-job").property("disabled") == json!(true));
     browser.screenshot(&shots.join("4-estop-latched.png"));
     js(&browser, "window.confirm = () => true;");
     browser.find("#reset").click();
     browser.wait_until("the e-stop shows clear", WAIT, |b| {
         b.exists("#estop-state[data-latched=false]")
+    });
+    // Reset is PackML's Clear then Reset: Aborted, Clearing, Stopped, Resetting, Idle.
+    browser.wait_until("the machine shows Idle", WAIT, |b| {
+        b.exists("#machine-state[data-state=Idle]")
     });
 
     // Policies: the bundled policy's first-start evaluation ends before anything else is asked
@@ -398,6 +406,7 @@ fn dashboard_drives_the_cell_in_a_real_browser() {
         "#start-job",
         "#estop",
         "#cancel-job",
+        "#stop",
         "#reset",
         "#start-form",
     ] {

@@ -113,7 +113,7 @@ fn sigterm_interrupts_the_job_and_exits_promptly() {
         server.steps(id).len()
     );
     let queued = server.job(waiting["id"].as_i64().unwrap());
-    assert_eq!(queued["status"], "interrupted");
+    assert_eq!(queued["status"], "interrupted", "{queued}");
     assert_eq!(queued["steps"], 0);
 }
 
