@@ -1,5 +1,6 @@
 //! `/api/telemetry`: Server-Sent Events, one `step` event per control step and one `job` event
-//! per job status change, `cell` on e-stop and reset. Each subscriber has a bounded buffer; one
+//! per job status change, `cell` on e-stop and reset, `machine` on each change of the PackML
+//! state or the counters. Each subscriber has a bounded buffer; one
 //! that falls behind skips ahead (a `lagged` event says how many it missed, and the metrics
 //! count them), so a slow reader never holds up the control loop.
 
@@ -37,6 +38,7 @@ enum EventKind {
     Cell,
     Step,
     Job,
+    Machine,
     Lagged,
 }
 
@@ -56,7 +58,9 @@ impl Drop for Subscription {
 /// Live events (viewer) as Server-Sent Events: `cell` (`{"estop_latched": bool,
 /// "driver_latch": null or {code, reason, since_unix_ms}}`, first the latches as they are, then
 /// on each e-stop, reset and driver latch), `step` (one control step, as stored), `job`
-/// (a job started or ended), `lagged` (`{"skipped": n}`: this
+/// (a job started or ended), `machine` (`{"transitions": [{from, to, cause}], "machine":
+/// {state, state_number, unit_mode, stop_reason, counters}}`: the PackML state or the counters
+/// changed; docs/opcua.md), `lagged` (`{"skipped": n}`: this
 /// subscriber fell behind and skipped n events). The token may also come as `?access_token=`.
 #[utoipa::path(get, path = "/api/telemetry", tag = "telemetry",
     security(("bearer" = []), ("access_token" = [])),

@@ -27,7 +27,7 @@ use tokio::sync::{broadcast, watch};
 /// One telemetry event, serialised once for every subscriber.
 #[derive(Debug, Clone)]
 pub struct TelemetryMessage {
-    /// SSE event name: `step`, `job`, `cell` or `lagged`.
+    /// SSE event name: `step`, `job`, `cell`, `machine` or `lagged`.
     pub event: &'static str,
     pub data: Arc<str>,
 }
