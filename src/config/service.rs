@@ -83,9 +83,10 @@ impl std::str::FromStr for OpcUaListen {
     fn from_str(text: &str) -> Result<Self, String> {
         match text.trim() {
             "off" => Ok(OpcUaListen::Off),
-            address => address.parse().map(OpcUaListen::Address).map_err(|_| {
-                format!("`{text}` is not off or an address such as 127.0.0.1:4840")
-            }),
+            address => address
+                .parse()
+                .map(OpcUaListen::Address)
+                .map_err(|_| format!("`{text}` is not off or an address such as 127.0.0.1:4840")),
         }
     }
 }
@@ -912,7 +913,10 @@ mod tests {
 
         std::fs::write(&path, "[opcua]\nlisten = \"plc:4840\"\n").unwrap();
         let error = ServiceConfig::load(Some(&path)).unwrap_err().to_string();
-        assert!(error.contains("`plc:4840` is not off or an address"), "{error}");
+        assert!(
+            error.contains("`plc:4840` is not off or an address"),
+            "{error}"
+        );
         let error = config
             .apply_env(vars(&[("CELLD_OPCUA_LISTEN", "on")]))
             .unwrap_err()

@@ -138,7 +138,10 @@ impl Field {
                     .iter()
                     .map(|a| {
                         let kind = if a.warning { "warning" } else { "alarm" };
-                        format!("{} ({kind}, severity {}): {}", a.code, a.severity, a.message)
+                        format!(
+                            "{} ({kind}, severity {}): {}",
+                            a.code, a.severity, a.message
+                        )
                     })
                     .collect::<Vec<String>>(),
             ),

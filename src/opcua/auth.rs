@@ -6,8 +6,7 @@ use super::plant::{Plant, PlantUser, Refused};
 use async_trait::async_trait;
 use opcua::server::ServerEndpoint;
 use opcua::server::authenticator::{
-    AuthManager, Password, UserToken, user_pass_security_policy_id,
-    user_pass_security_policy_uri,
+    AuthManager, Password, UserToken, user_pass_security_policy_id, user_pass_security_policy_uri,
 };
 use opcua::types::{Error, NodeId, StatusCode, UAString, UserTokenPolicy, UserTokenType};
 

@@ -121,8 +121,12 @@ pub async fn serve<P: Plant>(
         return Ok(None);
     };
     let pki_dir = settings.pki_dir.clone();
-    std::fs::create_dir_all(&pki_dir)
-        .with_context(|| format!("cannot create the OPC UA PKI directory {}", pki_dir.display()))?;
+    std::fs::create_dir_all(&pki_dir).with_context(|| {
+        format!(
+            "cannot create the OPC UA PKI directory {}",
+            pki_dir.display()
+        )
+    })?;
     let listener = tokio::net::TcpListener::bind(listen)
         .await
         .with_context(|| format!("OPC UA cannot listen on {listen}"))?;
@@ -150,12 +154,13 @@ pub async fn serve<P: Plant>(
         };
         tokio::task::spawn_blocking(move || {
             let auth = PlantAuth::new(plant.clone());
-            let nodes = move |context: opcua::server::node_manager::ServerContext,
-                              space: &mut opcua::server::address_space::AddressSpace| {
-                let nodes = CellNodes::new(plant, &context, space);
-                address_space::build(space, nodes.namespace_index(), &identification, &view);
-                nodes
-            };
+            let nodes =
+                move |context: opcua::server::node_manager::ServerContext,
+                      space: &mut opcua::server::address_space::AddressSpace| {
+                    let nodes = CellNodes::new(plant, &context, space);
+                    address_space::build(space, nodes.namespace_index(), &identification, &view);
+                    nodes
+                };
             ServerBuilder::new()
                 .application_name(name)
                 .application_uri(APPLICATION_URI)

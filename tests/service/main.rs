@@ -12,6 +12,7 @@ mod serve_support;
 mod api_conformance;
 mod dashboard_browser;
 mod examples_run;
+mod opcua_server;
 mod serve_api;
 mod serve_demonstrations;
 mod serve_faults;
