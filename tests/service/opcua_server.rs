@@ -134,10 +134,18 @@ impl Plant for FakePlant {
                 });
                 Ok(Some(id))
             }
-            PlantMethod::Stop => Ok(self.set_state("Stopped", 2)).map(|_| None),
-            PlantMethod::Abort => Ok(self.set_state("Aborted", 9)).map(|_| None),
-            PlantMethod::Reset => Ok(self.set_state("Idle", 4)).map(|_| None),
-            PlantMethod::Clear => Ok(self.set_state("Stopped", 2)).map(|_| None),
+            PlantMethod::Stop | PlantMethod::Clear => {
+                self.set_state("Stopped", 2);
+                Ok(None)
+            }
+            PlantMethod::Abort => {
+                self.set_state("Aborted", 9);
+                Ok(None)
+            }
+            PlantMethod::Reset => {
+                self.set_state("Idle", 4);
+                Ok(None)
+            }
         }
     }
 }
