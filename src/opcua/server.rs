@@ -7,9 +7,9 @@
 //!   trusted as the machine;
 //! - Basic256Sha256, SignAndEncrypt: for the plant network. The server's certificate and key
 //!   are made at first start in `opcua-pki/` beside the database (`own/cert.der`,
-//!   `private/private.pem`, valid 365 days; delete both to make new ones). A client's
-//!   certificate is not trusted until an administrator moves it from `rejected/`, where its
-//!   first attempt leaves it, to `trusted/`.
+//!   `private/private.pem`, valid 365 days; made again at a start after they expire, or after
+//!   an administrator deletes both). A client's certificate is not trusted until an
+//!   administrator moves it from `rejected/`, where its first attempt leaves it, to `trusted/`.
 //!
 //! Sign-in is by user name and password only (no anonymous user).
 
@@ -19,7 +19,7 @@ use super::methods::{CellNodeManager, CellNodes};
 use super::plant::{Plant, PlantView};
 use crate::config::service::{OpcUaListen, ServiceConfig};
 use anyhow::{Context, bail};
-use opcua::crypto::SecurityPolicy;
+use opcua::crypto::{SecurityPolicy, X509};
 use opcua::server::node_manager::memory::InMemoryNodeManagerBuilder;
 use opcua::server::{ServerBuilder, ServerEndpoint, SubscriptionCache};
 use opcua::types::{DateTime, MessageSecurityMode, NodeId};
@@ -65,6 +65,36 @@ pub fn pki_dir_beside(db: &Path) -> PathBuf {
         .join("opcua-pki")
 }
 
+/// The server's own certificate and key, in the PKI directory.
+const CERTIFICATE: &str = "own/cert.der";
+const PRIVATE_KEY: &str = "private/private.pem";
+
+/// Removes the server's certificate and key when the certificate has expired, so that new ones
+/// are made (clients must then trust the new certificate).
+fn renew_expired_certificate(pki_dir: &Path) -> anyhow::Result<()> {
+    let path = pki_dir.join(CERTIFICATE);
+    let Ok(der) = std::fs::read(&path) else {
+        return Ok(());
+    };
+    let Ok(end) = X509::from_der(&der).and_then(|c| c.not_after()) else {
+        return Ok(()); // not ours to replace: the check after start names it
+    };
+    if end > DateTime::now().as_chrono() {
+        return Ok(());
+    }
+    tracing::warn!(
+        "the OPC UA server certificate {} expired at {end}: making a new one, which clients \
+         must trust again",
+        path.display()
+    );
+    for file in [CERTIFICATE, PRIVATE_KEY] {
+        let path = pki_dir.join(file);
+        std::fs::remove_file(&path)
+            .with_context(|| format!("cannot remove the expired {}", path.display()))?;
+    }
+    Ok(())
+}
+
 /// A running OPC UA server.
 #[derive(Debug)]
 pub struct OpcUaServer {
@@ -87,7 +117,7 @@ impl OpcUaServer {
 
     /// The server's certificate (DER), for clients to trust.
     pub fn certificate_path(&self) -> PathBuf {
-        self.pki_dir.join("own/cert.der")
+        self.pki_dir.join(CERTIFICATE)
     }
 
     /// Client certificates trusted by the server.
@@ -127,6 +157,7 @@ pub async fn serve<P: Plant>(
             pki_dir.display()
         )
     })?;
+    renew_expired_certificate(&pki_dir)?;
     let listener = tokio::net::TcpListener::bind(listen)
         .await
         .with_context(|| format!("OPC UA cannot listen on {listen}"))?;
@@ -190,11 +221,12 @@ pub async fn serve<P: Plant>(
         .context("OPC UA server set-up task")?
         .map_err(|message| anyhow::anyhow!("OPC UA server settings: {message}"))?
     };
-    let certificate = pki_dir.join("own/cert.der");
-    if !certificate.is_file() {
+    if handle.info().server_certificate.is_none() || handle.info().server_pkey.is_none() {
         bail!(
-            "the OPC UA server has no certificate: none in {} and none could be made there",
-            certificate.display()
+            "the OPC UA server has no certificate and key: {} and {} are missing or unreadable \
+             and could not be made again",
+            pki_dir.join(CERTIFICATE).display(),
+            pki_dir.join(PRIVATE_KEY).display()
         );
     }
     let manager = handle

@@ -257,3 +257,56 @@ async fn off_means_no_server_and_a_taken_port_is_named() {
         "{error:#}"
     );
 }
+
+/// A server certificate past its end is made again at start; a valid one is kept.
+#[tokio::test]
+async fn an_expired_server_certificate_is_made_again() {
+    use opcua::crypto::{CertificateStore, X509, X509Data};
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path().join("opcua-pki");
+    let expired = X509Data {
+        key_size: 1024,
+        common_name: "expired".into(),
+        organization: "celld".into(),
+        organizational_unit: "test".into(),
+        country: "DE".into(),
+        state: "Berlin".into(),
+        alt_host_names: vec!["urn:celld".to_string()].into(),
+        certificate_duration_days: 0,
+    };
+    CertificateStore::new(&pki)
+        .create_and_store_application_instance_cert(&expired, false)
+        .unwrap();
+    let certificate = pki.join("own/cert.der");
+    let old = std::fs::read(&certificate).unwrap();
+
+    let start = |plant: FakePlant| {
+        let settings = settings(dir.path(), Some("127.0.0.1:0"));
+        async move {
+            let (stop, shutdown) = watch::channel(false);
+            let server = serve(plant, &settings, shutdown).await.unwrap().unwrap();
+            stop.send(true).unwrap();
+            server.finished().await.unwrap();
+        }
+    };
+    start(FakePlant::new()).await;
+    let new = std::fs::read(&certificate).unwrap();
+    assert_ne!(new, old, "a new certificate");
+    let end = X509::from_der(&new).unwrap().not_after().unwrap();
+    assert!(
+        end.timestamp()
+            > std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+                .as_secs() as i64
+                + 300 * 86_400,
+        "valid for most of a year: {end}"
+    );
+
+    start(FakePlant::new()).await;
+    assert_eq!(
+        std::fs::read(&certificate).unwrap(),
+        new,
+        "a valid one is kept"
+    );
+}
