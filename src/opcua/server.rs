@@ -289,7 +289,10 @@ async fn mirror<P: Plant>(
         .collect();
     loop {
         tokio::select! {
-            changed = view_rx.changed() => if changed.is_err() { return },
+            changed = view_rx.changed() => if changed.is_err() {
+                tracing::warn!("the cell's view ended: OPC UA variables keep their last values");
+                return;
+            },
             _ = token.cancelled() => return,
         }
         let view = view_rx.borrow_and_update().clone();

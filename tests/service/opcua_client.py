@@ -2,9 +2,10 @@
 
 Checks, printing one line each and `ok` at the end (exit status 1 at the first failure):
 browse paths to the cell's nodes; StateCurrent against StateCurrentName; a viewer can neither
-write a variable nor call Start (BadUserAccessDenied); a wrong password is refused; an operator's
-Start answers a job id, while subscriptions see StateCurrent reach Execute, ProdProcessedCount
-rise and a job-end event arrive; Basic256Sha256 Sign & Encrypt is refused until the client's
+write a variable nor call Start (BadUserAccessDenied); a wrong password and an anonymous user
+are refused; an operator's Start answers a job id, while subscriptions see StateCurrent reach
+Execute, ProdProcessedCount rise and a job-end event arrive from Cell at a low severity;
+Basic256Sha256 Sign & Encrypt is refused until the client's
 certificate is moved from the server's rejected/ to trusted/, then works.
 
 Everything about the server comes from arguments (or the environment variable in brackets), so
@@ -161,14 +162,19 @@ async def viewer_checks(args):
             "a viewer's Start is refused with BadUserAccessDenied")
 
 
-async def bad_password(args):
-    refused = False
+async def refused_sign_in(c):
     try:
-        async with client(args, args.operator_user, args.operator_token + "-wrong"):
-            pass
+        async with c:
+            return False
     except Exception:  # asyncua raises the server's status or its own errors
-        refused = True
-    check(refused, "a wrong password is refused")
+        return True
+
+
+async def bad_sign_ins(args):
+    check(await refused_sign_in(client(args, args.operator_user, args.operator_token + "-wrong")),
+          "a wrong password is refused")
+    check(await refused_sign_in(Client(args.url, timeout=args.timeout)),
+          "anonymous sign-in is refused")
 
 
 async def operator_checks(args):
@@ -192,9 +198,11 @@ async def operator_checks(args):
         await changes.until(lambda: any(v > before for v in changes.values.get(count.nodeid, [])),
                             f"the subscription sees ProdProcessedCount rise above {before}",
                             args.timeout)
-        await changes.until(
-            lambda: any(f"job {job} ended" in (e.Message.Text or "") for e in changes.events),
-            f"an event says job {job} ended", args.timeout)
+        ended = lambda: [e for e in changes.events if f"job {job} ended" in (e.Message.Text or "")]
+        await changes.until(ended, f"an event says job {job} ended", args.timeout)
+        event = ended()[0]
+        check(event.SourceName == "Cell" and 1 <= event.Severity <= 200,
+              f"from Cell at a low severity ({event.SourceName}, {event.Severity})")
         await subscription.delete()
 
 
@@ -232,7 +240,7 @@ async def encrypted(args, work):
 async def main():
     args = arguments()
     await viewer_checks(args)
-    await bad_password(args)
+    await bad_sign_ins(args)
     await operator_checks(args)
     with tempfile.TemporaryDirectory() as work:
         await encrypted(args, Path(work))
