@@ -20,6 +20,7 @@ pub mod integer;
 pub mod kinematics;
 pub mod learning;
 pub mod metrics;
+pub mod opcua;
 pub mod policy;
 pub mod robot;
 pub mod sim;

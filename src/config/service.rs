@@ -50,6 +50,63 @@ pub struct ServiceConfig {
     /// The camera's driver (`twin` or `igtl`).
     pub camera: CameraDriverConfig,
     pub access: AccessConfig,
+    pub opcua: OpcUaConfig,
+}
+
+/// `[opcua]`: the OPC UA server a plant's PLC or SCADA connects to (`opcua::server`). Its
+/// certificates live in `opcua-pki/` beside the database.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OpcUaConfig {
+    /// `"host:port"` (port 0 picks a free port) or `"off"`.
+    pub listen: OpcUaListen,
+}
+
+impl Default for OpcUaConfig {
+    fn default() -> Self {
+        OpcUaConfig {
+            listen: OpcUaListen::Address(SocketAddr::from(([127, 0, 0, 1], 4840))),
+        }
+    }
+}
+
+/// `opcua.listen`: an address, or no OPC UA server.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpcUaListen {
+    Off,
+    Address(SocketAddr),
+}
+
+impl std::str::FromStr for OpcUaListen {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        match text.trim() {
+            "off" => Ok(OpcUaListen::Off),
+            address => address
+                .parse()
+                .map(OpcUaListen::Address)
+                .map_err(|_| format!("`{text}` is not off or an address such as 127.0.0.1:4840")),
+        }
+    }
+}
+
+impl fmt::Display for OpcUaListen {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            OpcUaListen::Off => f.write_str("off"),
+            OpcUaListen::Address(address) => write!(f, "{address}"),
+        }
+    }
+}
+
+/// In TOML: `"off"` or `"host:port"`.
+impl<'de> Deserialize<'de> for OpcUaListen {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        String::deserialize(deserializer)?
+            .parse()
+            .map_err(serde::de::Error::custom)
+    }
 }
 
 /// `[access]`: how many refused tokens one client address may send before it is answered 429.
@@ -244,6 +301,7 @@ impl Default for ServiceConfig {
             robot: RobotDriverConfig::default(),
             camera: CameraDriverConfig::default(),
             access: AccessConfig::default(),
+            opcua: OpcUaConfig::default(),
         }
     }
 }
@@ -448,6 +506,11 @@ impl ServiceConfig {
                     self.access.auth_failure_addresses = value.parse().map_err(|_| {
                         invalid("CELLD_AUTH_FAILURE_ADDRESSES", "not a whole number")
                     })?
+                }
+                "OPCUA_LISTEN" => {
+                    self.opcua.listen = value
+                        .parse()
+                        .map_err(|reason: String| invalid("CELLD_OPCUA_LISTEN", &reason))?
                 }
                 // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
                 _ => {}
@@ -827,6 +890,40 @@ mod tests {
         assert_eq!(
             ServiceConfig::load(Some(&example)).unwrap(),
             ServiceConfig::default()
+        );
+    }
+
+    #[test]
+    fn opcua_listens_on_loopback_unless_told_otherwise() {
+        let config = ServiceConfig::default();
+        assert_eq!(config.opcua.listen.to_string(), "127.0.0.1:4840");
+
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("celld.toml");
+        std::fs::write(&path, "[opcua]\nlisten = \"off\"\n").unwrap();
+        let mut config = ServiceConfig::load(Some(&path)).unwrap();
+        assert_eq!(config.opcua.listen, OpcUaListen::Off);
+        config
+            .apply_env(vars(&[("CELLD_OPCUA_LISTEN", "0.0.0.0:4841")]))
+            .unwrap();
+        assert_eq!(
+            config.opcua.listen,
+            OpcUaListen::Address("0.0.0.0:4841".parse().unwrap())
+        );
+
+        std::fs::write(&path, "[opcua]\nlisten = \"plc:4840\"\n").unwrap();
+        let error = ServiceConfig::load(Some(&path)).unwrap_err().to_string();
+        assert!(
+            error.contains("`plc:4840` is not off or an address"),
+            "{error}"
+        );
+        let error = config
+            .apply_env(vars(&[("CELLD_OPCUA_LISTEN", "on")]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("CELLD_OPCUA_LISTEN") && error.contains("`on`"),
+            "{error}"
         );
     }
 

@@ -13,6 +13,7 @@ mod api_conformance;
 mod dashboard_browser;
 mod examples_run;
 mod machine_state;
+mod opcua_server;
 mod serve_api;
 mod serve_demonstrations;
 mod serve_faults;
