@@ -248,6 +248,7 @@ fn start_server() -> Server {
         .args(["serve", "--listen", "127.0.0.1:0", "--db"])
         .arg(dir.path().join("celld.db"))
         .env("CELLD_STEP_PERIOD_MS", "20")
+        .env("CELLD_OPCUA_LISTEN", "off")
         .env("CELLD_LOG", "error")
         // The bundled policy's evaluation at first start would share the cores with the figures.
         .env("CELLD_EVALUATION_EPISODES", "1")

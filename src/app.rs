@@ -19,6 +19,7 @@ use crate::config::drivers::RobotDriver;
 use crate::config::service::ServiceConfig;
 use crate::http;
 use crate::metrics::Metrics;
+use crate::opcua::{self, OpcUaSettings};
 use crate::policy;
 use crate::storage::tokens::{self, Role};
 use crate::storage::{Db, jobs, machine, policies, recorder, training};
@@ -177,12 +178,20 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         // is activated); the service itself runs.
         tracing::warn!(%why, "control.active_controller names a policy the gate refuses");
     }
+    let plant = opcua::cell::CellPlant::start(context.clone());
     let server = tokio::spawn(http::server::serve(
         listener,
         http::router(context),
         (&settings.http).into(),
         server_shutdown,
     )?);
+    let opcua_server = opcua::serve(
+        plant,
+        &OpcUaSettings::from_config(&settings),
+        shutdown.clone(),
+    )
+    .await
+    .context("starting the OPC UA server (opcua.listen)")?;
     println!(
         "celld: cell `{}` on the {} backend{}, database {}",
         cell.name,
@@ -210,6 +219,15 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             admin_token_path(&settings.db).display()
         ),
     }
+    if let Some(opcua) = &opcua_server {
+        println!(
+            "celld: OPC UA {} (certificate {}; a client's certificate is trusted once moved from {} to {})",
+            opcua.endpoint_url(),
+            opcua.certificate_path().display(),
+            opcua.rejected_dir().display(),
+            opcua.trusted_dir().display()
+        );
+    }
     println!("celld: API http://{address}/api/docs (described at /api/openapi.json)");
     if estop_latched {
         println!("celld: the e-stop is latched from before; POST /api/cell/reset to clear it");
@@ -223,7 +241,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     // and exits; its event sink closes with it, which lets the storage writer finish.
     // Meanwhile background work stops: the queue takes no more, its running work is asked to
     // stop, and what waited or ran is marked failed now rather than at the next start.
-    // Each wait is bounded (2 + 1 + 3 + 2 s), so the process is gone within 10 s.
+    // Each wait is bounded (2 + 1 + 3 + 2 + 2 s), so the process is gone within 10 s.
     let (stopped, ()) = tokio::join!(
         tokio::time::timeout(
             Duration::from_secs(2),
@@ -248,6 +266,13 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         .is_err()
     {
         tracing::warn!("open connections did not close in 2 s");
+    }
+    if let Some(opcua) = opcua_server
+        && tokio::time::timeout(Duration::from_secs(2), opcua.finished())
+            .await
+            .is_err()
+    {
+        tracing::warn!("the OPC UA server did not stop in 2 s");
     }
     db.writer.close().await;
     db.reader.close().await;

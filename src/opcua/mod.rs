@@ -1,5 +1,6 @@
 //! The OPC UA server: a plant's PLC or SCADA sees and commands the cell (async-opcua, pure
-//! Rust on tokio). It knows the cell only through [`Plant`]; the service implements it.
+//! Rust on tokio). It knows the cell only through [`Plant`]; [`cell::CellPlant`] implements it
+//! over the running service.
 //!
 //! Browse tree, in namespace `urn:celld:cell` under Objects (browse names from OPC 30050 PackML,
 //! OPC 40001-1 Machinery and OPC 40010-1 Robotics where they fit; every variable read-only):
@@ -25,6 +26,7 @@
 
 pub mod address_space;
 pub mod auth;
+pub mod cell;
 pub mod methods;
 pub mod plant;
 pub mod server;

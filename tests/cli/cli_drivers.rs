@@ -74,6 +74,7 @@ fn serve_names_a_controller_it_cannot_reach_and_drivers_that_do_not_go_together(
             ("CELLD_ROBOT_PORT", &port),
             ("CELLD_CAMERA_DRIVER", "igtl"),
             ("CELLD_CONTROL_CPU", "off"),
+            ("CELLD_OPCUA_LISTEN", "off"),
             ("CELLD_EVALUATION_EPISODES", "1"),
         ],
     );

@@ -14,6 +14,7 @@ mod dashboard_browser;
 mod examples_run;
 mod machine_state;
 mod opcua_server;
+mod opcua_service;
 mod serve_api;
 mod serve_demonstrations;
 mod serve_faults;

@@ -17,6 +17,10 @@ that the same script runs against a test's server or a real `celld serve`:
   --controller                        the controller Start runs (default expert)
   --initial-state                     the PackML state expected before Start (default: any)
   --timeout                           seconds to wait for each expected change (default 30)
+  --http (CELLD_URL)                  the service's HTTP API; given, also checks the abort cycle:
+                                      an e-stop over HTTP shows as Aborted with EmergencyStop true
+                                      and an alarm event; Reset is refused there; Clear, then
+                                      Reset, bring the cell to Idle; Stop and Reset likewise
 """
 
 import argparse
@@ -26,6 +30,7 @@ import shutil
 import socket
 import sys
 import tempfile
+import urllib.request
 from pathlib import Path
 
 from asyncua import Client, ua
@@ -55,6 +60,7 @@ def arguments():
     p.add_argument("--controller", default=env("OPCUA_CONTROLLER", "expert"))
     p.add_argument("--initial-state", default=env("OPCUA_INITIAL_STATE"))
     p.add_argument("--timeout", type=float, default=float(env("OPCUA_TIMEOUT", "30")))
+    p.add_argument("--http", default=env("CELLD_URL"))
     args = p.parse_args()
     for name in ("url", "operator_token", "viewer_token", "pki"):
         if not getattr(args, name):
@@ -206,6 +212,56 @@ async def operator_checks(args):
         await subscription.delete()
 
 
+def http_estop(args):
+    request = urllib.request.Request(
+        f"{args.http.rstrip('/')}/api/cell/estop", method="POST",
+        headers={"Authorization": f"Bearer {args.operator_token}"})
+    with urllib.request.urlopen(request, timeout=args.timeout) as answer:
+        return answer.status
+
+
+async def abort_cycle(args):
+    async with client(args, args.operator_user, args.operator_token) as c:
+        ns, at = await nodes(c)
+        state = await at("PackML", "Status", "StateCurrent")
+        estop = await at("Safety", "EmergencyStop")
+        reason = await at("PackML", "Status", "StopReason", "ID")
+        cell = await at()
+        changes = Changes()
+        subscription = await c.create_subscription(50, changes)
+        await subscription.subscribe_data_change([state, estop], queuesize=16,
+                                                 sampling_interval=0)
+        await subscription.subscribe_events(cell)
+        latest = lambda node: (changes.values.get(node.nodeid) or [None])[-1]
+        status = await asyncio.get_running_loop().run_in_executor(None, http_estop, args)
+        check(status == 200, "an e-stop over HTTP answers 200")
+        await changes.until(lambda: latest(state) == STATES["Aborted"] and latest(estop) is True,
+                            "the subscription sees Aborted and EmergencyStop true", args.timeout)
+        check(await reason.read_value() == 1, "StopReason.ID is 1 (e-stop)")
+        alarms = lambda: [e for e in changes.events if e.Severity >= 900]
+        await changes.until(alarms, "an alarm event for the e-stop", args.timeout)
+        method = lambda name: cell.call_method(f"{ns}:{name}")
+        check(await refused_with(method("Reset"), "BadInvalidState"),
+              "Reset in Aborted is refused with BadInvalidState")
+        await method("Clear")
+        await changes.until(lambda: latest(state) == STATES["Stopped"] and latest(estop) is False,
+                            "Clear: Stopped and EmergencyStop false", args.timeout)
+        await method("Reset")
+        await changes.until(lambda: latest(state) == STATES["Idle"], "Reset: Idle", args.timeout)
+        await method("Stop")
+        await changes.until(lambda: latest(state) == STATES["Stopped"], "Stop: Stopped",
+                            args.timeout)
+        check(await reason.read_value() == 3, "StopReason.ID is 3 (stop)")
+        check(await refused_with(
+            cell.call_method(f"{ns}:Start", ua.Variant(args.controller, ua.VariantType.String),
+                             ua.Variant(-1, ua.VariantType.Int64)), "BadInvalidState"),
+            "Start in Stopped is refused with BadInvalidState")
+        await method("Reset")
+        await changes.until(lambda: latest(state) == STATES["Idle"], "Reset: Idle again",
+                            args.timeout)
+        await subscription.delete()
+
+
 async def encrypted(args, work):
     key, cert = work / "client-key.pem", work / "client-cert.der"
     await setup_self_signed_certificate(
@@ -242,6 +298,8 @@ async def main():
     await viewer_checks(args)
     await bad_sign_ins(args)
     await operator_checks(args)
+    if args.http:
+        await abort_cycle(args)
     with tempfile.TemporaryDirectory() as work:
         await encrypted(args, Path(work))
     print("ok")

@@ -13,6 +13,8 @@ pub struct Server {
     pub admin: String,
     /// The dashboard link `celld serve` printed, which signs in as admin (first start only).
     pub signin_url: Option<String>,
+    /// The OPC UA endpoint `celld serve` printed (none when `CELLD_OPCUA_LISTEN` is `off`).
+    pub opcua_url: Option<String>,
     pub db: PathBuf,
     agent: ureq::Agent,
 }
@@ -35,6 +37,8 @@ impl Server {
             // Test servers share two cores; `control_thread_has_a_cpu_of_its_own` checks the
             // placement itself.
             .env("CELLD_CONTROL_CPU", "off")
+            // Test servers run side by side; the OPC UA tests turn it on, on a free port.
+            .env("CELLD_OPCUA_LISTEN", "off")
             .env("CELLD_LOG", "warn")
             // The bundled policy's evaluation at first start, kept short.
             .env("CELLD_EVALUATION_EPISODES", "20")
@@ -56,11 +60,14 @@ impl Server {
                 break address.trim().to_string();
             }
         };
-        let mut signin_url = None;
+        let (mut signin_url, mut opcua_url) = (None, None);
         for line in lines.by_ref() {
             let line = line.unwrap();
             if let Some(url) = line.strip_prefix("celld: dashboard (signs in as admin) ") {
                 signin_url = Some(url.trim().to_string());
+            }
+            if let Some(rest) = line.strip_prefix("celld: OPC UA ") {
+                opcua_url = rest.split_whitespace().next().map(str::to_string);
             }
             if line.starts_with("celld: API ") {
                 break;
@@ -77,6 +84,7 @@ impl Server {
             base,
             admin,
             signin_url,
+            opcua_url,
             db,
             agent: agent(),
         }

@@ -443,6 +443,7 @@ fn serve_logging(dir: &Path, log: &Path) -> (Child, String, String) {
         .args(["serve", "--listen", "127.0.0.1:0", "--db"])
         .arg(dir.join("celld.db"))
         .env("CELLD_CONTROL_CPU", "off")
+        .env("CELLD_OPCUA_LISTEN", "off")
         .env("CELLD_EVALUATION_EPISODES", "20")
         .env("CELLD_DEADLINE_MS", "5000")
         .env("CELLD_STEP_PERIOD_MS", "5")

@@ -191,6 +191,7 @@ fn absurd_settings_stop_the_service_at_startup_naming_the_key() {
             .arg(dir.path().join("celld.db"))
             .env("RUST_BACKTRACE", "1")
             .env("CELLD_CONTROL_CPU", "off")
+            .env("CELLD_OPCUA_LISTEN", "off")
             .env(variable, value)
             .output()
             .expect("run celld serve");
