@@ -5,11 +5,16 @@
 //!   and without a proposal and rules;
 //! - a real `celld serve` running expert jobs back to back: the control step's p99 alone, under
 //!   1000 HTTP reads/s (and those reads' p50/p99 and errors), and with 100 telemetry
-//!   subscribers plus one that never reads.
+//!   subscribers plus one that never reads;
+//! - the same service with 20 OPC UA clients subscribed (asyncua, PyPI): a state change's way to
+//!   them (p50, p99), the control step's p99 against a quiet service, and the memory they add
+//!   (`service/opcua.rs`).
 //!
 //! `cargo bench --bench service` (add `-- --quick` for a shorter run). The load generators run on
 //! the same machine at nice 10, standing in for clients on other machines.
 
+#[path = "service/opcua.rs"]
+mod opcua;
 mod support;
 
 use assembly_cell::cell::StepRecord;
@@ -29,6 +34,7 @@ fn main() {
     step_rows(if quick { 50_000 } else { 200_000 });
     record_cost(if quick { 20_000 } else { 200_000 });
     service(if quick { 4 } else { 40 });
+    opcua::subscribers(if quick { 4 } else { 40 }, if quick { 10 } else { 50 });
 }
 
 fn record(job_id: i64, step: u32) -> StepRecord {
@@ -123,6 +129,8 @@ struct Server {
     child: Child,
     base: String,
     token: String,
+    /// The OPC UA endpoint, when the server runs one.
+    opcua_url: Option<String>,
     _dir: tempfile::TempDir,
 }
 
@@ -133,25 +141,37 @@ impl Drop for Server {
     }
 }
 
-fn start_server() -> Server {
+/// A server with `opcua_listen` as its `opcua.listen` (`off`, or an address).
+fn start_server(opcua_listen: &str) -> Server {
     let dir = tempfile::tempdir().unwrap();
     let mut child = Command::new(env!("CARGO_BIN_EXE_celld"))
         .args(["serve", "--listen", "127.0.0.1:0", "--db"])
         .arg(dir.path().join("celld.db"))
         .env("CELLD_STEP_PERIOD_MS", "20")
         .env("CELLD_LOG", "warn")
+        .env("CELLD_OPCUA_LISTEN", opcua_listen)
         // The bundled policy's evaluation at first start would share the cores with the figures.
         .env("CELLD_EVALUATION_EPISODES", "1")
         .stdout(Stdio::piped())
         .spawn()
         .unwrap();
     let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    let mut opcua_url = None;
     let base = loop {
         let line = lines.next().unwrap().unwrap();
         if let Some(address) = line.strip_prefix("celld: listening on ") {
             break address.trim().to_string();
         }
     };
+    for line in lines.by_ref() {
+        let line = line.unwrap();
+        if let Some(rest) = line.strip_prefix("celld: OPC UA ") {
+            opcua_url = rest.split_whitespace().next().map(str::to_string);
+        }
+        if line.starts_with("celld: API ") {
+            break;
+        }
+    }
     std::thread::spawn(move || for _ in lines.by_ref() {});
     let token = std::fs::read_to_string(dir.path().join("admin.token"))
         .unwrap()
@@ -161,6 +181,7 @@ fn start_server() -> Server {
         child,
         base,
         token,
+        opcua_url,
         _dir: dir,
     }
 }
@@ -173,6 +194,18 @@ fn agent() -> ureq::Agent {
 }
 
 impl Server {
+    fn post(&self, agent: &ureq::Agent, path: &str) -> Result<Value, String> {
+        let mut response = agent
+            .post(format!("{}{path}", self.base))
+            .header("Authorization", format!("Bearer {}", self.token))
+            .send_empty()
+            .map_err(|e| e.to_string())?;
+        if response.status() != 200 {
+            return Err(format!("status {}", response.status()));
+        }
+        response.body_mut().read_json().map_err(|e| e.to_string())
+    }
+
     fn get(&self, agent: &ureq::Agent, path: &str) -> Result<Value, String> {
         let mut response = agent
             .get(format!("{}{path}", self.base))
@@ -300,7 +333,7 @@ fn load(
 }
 
 fn service(jobs: u64) {
-    let server = Arc::new(start_server());
+    let server = Arc::new(start_server("off"));
     stay_off_the_control_cpu();
     // Warm up (first policy build, page cache).
     server.run_jobs(1, 1000);

@@ -65,6 +65,13 @@ pub fn pki_dir_beside(db: &Path) -> PathBuf {
         .join("opcua-pki")
 }
 
+/// How often the server looks for notifications to publish, ms. The crate's 100 ms would
+/// make a state change wait up to 100 ms before its publish; a plant's client watching the
+/// state asks for a publishing interval of tens of ms.
+const SUBSCRIPTION_TICK_MS: u64 = 10;
+/// The shortest publishing interval a client may ask for, ms.
+const MIN_PUBLISHING_INTERVAL_MS: f64 = 20.0;
+
 /// The server's own certificate and key, in the PKI directory.
 const CERTIFICATE: &str = "own/cert.der";
 const PRIVATE_KEY: &str = "private/private.pem";
@@ -192,7 +199,12 @@ pub async fn serve<P: Plant>(
                     address_space::build(space, nodes.namespace_index(), &identification, &view);
                     nodes
                 };
-            ServerBuilder::new()
+            let mut builder =
+                ServerBuilder::new().subscription_poll_interval_ms(SUBSCRIPTION_TICK_MS);
+            let limits = &mut builder.limits_mut().subscriptions;
+            limits.min_publishing_interval_ms = MIN_PUBLISHING_INTERVAL_MS;
+            limits.min_sampling_interval_ms = SUBSCRIPTION_TICK_MS as f64;
+            builder
                 .application_name(name)
                 .application_uri(APPLICATION_URI)
                 .product_uri(APPLICATION_URI)

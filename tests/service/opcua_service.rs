@@ -57,7 +57,10 @@ fn a_plants_client_runs_the_cell_through_its_packml_states() {
         "Reset: Idle again",
         "Sign & Encrypt (Basic256Sha256) reads StateCurrent",
     ] {
-        assert!(stdout.contains(check), "the client did not check {check}:\n{stdout}");
+        assert!(
+            stdout.contains(check),
+            "the client did not check {check}:\n{stdout}"
+        );
     }
 
     // What the client did is what the HTTP API and the audit log show.
