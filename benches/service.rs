@@ -10,7 +10,8 @@
 //!   them (p50, p99), the control step's p99 against a quiet service, and the memory they add
 //!   (`service/opcua.rs`).
 //!
-//! `cargo bench --bench service` (add `-- --quick` for a shorter run). The load generators run on
+//! `cargo bench --bench service` (add `-- --quick` for a shorter run, and `-- opcua` or another
+//! part's name for that part alone). The load generators run on
 //! the same machine at nice 10, standing in for clients on other machines.
 
 #[path = "service/opcua.rs"]
@@ -30,11 +31,27 @@ use std::time::{Duration, Instant};
 use support::percentile;
 
 fn main() {
-    let quick = std::env::args().any(|a| a == "--quick");
-    step_rows(if quick { 50_000 } else { 200_000 });
-    record_cost(if quick { 20_000 } else { 200_000 });
-    service(if quick { 4 } else { 40 });
-    opcua::subscribers(if quick { 4 } else { 40 }, if quick { 10 } else { 50 });
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let quick = args.iter().any(|a| a == "--quick");
+    // Names after `--` pick parts (`rows`, `record`, `http`, `opcua`); none runs them all.
+    let named: Vec<&str> = args
+        .iter()
+        .map(String::as_str)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    let runs = |part: &str| named.is_empty() || named.contains(&part);
+    if runs("rows") {
+        step_rows(if quick { 50_000 } else { 200_000 });
+    }
+    if runs("record") {
+        record_cost(if quick { 20_000 } else { 200_000 });
+    }
+    if runs("http") {
+        service(if quick { 4 } else { 40 });
+    }
+    if runs("opcua") {
+        opcua::subscribers(if quick { 4 } else { 40 }, if quick { 10 } else { 50 });
+    }
 }
 
 fn record(job_id: i64, step: u32) -> StepRecord {

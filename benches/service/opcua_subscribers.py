@@ -1,10 +1,10 @@
 """Plant clients subscribed to celld's OPC UA server (asyncua), for `cargo bench --bench service`.
 
-Each of --clients sessions signs in with --token and subscribes, at a 50 ms publishing interval,
+Each of --clients sessions signs in with --token and subscribes, at a 20 ms publishing interval,
 to the PackML state, the part counters, the running job's step, pose error and sigma, and the
 e-stop, and to the cell's events. Prints `ready` once every client is subscribed, then one line
-`state <StateCurrent> <unix time s>` per client and state notification as it arrives, until
-stdin closes.
+`state <StateCurrent> <arrival> <source timestamp>` (unix s) per client and state notification
+as it arrives, until stdin closes.
 """
 
 import argparse
@@ -12,6 +12,7 @@ import asyncio
 import logging
 import sys
 import time
+from datetime import timezone
 
 from asyncua import Client
 
@@ -37,7 +38,11 @@ class Printer:
             if self.first:  # the value when the subscription began, not a change
                 self.first = False
                 return
-            print(f"state {value} {time.time():.6f}", flush=True)
+            arrived = time.time()
+            source = data.monitored_item.Value.SourceTimestamp
+            if source.tzinfo is None:
+                source = source.replace(tzinfo=timezone.utc)
+            print(f"state {value} {arrived:.6f} {source.timestamp():.6f}", flush=True)
 
     def event_notification(self, event):
         pass
@@ -51,7 +56,7 @@ async def client(args, ready):
     ns = await c.get_namespace_index(NAMESPACE)
     cell = await c.nodes.objects.get_child([f"{ns}:Cell"])
     nodes = [await cell.get_child([f"{ns}:{name}" for name in path]) for path in WATCHED]
-    subscription = await c.create_subscription(50, Printer(nodes[0].nodeid))
+    subscription = await c.create_subscription(20, Printer(nodes[0].nodeid))
     await subscription.subscribe_data_change(nodes, queuesize=16, sampling_interval=0)
     await subscription.subscribe_events(cell)
     ready.release()

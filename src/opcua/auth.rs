@@ -24,25 +24,24 @@ impl<P: Plant> PlantAuth<P> {
 const OPERATOR: &str = "operator:";
 const VIEWER: &str = "viewer:";
 
-/// The server's token for `user`: its role and name (two sessions of one user share it).
+/// The server's token for `user`: its role, key and name (two sessions of one user share it).
 pub fn user_token(user: &PlantUser) -> UserToken {
     let role = if user.may_operate { OPERATOR } else { VIEWER };
-    UserToken(format!("{role}{}", user.name))
+    UserToken(format!("{role}{}:{}", user.key, user.name))
 }
 
 /// The user a token stands for; none for a token this module did not make (anonymous).
 pub fn token_user(token: &UserToken) -> Option<PlantUser> {
-    if let Some(name) = token.0.strip_prefix(OPERATOR) {
-        Some(PlantUser {
-            name: name.to_string(),
-            may_operate: true,
-        })
-    } else {
-        token.0.strip_prefix(VIEWER).map(|name| PlantUser {
-            name: name.to_string(),
-            may_operate: false,
-        })
-    }
+    let (may_operate, rest) = match token.0.strip_prefix(OPERATOR) {
+        Some(rest) => (true, rest),
+        None => (false, token.0.strip_prefix(VIEWER)?),
+    };
+    let (key, name) = rest.split_once(':')?;
+    Some(PlantUser {
+        name: name.to_string(),
+        may_operate,
+        key: key.to_string(),
+    })
 }
 
 /// The OPC UA status for a refusal.
@@ -99,10 +98,12 @@ mod tests {
             PlantUser {
                 name: "ada".into(),
                 may_operate: true,
+                key: "9f2c".into(),
             },
             PlantUser {
                 name: "viewer:odd".into(),
                 may_operate: false,
+                key: "77".into(),
             },
         ] {
             assert_eq!(token_user(&user_token(&user)), Some(user));

@@ -9,7 +9,7 @@ use super::plant::{
 };
 use crate::cell::CellStatus;
 use crate::cell::packml::{Command, PackMlState, UNIT_MODE};
-use crate::storage::tokens::Role;
+use crate::storage::tokens::{self, Caller, Role};
 use crate::workflows::jobs::JobRequest;
 use crate::workflows::{self, Context, Error};
 use std::time::Duration;
@@ -217,18 +217,24 @@ impl Plant for CellPlant {
     /// The password is an API token; the user name is not checked (the token names its
     /// holder, and that name goes to the audit log).
     async fn sign_in(&self, _user: &str, password: &str) -> Result<PlantUser, Refused> {
-        use workflows::tokens::AuthError;
-        match workflows::tokens::authenticate(&self.context, password.trim()).await {
-            Ok(caller) => Ok(PlantUser {
-                name: caller.name,
-                may_operate: caller.role >= Role::Operator,
-            }),
-            Err(AuthError::Storage(e)) => Err(Refused::Unavailable(e)),
-            Err(refused) => Err(Refused::BadIdentity(refused.to_string())),
-        }
+        let key = tokens::hash(password.trim());
+        let caller = caller(&self.context, &key).await?;
+        Ok(PlantUser {
+            name: caller.name,
+            may_operate: caller.role >= Role::Operator,
+            key,
+        })
     }
 
+    /// Each call checks the token again (cached as for HTTP): one revoked or expired since the
+    /// session signed in calls nothing.
     async fn call(&self, user: &PlantUser, method: PlantMethod) -> Result<Option<i64>, Refused> {
+        let now = caller(&self.context, &user.key).await?;
+        let user = PlantUser {
+            name: now.name,
+            may_operate: now.role >= Role::Operator,
+            key: user.key.clone(),
+        };
         if !user.may_operate {
             return Err(Refused::NotAllowed(format!(
                 "this needs the operator role; token `{}` may only watch",
@@ -257,6 +263,16 @@ impl Plant for CellPlant {
             PlantMethod::Clear => workflows::cell::command(context, by, Command::Clear).await,
         };
         done.map(|()| None).map_err(refused)
+    }
+}
+
+/// The caller a token's hash names, if the token stands.
+async fn caller(context: &Context, key: &str) -> Result<Caller, Refused> {
+    use workflows::tokens::AuthError;
+    match workflows::tokens::authenticate_hash(context, key).await {
+        Ok(caller) => Ok(caller),
+        Err(AuthError::Storage(e)) => Err(Refused::Unavailable(e)),
+        Err(refused) => Err(Refused::BadIdentity(refused.to_string())),
     }
 }
 

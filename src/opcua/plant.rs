@@ -93,6 +93,10 @@ pub struct PlantUser {
     pub name: String,
     /// Operators may call Start, Stop, Abort, Reset and Clear; others only read.
     pub may_operate: bool,
+    /// What the plant knows the credential by, not a secret and without `:` (celld: the
+    /// token's hash): the session keeps it and each call hands it back, so that a token
+    /// revoked since sign-in calls nothing.
+    pub key: String,
 }
 
 /// A command from the plant.

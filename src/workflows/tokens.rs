@@ -165,7 +165,16 @@ pub async fn authenticate(
     context: &Context,
     secret: &str,
 ) -> std::result::Result<Caller, AuthError> {
-    let hash = tokens::hash(secret);
+    authenticate_hash(context, &tokens::hash(secret)).await
+}
+
+/// [`authenticate`] by the secret's hash, for a session that keeps the hash rather than the
+/// secret (OPC UA's).
+pub async fn authenticate_hash(
+    context: &Context,
+    hash: &str,
+) -> std::result::Result<Caller, AuthError> {
+    let hash = hash.to_string();
     let now = Instant::now();
     let known = context
         .known_callers

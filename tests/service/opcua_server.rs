@@ -82,6 +82,7 @@ impl Plant for FakePlant {
         Ok(PlantUser {
             name: user.to_string(),
             may_operate,
+            key: password.len().to_string(),
         })
     }
 

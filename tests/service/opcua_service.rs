@@ -79,3 +79,44 @@ fn a_plants_client_runs_the_cell_through_its_packml_states() {
     );
     assert_eq!(items[0]["created_by"], "test operator");
 }
+
+/// A session keeps no more than its token: revoked while the session is open, the token's
+/// next call is refused.
+#[test]
+fn a_revoked_tokens_open_session_calls_nothing_more() {
+    if !python_has("asyncua", "asyncua") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), &[("CELLD_OPCUA_LISTEN", "127.0.0.1:0")]);
+    let url = server
+        .opcua_url
+        .clone()
+        .expect("celld serve prints its OPC UA endpoint");
+    let (status, token) = server.post(
+        "/api/tokens",
+        Some(&server.admin),
+        Some(serde_json::json!({"role": "operator", "name": "plc"})),
+    );
+    assert_eq!(status, 201, "{token}");
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/service/opcua_revoked.py");
+    let output = Command::new("python3")
+        .arg(script)
+        .args(["--url", &url, "--http", &server.base])
+        .args(["--admin-token", &server.admin])
+        .args(["--operator-token", token["token"].as_str().unwrap()])
+        .args(["--token-id", &token["id"].to_string()])
+        .output()
+        .expect("run python3");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success() && stdout.trim_end().ends_with("\nok"),
+        "the OPC UA client found problems:\n{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let machine = server.get("/api/cell/machine", Some(&server.admin)).1;
+    assert_eq!(
+        machine["state"], "Stopped",
+        "the refused Reset changed nothing"
+    );
+}
