@@ -275,6 +275,10 @@ impl Machine {
         self.state
     }
 
+    pub fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
     pub fn status(&self) -> MachineStatus {
         MachineStatus {
             state: self.state,

@@ -29,27 +29,27 @@ fn a_plants_client_runs_the_cell_through_its_packml_states() {
     let operator = server.token("operator");
     let viewer = server.token("viewer");
     let before = server.get("/api/cell/machine", Some(&server.admin)).1;
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/service/opcua_client.py");
-    let output = Command::new("python3")
-        .arg(script)
-        .args(["--url", &url, "--http", &server.base])
-        .args([
+    let pki = dir.path().join("opcua-pki");
+    let stdout = run_client(
+        "opcua_client.py",
+        &[
+            "--url",
+            &url,
+            "--http",
+            &server.base,
             "--operator-user",
             "test operator",
             "--operator-token",
             &operator,
-        ])
-        .args(["--viewer-user", "test viewer", "--viewer-token", &viewer])
-        .arg("--pki")
-        .arg(dir.path().join("opcua-pki"))
-        .args(["--initial-state", "Idle"])
-        .output()
-        .expect("run python3");
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success() && stdout.trim_end().ends_with("\nok"),
-        "the OPC UA client found problems:\n{stdout}\n{}",
-        String::from_utf8_lossy(&output.stderr)
+            "--viewer-user",
+            "test viewer",
+            "--viewer-token",
+            &viewer,
+            "--pki",
+            pki.to_str().unwrap(),
+            "--initial-state",
+            "Idle",
+        ],
     );
     for check in [
         "the subscription sees Aborted and EmergencyStop true",
@@ -99,24 +99,44 @@ fn a_revoked_tokens_open_session_calls_nothing_more() {
         Some(serde_json::json!({"role": "operator", "name": "plc"})),
     );
     assert_eq!(status, 201, "{token}");
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/service/opcua_revoked.py");
-    let output = Command::new("python3")
-        .arg(script)
-        .args(["--url", &url, "--http", &server.base])
-        .args(["--admin-token", &server.admin])
-        .args(["--operator-token", token["token"].as_str().unwrap()])
-        .args(["--token-id", &token["id"].to_string()])
-        .output()
-        .expect("run python3");
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success() && stdout.trim_end().ends_with("\nok"),
-        "the OPC UA client found problems:\n{stdout}\n{}",
-        String::from_utf8_lossy(&output.stderr)
+    run_client(
+        "opcua_revoked.py",
+        &[
+            "--url",
+            &url,
+            "--http",
+            &server.base,
+            "--admin-token",
+            &server.admin,
+            "--operator-token",
+            token["token"].as_str().unwrap(),
+            "--token-id",
+            &token["id"].to_string(),
+        ],
     );
     let machine = server.get("/api/cell/machine", Some(&server.admin)).1;
     assert_eq!(
         machine["state"], "Stopped",
         "the refused Reset changed nothing"
     );
+}
+
+/// Runs the asyncua script `name` (in tests/service) with `args`; answers its output once it
+/// ended well, saying `ok` last.
+fn run_client(name: &str, args: &[&str]) -> String {
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/service")
+        .join(name);
+    let output = Command::new("python3")
+        .arg(script)
+        .args(args)
+        .output()
+        .expect("run python3");
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(
+        output.status.success() && stdout.trim_end().ends_with("\nok"),
+        "the OPC UA client found problems:\n{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    stdout
 }
