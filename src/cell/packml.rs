@@ -105,6 +105,32 @@ pub struct StopReason {
     pub message: String,
 }
 
+impl StopReason {
+    pub fn estop(message: String) -> StopReason {
+        StopReason {
+            code: "estop".into(),
+            id: 1,
+            message,
+        }
+    }
+
+    pub fn driver_latch(code: &str, reason: &str) -> StopReason {
+        StopReason {
+            code: code.to_string(),
+            id: 2,
+            message: format!("the robot driver latched: {reason}"),
+        }
+    }
+
+    pub fn stop(by: &str) -> StopReason {
+        StopReason {
+            code: "stop".into(),
+            id: 3,
+            message: format!("stopped by {by}"),
+        }
+    }
+}
+
 /// Production counters, kept across restarts (OPC 30050 `Admin`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Counters {
@@ -382,22 +408,14 @@ impl Machine {
             },
             MachineInput::EStop { by } => {
                 self.counters.estops += 1;
-                self.stop_reason = Some(StopReason {
-                    code: "estop".into(),
-                    id: 1,
-                    message: format!("e-stop pressed by {by}"),
-                });
+                self.stop_reason = Some(StopReason::estop(format!("e-stop pressed by {by}")));
                 if !matches!(self.state, Aborting | Aborted) {
                     moves.go(Aborting, "e-stop");
                 }
             }
             MachineInput::DriverLatched { code, reason } => {
                 if !matches!(self.state, Aborting | Aborted) {
-                    self.stop_reason = Some(StopReason {
-                        code: code.to_string(),
-                        id: 2,
-                        message: format!("the robot driver latched: {reason}"),
-                    });
+                    self.stop_reason = Some(StopReason::driver_latch(code, reason));
                     moves.go(Aborting, "the robot driver latched");
                 }
             }
@@ -406,11 +424,7 @@ impl Machine {
                 let cause = format!("{} by {by}", command.name());
                 match command {
                     Command::Stop => {
-                        self.stop_reason = Some(StopReason {
-                            code: "stop".into(),
-                            id: 3,
-                            message: format!("stopped by {by}"),
-                        });
+                        self.stop_reason = Some(StopReason::stop(by));
                         moves.go(Stopping, &cause);
                     }
                     Command::Hold => moves.go(Holding, &cause),

@@ -213,17 +213,13 @@ pub fn spawn(
     let stop_now = backend.emergency_stop();
     let driver_latch = backend.latch();
     let latched = if settings.estop_latched {
-        Some(StopReason {
-            code: "estop".into(),
-            id: 1,
-            message: "the e-stop was latched when the service last stopped".into(),
-        })
+        Some(StopReason::estop(
+            "the e-stop was latched when the service last stopped".into(),
+        ))
     } else {
-        driver_latch.as_ref().map(|latch| StopReason {
-            code: latch.code.to_string(),
-            id: 2,
-            message: format!("the robot driver is latched: {}", latch.reason),
-        })
+        driver_latch
+            .as_ref()
+            .map(|latch| StopReason::driver_latch(&latch.code, &latch.reason))
     };
     let machine = Machine::new(latched, settings.counters.clone());
     let status = CellStatus {
