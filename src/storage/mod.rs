@@ -59,12 +59,37 @@ pub enum OpenError {
         path: String,
         source: sqlx::migrate::MigrateError,
     },
+    /// A URL where a file path belongs (`postgres://…`, `sqlite://…`): opened as a path it
+    /// would make a directory named after the scheme and a SQLite file in it.
+    #[error(
+        "the database `{path}` is a URL; the database is a SQLite file path (such as \
+         data/celld.db), and celld does not connect to a {scheme} server"
+    )]
+    NotAPath { path: String, scheme: String },
+}
+
+/// The scheme of `path` when it is a URL (`scheme://...`).
+fn url_scheme(path: &Path) -> Option<String> {
+    let text = path.to_str()?;
+    let (scheme, _) = text.split_once("://")?;
+    let is_scheme = !scheme.is_empty()
+        && scheme.starts_with(|c: char| c.is_ascii_alphabetic())
+        && scheme
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c));
+    is_scheme.then(|| scheme.to_string())
 }
 
 impl Db {
     /// Opens (creating if missing) and migrates the database file.
     pub async fn open(path: &Path) -> Result<Db, OpenError> {
         let shown = path.display().to_string();
+        if let Some(scheme) = url_scheme(path) {
+            return Err(OpenError::NotAPath {
+                path: shown,
+                scheme,
+            });
+        }
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|source| OpenError::Directory {
                 path: dir.display().to_string(),
@@ -219,3 +244,27 @@ pub const NOW: &str = "strftime('%Y-%m-%dT%H:%M:%fZ', 'now')";
 
 #[cfg(test)]
 mod full_disk;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_are_told_from_paths() {
+        let scheme = |text: &str| url_scheme(Path::new(text));
+        assert_eq!(
+            scheme("postgres://cell@db/celld").as_deref(),
+            Some("postgres")
+        );
+        assert_eq!(scheme("sqlite://celld.db").as_deref(), Some("sqlite"));
+        for path in [
+            "data/celld.db",
+            "/var/lib/celld/celld.db",
+            "a:b/c.db",
+            "://x",
+            "1x://y",
+        ] {
+            assert_eq!(scheme(path), None, "{path}");
+        }
+    }
+}

@@ -201,3 +201,28 @@ fn absurd_settings_stop_the_service_at_startup_naming_the_key() {
         assert_no_backtrace(&stderr);
     }
 }
+
+/// A database URL is not a path: refused by name, and no directory named after its scheme is
+/// left behind.
+#[test]
+fn a_database_url_is_refused_and_makes_no_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    for url in ["postgres://cell@db.plant/celld", "sqlite://celld.db"] {
+        let output = Command::new(env!("CARGO_BIN_EXE_celld"))
+            .current_dir(dir.path())
+            .args(["serve", "--listen", "127.0.0.1:0", "--db", url])
+            .env("CELLD_CONTROL_CPU", "off")
+            .env("CELLD_OPCUA_LISTEN", "off")
+            .output()
+            .expect("run celld serve");
+        assert!(!output.status.success(), "--db {url} was accepted");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains("is a URL"), "--db {url}: {stderr}");
+        assert_no_backtrace(&stderr);
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            0,
+            "--db {url} left something behind"
+        );
+    }
+}
