@@ -60,12 +60,18 @@ pub struct ServiceConfig {
 pub struct OpcUaConfig {
     /// `"host:port"` (port 0 picks a free port) or `"off"`.
     pub listen: OpcUaListen,
+    /// The cell's maker and serial number on its name plate (OPC 40001-1 Identification);
+    /// none: `celld` and the cell file's hash.
+    pub manufacturer: Option<String>,
+    pub serial_number: Option<String>,
 }
 
 impl Default for OpcUaConfig {
     fn default() -> Self {
         OpcUaConfig {
             listen: OpcUaListen::Address(SocketAddr::from(([127, 0, 0, 1], 4840))),
+            manufacturer: None,
+            serial_number: None,
         }
     }
 }
@@ -900,9 +906,15 @@ mod tests {
 
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("celld.toml");
-        std::fs::write(&path, "[opcua]\nlisten = \"off\"\n").unwrap();
+        std::fs::write(
+            &path,
+            "[opcua]\nlisten = \"off\"\nmanufacturer = \"Acme\"\nserial_number = \"C-17\"\n",
+        )
+        .unwrap();
         let mut config = ServiceConfig::load(Some(&path)).unwrap();
         assert_eq!(config.opcua.listen, OpcUaListen::Off);
+        assert_eq!(config.opcua.manufacturer.as_deref(), Some("Acme"));
+        assert_eq!(config.opcua.serial_number.as_deref(), Some("C-17"));
         config
             .apply_env(vars(&[("CELLD_OPCUA_LISTEN", "0.0.0.0:4841")]))
             .unwrap();

@@ -204,11 +204,15 @@ impl Plant for CellPlant {
 
     fn identification(&self) -> Identification {
         let cell = &self.context.cell_config;
+        let plate = &self.context.settings.opcua;
         Identification {
-            manufacturer: "celld".into(),
+            manufacturer: plate.manufacturer.clone().unwrap_or_else(|| "celld".into()),
             model: "6-SPS shaft-in-bore assembly cell".into(),
             product_instance_uri: format!("urn:celld:cell:{}", cell.name),
-            serial_number: cell.config_hash(),
+            serial_number: plate
+                .serial_number
+                .clone()
+                .unwrap_or_else(|| cell.config_hash()),
             software_revision: env!("CARGO_PKG_VERSION").into(),
             cell_name: cell.name.clone(),
         }
