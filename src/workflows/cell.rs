@@ -121,13 +121,15 @@ pub async fn command(context: &Context, by: &str, command: Command) -> Result<()
         })
         .await?
         .map_err(|not_now| Error::conflict(not_now.to_string()))?;
-    audit::record(
-        &context.db,
-        by,
-        &format!("cell.{}", command.name()),
-        json!({}),
-    )
-    .await?;
+    let action = format!("cell.{}", command.name());
+    if let Err(e) = audit::record(&context.db, by, &action, json!({})).await {
+        // Done, not recorded: say both, as the e-stop does.
+        return Err(Error::StorageUnavailable(format!(
+            "the cell took the {} (it is {} now), but its audit entry could not be stored ({e})",
+            command.name(),
+            context.cell.status().machine.state.name()
+        )));
+    }
     Ok(())
 }
 
