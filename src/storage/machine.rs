@@ -25,25 +25,13 @@ pub async fn record(
     }
     let counters = serde_json::to_string(&update.machine.counters)
         .map_err(|e| DbError::Protocol(format!("counters: {e}")))?;
-    sqlx::query(
-        "INSERT INTO cell_state (key, value) VALUES (?, ?)
-         ON CONFLICT (key) DO UPDATE SET value = excluded.value",
-    )
-    .bind(COUNTERS_KEY)
-    .bind(counters)
-    .execute(&mut *tx)
-    .await?;
-    Ok(())
+    super::set_cell_value(&mut *tx, COUNTERS_KEY, &counters).await
 }
 
 /// The counters as last stored (zero on a new database). Counters that cannot be read are
 /// an error, not zeros: a plant's part count must not silently restart.
 pub async fn counters(db: &Db) -> Result<Counters, DbError> {
-    let value: Option<String> = sqlx::query_scalar("SELECT value FROM cell_state WHERE key = ?")
-        .bind(COUNTERS_KEY)
-        .fetch_optional(&db.reader)
-        .await?;
-    match value {
+    match db.cell_value(COUNTERS_KEY).await? {
         None => Ok(Counters::default()),
         Some(text) => serde_json::from_str(&text)
             .map_err(|e| DbError::Protocol(format!("the stored counters do not parse: {e}"))),

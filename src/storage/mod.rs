@@ -156,12 +156,15 @@ impl Db {
 
     /// A latched value that survives restarts (`estop`).
     pub async fn cell_flag(&self, key: &str) -> Result<bool, DbError> {
-        let value: Option<String> =
-            sqlx::query_scalar("SELECT value FROM cell_state WHERE key = ?")
-                .bind(key)
-                .fetch_optional(&self.reader)
-                .await?;
-        Ok(value.as_deref() == Some("true"))
+        Ok(self.cell_value(key).await?.as_deref() == Some("true"))
+    }
+
+    /// A value of the cell's that survives restarts (a flag, the counters' JSON), if stored.
+    pub async fn cell_value(&self, key: &str) -> Result<Option<String>, DbError> {
+        sqlx::query_scalar("SELECT value FROM cell_state WHERE key = ?")
+            .bind(key)
+            .fetch_optional(&self.reader)
+            .await
     }
 }
 
@@ -222,12 +225,21 @@ pub async fn set_cell_flag<'e>(
     key: &str,
     on: bool,
 ) -> Result<(), DbError> {
+    set_cell_value(executor, key, if on { "true" } else { "false" }).await
+}
+
+/// Sets a value of the cell's that survives restarts ([`Db::cell_value`]).
+pub async fn set_cell_value<'e>(
+    executor: impl sqlx::SqliteExecutor<'e>,
+    key: &str,
+    value: &str,
+) -> Result<(), DbError> {
     sqlx::query(
         "INSERT INTO cell_state (key, value) VALUES (?, ?)
          ON CONFLICT (key) DO UPDATE SET value = excluded.value",
     )
     .bind(key)
-    .bind(if on { "true" } else { "false" })
+    .bind(value)
     .execute(executor)
     .await?;
     Ok(())
