@@ -359,24 +359,10 @@ impl Machine {
         use PackMlState::*;
         let mut moves = Moves::new(self.state);
         match input {
-            MachineInput::JobQueued => match self.state {
-                Idle => moves.go(Starting, "a job was queued"),
-                Complete => {
-                    moves.go(Resetting, "a job was queued");
-                    moves.go(Idle, "reset");
-                    moves.go(Starting, "a job was queued");
-                }
-                _ => {}
-            },
+            MachineInput::JobQueued => moves.begin_starting("a job was queued"),
             MachineInput::JobStarted => {
-                if matches!(self.state, Idle | Complete | Starting) {
-                    if self.state == Complete {
-                        moves.go(Resetting, "a job started");
-                        moves.go(Idle, "reset");
-                    }
-                    if moves.state != Starting {
-                        moves.go(Starting, "a job started");
-                    }
+                moves.begin_starting("a job started");
+                if moves.state == Starting {
                     moves.go(Execute, "a job started");
                 }
             }
@@ -463,6 +449,19 @@ impl Moves {
         Moves {
             state,
             made: Vec::new(),
+        }
+    }
+
+    /// From Idle to Starting; from Complete through Resetting and Idle to Starting (a new job
+    /// resets a complete cell); from any other state nowhere.
+    fn begin_starting(&mut self, cause: &str) {
+        use PackMlState::*;
+        if self.state == Complete {
+            self.go(Resetting, cause);
+            self.go(Idle, "reset");
+        }
+        if self.state == Idle {
+            self.go(Starting, cause);
         }
     }
 
