@@ -293,6 +293,12 @@ impl ControlLoop {
         self.epoch.elapsed().as_secs_f64()
     }
 
+    /// [`ControlLoop::now_s`] as a clock a job reads around its work, free of `self`.
+    fn clock(&self) -> impl Fn() -> f64 + use<> {
+        let epoch = self.epoch;
+        move || epoch.elapsed().as_secs_f64()
+    }
+
     fn run(&mut self, inbox: mpsc::Receiver<CellCommand>) {
         let mut next_step = Instant::now();
         loop {
@@ -559,11 +565,10 @@ impl ControlLoop {
     }
 
     fn step(&mut self) {
+        let clock = self.clock();
         let Some(run) = self.running.as_mut() else {
             return;
         };
-        let epoch = self.epoch;
-        let clock = move || epoch.elapsed().as_secs_f64();
         let report = run.step(self.backend.as_mut(), &clock);
         let fresh = run.observation().measurement_fresh;
         if let Some(record) = report.record {
@@ -580,11 +585,10 @@ impl ControlLoop {
 
     /// Settles the running job's last move (storing its step); ends the job if that step did.
     fn settle_running(&mut self) {
+        let clock = self.clock();
         let Some(run) = self.running.as_mut() else {
             return;
         };
-        let epoch = self.epoch;
-        let clock = move || epoch.elapsed().as_secs_f64();
         let (record, end) = run.settle(self.backend.as_mut(), &clock);
         if let Some(record) = record {
             (self.sink)(CellEvent::Step(Box::new(record)));
@@ -601,8 +605,7 @@ impl ControlLoop {
     /// move the robot made is stored; `status` stands whatever that move's result.
     fn finish(&mut self, status: JobStatus, reason: Option<&str>) {
         if let Some(mut run) = self.running.take() {
-            let epoch = self.epoch;
-            let clock = move || epoch.elapsed().as_secs_f64();
+            let clock = self.clock();
             let (record, _) = run.settle(self.backend.as_mut(), &clock);
             if let Some(record) = record {
                 (self.sink)(CellEvent::Step(Box::new(record)));
