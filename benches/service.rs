@@ -212,23 +212,24 @@ fn agent() -> ureq::Agent {
 
 impl Server {
     fn post(&self, agent: &ureq::Agent, path: &str) -> Result<Value, String> {
-        let mut response = agent
+        let request = agent
             .post(format!("{}{path}", self.base))
-            .header("Authorization", format!("Bearer {}", self.token))
-            .send_empty()
-            .map_err(|e| e.to_string())?;
-        if response.status() != 200 {
-            return Err(format!("status {}", response.status()));
-        }
-        response.body_mut().read_json().map_err(|e| e.to_string())
+            .header("Authorization", format!("Bearer {}", self.token));
+        Self::json(request.send_empty())
     }
 
     fn get(&self, agent: &ureq::Agent, path: &str) -> Result<Value, String> {
-        let mut response = agent
+        let request = agent
             .get(format!("{}{path}", self.base))
-            .header("Authorization", format!("Bearer {}", self.token))
-            .call()
-            .map_err(|e| e.to_string())?;
+            .header("Authorization", format!("Bearer {}", self.token));
+        Self::json(request.call())
+    }
+
+    /// A 200 answer's JSON, else why not.
+    fn json(
+        response: Result<ureq::http::Response<ureq::Body>, ureq::Error>,
+    ) -> Result<Value, String> {
+        let mut response = response.map_err(|e| e.to_string())?;
         if response.status() != 200 {
             return Err(format!("status {}", response.status()));
         }

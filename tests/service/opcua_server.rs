@@ -6,12 +6,11 @@
 //! `CI` set, a missing asyncua fails it.
 
 use crate::drivers_support::python_has;
+use crate::opcua_service::run_client;
 use assembly_cell::opcua::server::OpcUaSettings;
 use assembly_cell::opcua::{
     Identification, Plant, PlantEvent, PlantJob, PlantMethod, PlantUser, PlantView, Refused, serve,
 };
-use std::path::PathBuf;
-use std::process::Command;
 use std::sync::atomic::{AtomicI64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -184,27 +183,26 @@ async fn asyncua_browses_subscribes_and_commands_the_cell() {
     let pki = dir.path().join("opcua-pki");
     assert_eq!(server.trusted_dir(), pki.join("trusted"));
 
-    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/service/opcua_client.py");
     let url = server.endpoint_url().to_string();
-    let output = tokio::task::spawn_blocking(move || {
-        Command::new("python3")
-            .arg(script)
-            .args(["--url", &url])
-            .args(["--operator-token", "operator-token"])
-            .args(["--viewer-token", "viewer-token"])
-            .args(["--pki", pki.to_str().unwrap()])
-            .args(["--initial-state", "Idle"])
-            .output()
-            .expect("run python3")
+    tokio::task::spawn_blocking(move || {
+        run_client(
+            "opcua_client.py",
+            &[
+                "--url",
+                &url,
+                "--operator-token",
+                "operator-token",
+                "--viewer-token",
+                "viewer-token",
+                "--pki",
+                pki.to_str().unwrap(),
+                "--initial-state",
+                "Idle",
+            ],
+        )
     })
     .await
     .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(
-        output.status.success() && stdout.trim_end().ends_with("\nok"),
-        "the OPC UA client found problems:\n{stdout}\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
 
     // Only the operator's Start reached the cell, its negative seed meaning a random one.
     assert_eq!(

@@ -123,7 +123,7 @@ fn a_revoked_tokens_open_session_calls_nothing_more() {
 
 /// Runs the asyncua script `name` (in tests/service) with `args`; answers its output once it
 /// ended well, saying `ok` last.
-fn run_client(name: &str, args: &[&str]) -> String {
+pub fn run_client(name: &str, args: &[&str]) -> String {
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("tests/service")
         .join(name);
