@@ -218,17 +218,19 @@ fn a_burst_of_evaluations_waits_in_a_bounded_queue_and_the_estop_still_answers()
         ended(&evaluation["status"])
     });
     // With two places computing side by side, an evaluation ahead of the last may end after
-    // it: wait for every accepted one.
+    // it, and a cancelled run stops only at its next check: wait for every one to end.
     let deadline = std::time::Instant::now() + LONG;
-    let evaluations = loop {
+    let (evaluations, runs) = loop {
         let evaluations = rows.statuses("policy_evaluations");
+        let runs = rows.statuses("training_runs");
+        let is_over = |status: &str| status != "queued" && status != "running";
         let all_ended = accepted.iter().all(|id| {
             evaluations
                 .iter()
-                .any(|(e, status, _)| e == id && status != "queued" && status != "running")
-        });
+                .any(|(e, status, _)| e == id && is_over(status))
+        }) && runs.iter().all(|(_, status, _)| is_over(status));
         if all_ended || std::time::Instant::now() > deadline {
-            break evaluations;
+            break (evaluations, runs);
         }
         assert!(rows.running() <= 2);
         std::thread::sleep(Duration::from_millis(50));
@@ -237,7 +239,6 @@ fn a_burst_of_evaluations_waits_in_a_bounded_queue_and_the_estop_still_answers()
         let (_, status, error) = evaluations.iter().find(|(e, ..)| e == id).unwrap();
         assert_eq!((status.as_str(), error), ("done", &None), "evaluation {id}");
     }
-    let runs = rows.statuses("training_runs");
     assert!(
         runs.iter().all(|(_, status, _)| status == "cancelled"),
         "{runs:?}"
