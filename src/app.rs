@@ -17,6 +17,7 @@ use crate::cell::{
 use crate::config::cell::CellConfig;
 use crate::config::drivers::RobotDriver;
 use crate::config::service::ServiceConfig;
+use crate::fleet;
 use crate::http;
 use crate::metrics::Metrics;
 use crate::opcua::{self, OpcUaSettings};
@@ -93,6 +94,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     } else {
         None
     };
+    let fleet = join_or_leave_fleet(&settings, &db).await?;
     let estop_latched = db.cell_flag("estop").await?;
     let counters = machine::counters(&db)
         .await
@@ -163,6 +165,7 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         work: WorkQueue::new(settings.work.concurrency, settings.work.queue_length)
             .context("starting the background work threads")?,
         latch_writes: Default::default(),
+        fleet: fleet.clone(),
     };
     let listener = tokio::net::TcpListener::bind(settings.listen)
         .await
@@ -177,6 +180,9 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
         // Jobs asking for `active` are refused for this reason until it passes (or a policy
         // is activated); the service itself runs.
         tracing::warn!(%why, "control.active_controller names a policy the gate refuses");
+    }
+    if let Some(link) = &fleet {
+        tokio::spawn(workflows::fleet::run(context.clone(), link.clone()));
     }
     let plant = opcua::cell::CellPlant::start(context.clone());
     let server = tokio::spawn(http::server::serve(
@@ -226,6 +232,12 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
             opcua.certificate_path().display(),
             opcua.rejected_dir().display(),
             opcua.trusted_dir().display()
+        );
+    }
+    if let Some(link) = &fleet {
+        println!(
+            "celld: in the fleet as cell `{}`; rows replicate in the background",
+            link.fleet.cell_id
         );
     }
     println!("celld: API http://{address}/api/docs (described at /api/openapi.json)");
@@ -390,6 +402,32 @@ pub fn admin_token_path(db: &Path) -> PathBuf {
 
 /// Makes the first admin token, prints it once and writes it beside the database (mode 0600);
 /// returns the secret for the sign-in URL.
+/// With `fleet.url`: the link to the fleet (connected in the background) and the outbox
+/// filling, with the cell's whole record the first time. Without: no outbox kept.
+async fn join_or_leave_fleet(
+    settings: &ServiceConfig,
+    db: &Db,
+) -> Result<Option<Arc<workflows::fleet::FleetLink>>> {
+    let Some(url) = &settings.fleet.url else {
+        if fleet::outbox::leave(db).await? {
+            tracing::warn!("started without fleet.url: this cell no longer replicates to a fleet");
+        }
+        return Ok(None);
+    };
+    let cell_id = settings.cell_id();
+    fleet::check_cell_id(&cell_id).map_err(|reason| {
+        anyhow::anyhow!(
+            "the cell id `{cell_id}` (service.cell_id, else the cell file's name) {reason}"
+        )
+    })?;
+    let link = fleet::Fleet::connect_lazy(url, &cell_id).context("fleet.url")?;
+    let queued = fleet::outbox::join(db).await?;
+    if queued > 0 {
+        tracing::info!(rows = queued, cell = %cell_id, "joining the fleet: the cell's record is queued for it");
+    }
+    Ok(Some(workflows::fleet::FleetLink::new(link)))
+}
+
 async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
     let token = workflows::tokens::create(
         db,

@@ -14,6 +14,7 @@ pub mod config;
 pub mod drivers;
 pub mod error_text;
 pub mod files;
+pub mod fleet;
 pub mod geometry;
 pub mod http;
 pub mod integer;

@@ -50,6 +50,12 @@ pub struct Metrics {
     pub driver_reconnects: Family<DriverLabel, Counter>,
     /// 1 while the robot driver is latched (it moves nothing until an operator reset).
     pub driver_latched: Gauge,
+    /// A replicated row's wait from its commit on the cell to its commit in the fleet, s.
+    pub fleet_lag_seconds: Histogram,
+    /// Rows committed on the cell and not yet in the fleet.
+    pub fleet_backlog: Gauge,
+    /// Rows (insertions, updates, deletions) the fleet committed.
+    pub fleet_rows: Counter,
 }
 
 impl Default for Metrics {
@@ -114,8 +120,30 @@ impl Default for Metrics {
             "1 while the robot driver is latched until an operator reset",
             driver_latched.clone(),
         );
+        // 1 ms .. ~65 s.
+        let fleet_lag_seconds = Histogram::new(exponential_buckets(1e-3, 2.0, 17));
+        registry.register(
+            "fleet_lag_seconds",
+            "A replicated row's wait from its commit on the cell to its commit in the fleet",
+            fleet_lag_seconds.clone(),
+        );
+        let fleet_backlog = Gauge::default();
+        registry.register(
+            "fleet_backlog_rows",
+            "Rows committed on the cell and not yet in the fleet",
+            fleet_backlog.clone(),
+        );
+        let fleet_rows = Counter::default();
+        registry.register(
+            "fleet_replicated_rows",
+            "Row insertions, updates and deletions the fleet committed",
+            fleet_rows.clone(),
+        );
         Metrics {
             registry: Arc::new(registry),
+            fleet_lag_seconds,
+            fleet_backlog,
+            fleet_rows,
             controller_round_trip_seconds,
             camera_frame_age_seconds,
             driver_reconnects,

@@ -25,6 +25,10 @@ pub struct ServeArgs {
     /// Run the twin as fast as it can instead of at the camera's rate.
     #[arg(long)]
     fast: bool,
+    /// Join a fleet: replicate this cell's record to the PostgreSQL at this URL
+    /// (postgres://user:password@host/database); the cell's own SQLite stays its record.
+    #[arg(long, value_name = "URL")]
+    fleet: Option<String>,
 }
 
 #[derive(Subcommand)]
@@ -82,6 +86,9 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     }
     if args.fast {
         settings.fast = true;
+    }
+    if let Some(url) = args.fleet {
+        settings.fleet.url = Some(url);
     }
     init_logging();
     app::run(settings)

@@ -51,6 +51,58 @@ pub struct ServiceConfig {
     pub camera: CameraDriverConfig,
     pub access: AccessConfig,
     pub opcua: OpcUaConfig,
+    /// `[service]`: who this cell is to a fleet.
+    pub service: IdentityConfig,
+    /// `[fleet]`: the PostgreSQL this cell replicates to, if any.
+    pub fleet: FleetConfig,
+}
+
+/// `[service]`: the cell's id, carried by every row it replicates to a fleet.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IdentityConfig {
+    /// 1–64 letters, digits, `-`, `_` or `.`; none: the cell file's name without its
+    /// extension (`phi170` for the bundled cell).
+    pub cell_id: Option<String>,
+}
+
+/// `[fleet]`: one PostgreSQL the cell replicates its record to (`fleet`).
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FleetConfig {
+    /// `postgres://user:password@host:port/database`; none: the cell is in no fleet.
+    pub url: Option<String>,
+}
+
+/// The longest cell id.
+pub const MAX_CELL_ID_CHARS: usize = 64;
+
+/// Why `cell_id` cannot name a cell, if it cannot.
+pub fn check_cell_id(cell_id: &str) -> Result<(), String> {
+    let allowed = |c: char| c.is_ascii_alphanumeric() || "-_.".contains(c);
+    if cell_id.is_empty() || cell_id.chars().count() > MAX_CELL_ID_CHARS {
+        return Err(format!("must be 1 to {MAX_CELL_ID_CHARS} characters"));
+    }
+    if let Some(bad) = cell_id.chars().find(|&c| !allowed(c)) {
+        return Err(format!(
+            "`{bad}` is not allowed: use letters, digits, `-`, `_` and `.`"
+        ));
+    }
+    Ok(())
+}
+
+/// Why `url` cannot be a fleet's database, if it cannot: it must be a PostgreSQL URL.
+pub fn check_fleet_url(url: &str) -> Result<(), String> {
+    let scheme = url.split_once("://").map(|(scheme, _)| scheme);
+    match scheme {
+        Some("postgres" | "postgresql") => Ok(()),
+        Some(other) => Err(format!(
+            "a fleet is a PostgreSQL database: expected postgres://…, not {other}://"
+        )),
+        None => Err("a fleet is a PostgreSQL database URL such as \
+                     postgres://celld@fleet-db/fleet"
+            .to_string()),
+    }
 }
 
 /// `[opcua]`: the OPC UA server a plant's PLC or SCADA connects to (`opcua::server`). Its
@@ -308,6 +360,8 @@ impl Default for ServiceConfig {
             camera: CameraDriverConfig::default(),
             access: AccessConfig::default(),
             opcua: OpcUaConfig::default(),
+            service: IdentityConfig::default(),
+            fleet: FleetConfig::default(),
         }
     }
 }
@@ -518,6 +572,8 @@ impl ServiceConfig {
                         .parse()
                         .map_err(|reason: String| invalid("CELLD_OPCUA_LISTEN", &reason))?
                 }
+                "CELL_ID" => self.service.cell_id = Some(value.clone()),
+                "FLEET_URL" => self.fleet.url = Some(value.clone()).filter(|v| !v.is_empty()),
                 // Other CELLD_ variables (CELLD_LOG, CELLD_TOKEN for clients) are not ours.
                 _ => {}
             }
@@ -687,7 +743,44 @@ impl ServiceConfig {
                 "must lie in 1..=86400 (a day)",
             ));
         }
+        if let Some(cell_id) = &self.service.cell_id {
+            check_cell_id(cell_id)
+                .map_err(|reason| invalid("service.cell_id", cell_id.clone(), &reason))?;
+        }
+        if let Some(url) = &self.fleet.url {
+            // The URL may hold a password: name the scheme, not the whole value.
+            let shown = url.split_once("://").map_or("…", |(scheme, _)| scheme);
+            check_fleet_url(url)
+                .map_err(|reason| invalid("fleet.url", format!("{shown}://…"), &reason))?;
+        }
         Ok(())
+    }
+
+    /// The cell's id in a fleet: `service.cell_id`, else the cell file's name.
+    pub fn cell_id(&self) -> String {
+        if let Some(cell_id) = &self.service.cell_id {
+            return cell_id.clone();
+        }
+        let stem = self
+            .cell
+            .as_deref()
+            .and_then(|path| path.file_stem())
+            .and_then(|stem| stem.to_str());
+        match stem {
+            Some(stem) if check_cell_id(stem).is_ok() => stem.to_string(),
+            Some(stem) => stem
+                .chars()
+                .map(|c| {
+                    if check_cell_id(&c.to_string()).is_ok() {
+                        c
+                    } else {
+                        '-'
+                    }
+                })
+                .take(MAX_CELL_ID_CHARS)
+                .collect(),
+            None => "phi170".to_string(),
+        }
     }
 
     /// The control period, s: none in fast mode, else the configured one or a camera cycle.

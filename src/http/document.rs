@@ -48,6 +48,7 @@ pub struct ErrorDetail {
         (name = "cell", description = "The cell's state, e-stop and reset"),
         (name = "jobs", description = "Assembly jobs and their recorded steps"),
         (name = "stats", description = "Run history summarised"),
+        (name = "fleet", description = "Every cell of the fleet: cells, jobs, figures, registry"),
         (name = "telemetry", description = "Live steps and job changes (Server-Sent Events)"),
         (name = "policies", description = "Policy files: upload, evaluate, activate"),
         (name = "demonstrations", description = "Recorded expert demonstrations"),

@@ -117,6 +117,12 @@ impl From<crate::workflows::Error> for ApiError {
                 "storage_unavailable",
                 message,
             ),
+            Error::NoFleet(_) => Self::new(StatusCode::NOT_FOUND, "no_fleet", message),
+            Error::FleetUnavailable(_) => Self::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "fleet_unavailable",
+                message,
+            ),
             Error::Internal(_) => Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", message),
         }
     }

@@ -101,27 +101,27 @@ async fn create(
 pub struct ListQuery {
     /// Only jobs in this state.
     #[param(inline, value_type = Option<JobStatus>)]
-    status: Option<String>,
+    pub(crate) status: Option<String>,
     /// Only jobs of this controller (as stored: a name or `policy:<id>`).
-    controller: Option<String>,
+    pub(crate) controller: Option<String>,
     /// Only jobs of this policy.
-    policy_id: Option<i64>,
+    pub(crate) policy_id: Option<i64>,
     /// Created at or after this UTC time (2026-11-22 or 2026-11-22T08:00:00Z).
     #[param(
         pattern = "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$"
     )]
-    since: Option<String>,
+    pub(crate) since: Option<String>,
     /// Created before this UTC time.
     #[param(
         pattern = "^[0-9]{4}-[0-9]{2}-[0-9]{2}(T[0-9]{2}:[0-9]{2}(:[0-9]{2}(\\.[0-9]{1,3})?)?)?Z?$"
     )]
-    until: Option<String>,
+    pub(crate) until: Option<String>,
     /// Jobs per page (default 50).
     #[param(minimum = 1, maximum = 1000)]
-    limit: Option<i64>,
+    pub(crate) limit: Option<i64>,
     /// Jobs to skip.
     #[param(minimum = 0)]
-    offset: Option<i64>,
+    pub(crate) offset: Option<i64>,
 }
 
 const MAX_PAGE: i64 = 1000;
@@ -143,6 +143,13 @@ async fn list(
     Query(query): Query<ListQuery>,
 ) -> ApiResult<Json<JobPage>> {
     auth.require(Role::Viewer)?;
+    let filter = job_filter(query)?;
+    let (items, total) = jobs::list(&context.db, &filter).await?;
+    Ok(Json(JobPage { items, total }))
+}
+
+/// The filter a list query asks for, its values checked.
+pub fn job_filter(query: ListQuery) -> ApiResult<JobFilter> {
     let status = match query.status.as_deref() {
         None => None,
         Some(text) => Some(JobStatus::parse(text).ok_or_else(|| {
@@ -166,7 +173,7 @@ async fn list(
         )));
     }
     check_time_range(&query.since, &query.until)?;
-    let filter = JobFilter {
+    Ok(JobFilter {
         status,
         controller: query.controller,
         policy_id: query.policy_id,
@@ -174,9 +181,7 @@ async fn list(
         until: query.until,
         limit,
         offset,
-    };
-    let (items, total) = jobs::list(&context.db, &filter).await?;
-    Ok(Json(JobPage { items, total }))
+    })
 }
 
 /// One job (viewer).

@@ -11,6 +11,7 @@ pub mod dashboard;
 pub mod demonstrations;
 pub mod document;
 pub mod error;
+pub mod fleet;
 pub mod jobs;
 pub mod meta;
 pub mod policies;
@@ -36,6 +37,7 @@ fn described_routes(max_upload_bytes: usize) -> OpenApiRouter<Context> {
         .merge(policies::router(max_upload_bytes))
         .merge(demonstrations::router(max_upload_bytes))
         .merge(stats::router())
+        .merge(fleet::router())
         .merge(telemetry::router())
         .merge(tokens::router())
         .merge(training::router())

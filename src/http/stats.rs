@@ -38,15 +38,15 @@ pub struct StatsQuery {
 #[derive(ToSchema)]
 #[allow(dead_code)] // Described, not built: the query carries the name as text.
 #[schema(rename_all = "snake_case")]
-enum StatsGroup {
+pub enum StatsGroup {
     Day,
     Controller,
 }
 
 #[derive(Serialize, ToSchema)]
 pub struct Stats {
-    total: JobStats,
-    groups: Vec<JobStats>,
+    pub total: JobStats,
+    pub groups: Vec<JobStats>,
 }
 
 /// Jobs, success rate, average steps and failure reasons over a time range, overall and by
@@ -59,15 +59,7 @@ async fn read(
     Query(query): Query<StatsQuery>,
 ) -> ApiResult<Json<Stats>> {
     auth.require(Role::Viewer)?;
-    let by = match query.by.as_deref() {
-        None | Some("day") => GroupBy::Day,
-        Some("controller") => GroupBy::Controller,
-        Some(other) => {
-            return Err(ApiError::bad_request(format!(
-                "by `{other}` is not day or controller"
-            )));
-        }
-    };
+    let by = group_by(query.by.as_deref())?;
     check_time_range(&query.since, &query.until)?;
     let (total, groups) = jobs::stats(
         &context.db,
@@ -77,6 +69,17 @@ async fn read(
     )
     .await?;
     Ok(Json(Stats { total, groups }))
+}
+
+/// The grouping `by` names: `day` (the default) or `controller`.
+pub fn group_by(by: Option<&str>) -> ApiResult<GroupBy> {
+    match by {
+        None | Some("day") => Ok(GroupBy::Day),
+        Some("controller") => Ok(GroupBy::Controller),
+        Some(other) => Err(ApiError::bad_request(format!(
+            "by `{other}` is not day or controller"
+        ))),
+    }
 }
 
 /// Refuses (400) a `since` or `until` that is not an ISO time [`is_iso_time`] takes.

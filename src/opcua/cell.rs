@@ -292,6 +292,8 @@ fn refused(error: Error) -> Refused {
         | Error::Busy { .. }
         | Error::Storage(_)
         | Error::StorageUnavailable(_)
+        | Error::NoFleet(_)
+        | Error::FleetUnavailable(_)
         | Error::Internal(_) => Refused::Unavailable(message),
     }
 }

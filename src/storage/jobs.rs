@@ -51,9 +51,9 @@ pub struct Job {
     pub final_errors: Option<FinalErrors>,
 }
 
-/// A row of `jobs` as stored.
+/// A row of `jobs` as stored (on the cell, and in the fleet's copy).
 #[derive(sqlx::FromRow)]
-struct JobRow {
+pub(crate) struct JobRow {
     id: i64,
     status: String,
     controller: String,
@@ -302,7 +302,7 @@ impl JobStats {
 
 /// What [`stats`] reads of each job.
 #[derive(sqlx::FromRow)]
-struct StatsRow {
+pub(crate) struct StatsRow {
     status: String,
     steps: i64,
     failure_reason: Option<String>,
@@ -326,6 +326,11 @@ pub async fn stats(
     .bind(until)
     .fetch_all(&db.reader)
     .await?;
+    Ok(summarise(rows, by))
+}
+
+/// The figures of `rows` (in creation order), overall and by group.
+pub(crate) fn summarise(rows: Vec<StatsRow>, by: GroupBy) -> (JobStats, Vec<JobStats>) {
     let mut total = JobStats {
         key: "all".into(),
         ..JobStats::default()
@@ -346,7 +351,7 @@ pub async fn stats(
             })
             .add(&status, steps, reason);
     }
-    Ok((total, groups.into_values().collect()))
+    (total, groups.into_values().collect())
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@
 
 pub mod cell;
 pub mod demonstrations;
+pub mod fleet;
 pub mod gate;
 pub mod jobs;
 pub mod policies;
@@ -52,6 +53,8 @@ pub struct Context {
     pub work: queue::WorkQueue,
     /// Held while the e-stop latch is stored (see [`cell::store_latch`]).
     pub latch_writes: Arc<tokio::sync::Mutex<()>>,
+    /// The fleet this cell replicates to, if it is in one.
+    pub fleet: Option<Arc<fleet::FleetLink>>,
 }
 
 impl Context {
@@ -98,6 +101,12 @@ pub enum Error {
     /// same request may pass once the fault clears.
     #[error("{0}")]
     StorageUnavailable(String),
+    /// The cell is in no fleet (no `fleet.url`).
+    #[error("{0}")]
+    NoFleet(String),
+    /// The fleet's database cannot be reached or refused; the cell itself goes on.
+    #[error("{0}")]
+    FleetUnavailable(String),
     #[error("{0}")]
     Internal(String),
 }

@@ -189,7 +189,9 @@ pub async fn authenticate_hash(
     }
     let found = tokens::find_by_hash(&context.db, &hash)
         .await
-        .map_err(|e| AuthError::Storage(e.to_string()))?;
+        .map_err(|e| AuthError::Storage(e.to_string()))?
+        // Tokens are fleet-wide: one another cell made, as the fleet last told this one.
+        .or_else(|| context.fleet.as_ref().and_then(|link| link.token(&hash)));
     let refused = match &found {
         None => Some(AuthError::Unknown),
         Some(found) => match (&found.revoked_at, &found.expires_at, found.expires_unix_ms) {
