@@ -273,7 +273,10 @@ export async function render(page) {
     });
   }
 
-  /** Reads the whole view; false when the fleet's database is unreachable (said in the view). */
+  /**
+   * Reads the whole view; true once there is nothing to follow (this cell is in no fleet). An
+   * unreachable fleet database is said in the view and tried again at the next refresh.
+   */
   async function refresh() {
     const only = new URLSearchParams(chosen ? { cell: chosen } : {});
     const jobQuery = new URLSearchParams(only);
