@@ -9,6 +9,7 @@ import * as jobs from './jobs.js';
 import * as policies from './policies.js';
 import * as demonstrations from './demonstrations.js';
 import * as training from './training.js';
+import * as fleet from './fleet.js';
 
 const PAGES = {
   live: live.render,
@@ -16,6 +17,7 @@ const PAGES = {
   policies: policies.render,
   demonstrations: demonstrations.render,
   training: training.render,
+  fleet: fleet.render,
 };
 
 // ---- live telemetry: one EventSource for the whole page, fanned out to the current page.
@@ -134,6 +136,8 @@ async function signIn(token) {
   document.getElementById('signout').hidden = false;
   telemetry.open();
   hideBanner();
+  // The Fleet entry shows only on a cell in a fleet; the answer does not hold up signing in.
+  fleet.probe();
 }
 
 function signOut(message) {
