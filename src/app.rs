@@ -236,8 +236,8 @@ async fn serve(settings: ServiceConfig, placement: Option<CpuPlan>) -> Result<()
     }
     if let Some(link) = &fleet {
         println!(
-            "celld: in the fleet as cell `{}`; rows replicate in the background",
-            link.fleet.cell_id
+            "celld: in the fleet at {} as cell `{}`; rows replicate in the background",
+            link.fleet.target, link.fleet.cell_id
         );
     }
     println!("celld: API http://{address}/api/docs (described at /api/openapi.json)");
@@ -421,7 +421,7 @@ async fn join_or_leave_fleet(
         )
     })?;
     let link = fleet::Fleet::connect_lazy(url, &cell_id).context("fleet.url")?;
-    let queued = fleet::outbox::join(db).await?;
+    let queued = fleet::outbox::join(db, &link.target).await?;
     if queued > 0 {
         tracing::info!(rows = queued, cell = %cell_id, "joining the fleet: the cell's record is queued for it");
     }

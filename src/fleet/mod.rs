@@ -93,6 +93,8 @@ pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
 pub struct Fleet {
     pub pool: PgPool,
     pub cell_id: String,
+    /// Where the fleet's database is: host, port and database, without user or password.
+    pub target: String,
 }
 
 impl Fleet {
@@ -101,6 +103,12 @@ impl Fleet {
     pub fn connect_lazy(url: &str, cell_id: &str) -> Result<Fleet, FleetError> {
         let options =
             PgConnectOptions::from_str(url).map_err(|e| FleetError::Url(e.to_string()))?;
+        let target = format!(
+            "{}:{}/{}",
+            options.get_host(),
+            options.get_port(),
+            options.get_database().unwrap_or_default()
+        );
         let pool = PgPoolOptions::new()
             .max_connections(3)
             .acquire_timeout(CONNECT_TIMEOUT)
@@ -108,6 +116,7 @@ impl Fleet {
         Ok(Fleet {
             pool,
             cell_id: cell_id.to_string(),
+            target,
         })
     }
 

@@ -18,17 +18,27 @@ pub struct Entry {
     pub at_julian: f64,
 }
 
-/// Starts filling the outbox, first with every row the cell holds, unless it already does:
-/// a cell joining a fleet (again) sends its whole record once. Answers the rows queued.
-pub async fn join(db: &Db) -> Result<u64, DbError> {
+/// The `cell_state` key naming the fleet the outbox fills for (its host and database).
+const JOINED: &str = "fleet_joined";
+
+/// Starts filling the outbox for the fleet `target` (host and database, no secrets), first
+/// with every row the cell holds, unless it already fills it for that fleet: a cell joining a
+/// fleet, or moving to another, sends its whole record once. Answers the rows queued.
+pub async fn join(db: &Db, target: &str) -> Result<u64, DbError> {
     let mut tx = db.writer.begin().await?;
-    let state: Option<String> = sqlx::query_scalar("SELECT value FROM cell_state WHERE key = ?")
-        .bind(IN_FLEET)
-        .fetch_optional(&mut *tx)
-        .await?;
-    if state.as_deref() == Some("on") {
+    let state: Vec<(String, String)> =
+        sqlx::query_as("SELECT key, value FROM cell_state WHERE key IN (?, ?)")
+            .bind(IN_FLEET)
+            .bind(JOINED)
+            .fetch_all(&mut *tx)
+            .await?;
+    let value = |key: &str| state.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
+    if value(IN_FLEET) == Some("on") && value(JOINED) == Some(target) {
         return Ok(0);
     }
+    sqlx::query("DELETE FROM fleet_outbox")
+        .execute(&mut *tx)
+        .await?;
     let mut queued = 0;
     for table in REPLICATED {
         let key2 = table.key.get(1).copied().unwrap_or("NULL");
@@ -41,6 +51,7 @@ pub async fn join(db: &Db) -> Result<u64, DbError> {
         queued += sqlx::query(&sql).execute(&mut *tx).await?.rows_affected();
     }
     crate::storage::set_cell_value(&mut *tx, IN_FLEET, "on").await?;
+    crate::storage::set_cell_value(&mut *tx, JOINED, target).await?;
     db.track(tx.commit().await)?;
     Ok(queued)
 }

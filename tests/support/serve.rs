@@ -133,6 +133,14 @@ impl Server {
         })
     }
 
+    pub fn delete(&self, path: &str, token: &str) -> (u16, Value) {
+        let request = self
+            .agent
+            .delete(format!("{}{path}", self.base))
+            .header("Authorization", format!("Bearer {token}"));
+        Self::answer(request.call())
+    }
+
     pub fn post_raw(
         &self,
         path: &str,
