@@ -6,6 +6,8 @@
 mod browser_support;
 #[path = "../support/drivers.rs"]
 mod drivers_support;
+#[path = "../support/postgres.rs"]
+mod postgres_support;
 #[path = "../support/serve.rs"]
 mod serve_support;
 
@@ -15,6 +17,7 @@ mod examples_run;
 mod machine_state;
 mod opcua_server;
 mod opcua_service;
+mod postgres_harness;
 mod serve_api;
 mod serve_demonstrations;
 mod serve_faults;
