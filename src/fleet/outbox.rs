@@ -32,7 +32,12 @@ pub async fn join(db: &Db, target: &str) -> Result<u64, DbError> {
             .bind(JOINED)
             .fetch_all(&mut *tx)
             .await?;
-    let value = |key: &str| state.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
+    let value = |key: &str| {
+        state
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    };
     if value(IN_FLEET) == Some("on") && value(JOINED) == Some(target) {
         return Ok(0);
     }

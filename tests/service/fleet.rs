@@ -58,7 +58,13 @@ fn assert_replicated(url: &str, server: &Server, cell_id: &str) -> usize {
 }
 
 /// GETs `path` as `token` until `done` holds (any status); fails naming `what` after a while.
-fn poll(server: &Server, path: &str, token: &str, what: &str, done: impl Fn(u16, &Value) -> bool) -> Value {
+fn poll(
+    server: &Server,
+    path: &str,
+    token: &str,
+    what: &str,
+    done: impl Fn(u16, &Value) -> bool,
+) -> Value {
     let deadline = std::time::Instant::now() + CATCH_UP;
     loop {
         let (status, body) = server.get(path, Some(token));

@@ -6,6 +6,8 @@
 mod browser_support;
 #[path = "../support/drivers.rs"]
 mod drivers_support;
+#[path = "../support/fleet.rs"]
+mod fleet_support;
 #[path = "../support/postgres.rs"]
 mod postgres_support;
 #[path = "../support/serve.rs"]
@@ -14,6 +16,8 @@ mod serve_support;
 mod api_conformance;
 mod dashboard_browser;
 mod examples_run;
+mod fleet;
+mod fleet_dashboard;
 mod machine_state;
 mod opcua_server;
 mod opcua_service;

@@ -33,14 +33,13 @@ fn sqlite_url(db: &Path) -> String {
 
 /// The cell's columns of `table` and their declared types, the policy file left out (the
 /// fleet keeps it once, in its registry).
-fn columns(db: &mut sqlx::SqliteConnection, table: &str) -> Vec<(String, String)> {
-    let rows: Vec<(String, String)> = runtime().block_on(async {
+async fn columns(db: &mut sqlx::SqliteConnection, table: &str) -> Vec<(String, String)> {
+    let rows: Vec<(String, String)> =
         sqlx::query_as("SELECT name, type FROM pragma_table_info(?) ORDER BY cid")
             .bind(table)
             .fetch_all(&mut *db)
             .await
-            .unwrap()
-    });
+            .unwrap();
     rows.into_iter()
         .filter(|(name, _)| !(table == "policies" && name == "file"))
         .collect()
@@ -54,9 +53,15 @@ where
     Option<String>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
 {
     let read = match declared {
-        "INTEGER" => row.try_get::<Option<i64>, _>(index).map(|v| v.map(Value::from)),
-        "REAL" => row.try_get::<Option<f64>, _>(index).map(|v| v.map(Value::from)),
-        _ => row.try_get::<Option<String>, _>(index).map(|v| v.map(Value::from)),
+        "INTEGER" => row
+            .try_get::<Option<i64>, _>(index)
+            .map(|v| v.map(Value::from)),
+        "REAL" => row
+            .try_get::<Option<f64>, _>(index)
+            .map(|v| v.map(Value::from)),
+        _ => row
+            .try_get::<Option<String>, _>(index)
+            .map(|v| v.map(Value::from)),
     };
     let name = row.columns()[index].name().to_string();
     read.unwrap_or_else(|e| panic!("column {name}: {e}"))
@@ -69,7 +74,7 @@ pub fn cell_rows(db: &Path, table: &str, order: &str) -> Vec<Value> {
         let mut connection = sqlx::SqliteConnection::connect(&sqlite_url(db))
             .await
             .unwrap();
-        let columns = columns(&mut connection, table);
+        let columns = columns(&mut connection, table).await;
         let names: Vec<&str> = columns.iter().map(|(n, _)| n.as_str()).collect();
         let sql = format!("SELECT {} FROM {table} ORDER BY {order}", names.join(", "));
         let rows = sqlx::query(&sql).fetch_all(&mut connection).await.unwrap();
@@ -91,7 +96,7 @@ pub fn fleet_rows(url: &str, db: &Path, cell_id: &str, table: &str, order: &str)
         let mut cell = sqlx::SqliteConnection::connect(&sqlite_url(db))
             .await
             .unwrap();
-        let columns = columns(&mut cell, table);
+        let columns = columns(&mut cell, table).await;
         let mut fleet = sqlx::PgConnection::connect(url).await.unwrap();
         let names: Vec<&str> = columns.iter().map(|(n, _)| n.as_str()).collect();
         let sql = format!(

@@ -18,8 +18,15 @@ fn jobs_complete_while_the_fleet_is_down_and_their_rows_arrive_when_it_is_back()
     cluster.stop();
     let during = run_jobs(&server, 3);
     let (status, body) = server.get("/api/fleet/cells", Some(&server.admin));
-    assert_eq!((status, &body["error"]["code"]), (503, &json!("fleet_unavailable")), "{body}");
-    assert!(fleet_support::backlog(&server.db) > 0, "the rows wait on the cell");
+    assert_eq!(
+        (status, &body["error"]["code"]),
+        (503, &json!("fleet_unavailable")),
+        "{body}"
+    );
+    assert!(
+        fleet_support::backlog(&server.db) > 0,
+        "the rows wait on the cell"
+    );
     let (status, job) = server.get(&format!("/api/jobs/{}", during[2]), Some(&server.admin));
     assert_eq!((status, &job["status"]), (200, &json!("succeeded")));
 

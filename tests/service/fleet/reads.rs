@@ -18,24 +18,38 @@ fn two_cells_replicate_their_records_and_read_the_fleet() {
     assert!(assert_replicated(&url, &b, "cell-b") > 0);
 
     // Both cells are listed on each, with the state and counters they reported.
-    let cells = poll(&b, "/api/fleet/cells", &b.admin, "listed both cells", |status, body| {
-        status == 200 && body["items"].as_array().is_some_and(|c| c.len() == 2)
-    });
+    let cells = poll(
+        &b,
+        "/api/fleet/cells",
+        &b.admin,
+        "listed both cells",
+        |status, body| status == 200 && body["items"].as_array().is_some_and(|c| c.len() == 2),
+    );
     let listed = cells["items"].as_array().unwrap();
     assert_eq!(listed[0]["cell_id"], "cell-a");
     assert_eq!(listed[0]["this_cell"], false);
     assert_eq!(listed[1]["this_cell"], true);
-    let counted = poll(&a, "/api/fleet/cells", &a.admin, "counted cell-a's parts", |_, body| {
-        body["items"][0]["counters"]["good"] == json!(jobs_a.len())
-    });
-    assert_eq!(counted["items"][0]["counters"]["processed"], json!(jobs_a.len()));
+    let counted = poll(
+        &a,
+        "/api/fleet/cells",
+        &a.admin,
+        "counted cell-a's parts",
+        |_, body| body["items"][0]["counters"]["good"] == json!(jobs_a.len()),
+    );
+    assert_eq!(
+        counted["items"][0]["counters"]["processed"],
+        json!(jobs_a.len())
+    );
     assert_eq!(counted["items"][0]["backlog"], 0);
 
     // The fleet's jobs: all of them, or one cell's, filtered as the local list is.
     let (status, all) = a.get("/api/fleet/jobs", Some(&a.admin));
     assert_eq!(status, 200, "{all}");
     assert_eq!(all["total"], json!(jobs_a.len() + jobs_b.len()));
-    let (_, only_b) = a.get("/api/fleet/jobs?cell=cell-b&status=succeeded", Some(&a.admin));
+    let (_, only_b) = a.get(
+        "/api/fleet/jobs?cell=cell-b&status=succeeded",
+        Some(&a.admin),
+    );
     let ids: Vec<i64> = only_b["items"]
         .as_array()
         .unwrap()
@@ -47,7 +61,10 @@ fn two_cells_replicate_their_records_and_read_the_fleet() {
         .collect();
     assert_eq!(ids, jobs_b.iter().rev().copied().collect::<Vec<_>>());
     let (status, refused) = a.get("/api/fleet/jobs?status=lost", Some(&a.admin));
-    assert_eq!((status, &refused["error"]["code"]), (400, &json!("bad_request")));
+    assert_eq!(
+        (status, &refused["error"]["code"]),
+        (400, &json!("bad_request"))
+    );
 
     // The fleet's figures agree with each cell's own.
     let (_, stats_a) = a.get("/api/stats", Some(&a.admin));
@@ -70,10 +87,19 @@ fn a_token_made_on_one_cell_works_on_every_cell_until_revoked() {
         Some(json!({"role": "operator", "name": "line lead"})),
     );
     assert_eq!(status, 201, "{made}");
-    let (token, id) = (made["token"].as_str().unwrap(), made["id"].as_i64().unwrap());
+    let (token, id) = (
+        made["token"].as_str().unwrap(),
+        made["id"].as_i64().unwrap(),
+    );
 
     // Unknown on cell-b until the fleet has it, then accepted with its role.
-    let me = poll(&b, "/api/me", token, "accepted cell-a's token", |status, _| status == 200);
+    let me = poll(
+        &b,
+        "/api/me",
+        token,
+        "accepted cell-a's token",
+        |status, _| status == 200,
+    );
     assert_eq!(me["role"], "operator", "{me}");
     assert!(me["name"].as_str().unwrap().contains("cell-a"), "{me}");
     let (status, job) = b.post(
@@ -86,9 +112,13 @@ fn a_token_made_on_one_cell_works_on_every_cell_until_revoked() {
     // Revoked on its cell: refused on every cell.
     let (status, revoked) = a.delete(&format!("/api/tokens/{id}"), &a.admin);
     assert_eq!(status, 200, "{revoked}");
-    let refused = poll(&b, "/api/me", token, "refused the revoked token", |status, _| {
-        status == 401
-    });
+    let refused = poll(
+        &b,
+        "/api/me",
+        token,
+        "refused the revoked token",
+        |status, _| status == 401,
+    );
     assert!(refused.to_string().contains("revoked"), "{refused}");
 }
 
@@ -96,9 +126,23 @@ fn a_token_made_on_one_cell_works_on_every_cell_until_revoked() {
 fn a_cell_in_no_fleet_says_so() {
     let dir = tempfile::tempdir().unwrap();
     let server = crate::serve_support::Server::start(dir.path(), &[]);
-    for path in ["/api/fleet/cells", "/api/fleet/jobs", "/api/fleet/stats", "/api/fleet/policies"] {
+    for path in [
+        "/api/fleet/cells",
+        "/api/fleet/jobs",
+        "/api/fleet/stats",
+        "/api/fleet/policies",
+    ] {
         let (status, body) = server.get(path, Some(&server.admin));
-        assert_eq!((status, &body["error"]["code"]), (404, &json!("no_fleet")), "{path}");
-        assert!(body["error"]["message"].as_str().unwrap().contains("--fleet"));
+        assert_eq!(
+            (status, &body["error"]["code"]),
+            (404, &json!("no_fleet")),
+            "{path}"
+        );
+        assert!(
+            body["error"]["message"]
+                .as_str()
+                .unwrap()
+                .contains("--fleet")
+        );
     }
 }

@@ -34,11 +34,17 @@ fn a_policy_uploaded_once_reaches_every_cell_and_activates_where_it_passed() {
             .find(|p| p["sha256"] == sha256.as_str())
             .cloned()
     };
-    let policies = poll(&b, "/api/policies", &b.admin, "pulled the upload", |_, body| {
-        on_b(body).is_some_and(|p| {
-            matches!(p["evaluation"]["status"].as_str(), Some("done" | "failed"))
-        })
-    });
+    let policies = poll(
+        &b,
+        "/api/policies",
+        &b.admin,
+        "pulled the upload",
+        |_, body| {
+            on_b(body).is_some_and(|p| {
+                matches!(p["evaluation"]["status"].as_str(), Some("done" | "failed"))
+            })
+        },
+    );
     let pulled = on_b(&policies).unwrap();
     assert_eq!(pulled["name"], "reference");
     assert_eq!(pulled["status"], "candidate");
@@ -48,14 +54,20 @@ fn a_policy_uploaded_once_reaches_every_cell_and_activates_where_it_passed() {
     let passed_on_b = evaluation["success_rate"].as_f64().unwrap() >= 0.95;
 
     // The registry lists it with both cells, each with its own policy id and status.
-    let registry = poll(&a, "/api/fleet/policies", &a.admin, "listed it on both cells", |_, body| {
-        body["items"].as_array().is_some_and(|items| {
-            items.iter().any(|p| {
-                p["sha256"] == sha256.as_str()
-                    && p["cells"].as_array().is_some_and(|c| c.len() == 2)
+    let registry = poll(
+        &a,
+        "/api/fleet/policies",
+        &a.admin,
+        "listed it on both cells",
+        |_, body| {
+            body["items"].as_array().is_some_and(|items| {
+                items.iter().any(|p| {
+                    p["sha256"] == sha256.as_str()
+                        && p["cells"].as_array().is_some_and(|c| c.len() == 2)
+                })
             })
-        })
-    });
+        },
+    );
     let listed = registry["items"]
         .as_array()
         .unwrap()
@@ -66,17 +78,28 @@ fn a_policy_uploaded_once_reaches_every_cell_and_activates_where_it_passed() {
 
     // One admin action; each cell answers from its own evaluation: cell-a never evaluated it.
     let viewer = a.token("viewer");
-    let (status, _) = a.post(&format!("/api/fleet/policies/{sha256}/activate"), Some(&viewer), None);
+    let (status, _) = a.post(
+        &format!("/api/fleet/policies/{sha256}/activate"),
+        Some(&viewer),
+        None,
+    );
     assert_eq!(status, 403);
     let (status, unknown) = a.post("/api/fleet/policies/00ff/activate", Some(&a.admin), None);
     assert_eq!(status, 404, "{unknown}");
-    let (status, request) =
-        a.post(&format!("/api/fleet/policies/{sha256}/activate"), Some(&a.admin), None);
+    let (status, request) = a.post(
+        &format!("/api/fleet/policies/{sha256}/activate"),
+        Some(&a.admin),
+        None,
+    );
     assert_eq!(status, 202, "{request}");
     let path = format!("/api/fleet/activations/{}", request["id"]);
-    let answered = poll(&b, &path, &b.admin, "was answered by both cells", |_, body| {
-        body["results"].as_array().is_some_and(|r| r.len() == 2)
-    });
+    let answered = poll(
+        &b,
+        &path,
+        &b.admin,
+        "was answered by both cells",
+        |_, body| body["results"].as_array().is_some_and(|r| r.len() == 2),
+    );
     let outcome = |cell: &str| {
         answered["results"]
             .as_array()
@@ -87,10 +110,17 @@ fn a_policy_uploaded_once_reaches_every_cell_and_activates_where_it_passed() {
             .unwrap()
     };
     assert_eq!(outcome("cell-a"), "not_passed", "{answered}");
-    let expected_b = if passed_on_b { "activated" } else { "not_passed" };
+    let expected_b = if passed_on_b {
+        "activated"
+    } else {
+        "not_passed"
+    };
     assert_eq!(outcome("cell-b"), expected_b, "{answered}");
     let (_, here) = b.get(&format!("/api/policies/{}", pulled["id"]), Some(&b.admin));
-    assert_eq!(here["status"], if passed_on_b { "active" } else { "candidate" });
+    assert_eq!(
+        here["status"],
+        if passed_on_b { "active" } else { "candidate" }
+    );
     let (_, there) = a.get(&format!("/api/policies/{}", uploaded["id"]), Some(&a.admin));
     assert_eq!(there["status"], "candidate");
 }

@@ -22,7 +22,10 @@ fn serve(env: &[(&str, &str)], args: &[&str]) -> (bool, String) {
 fn a_fleet_url_that_is_not_postgres_is_refused() {
     let (ok, stderr) = serve(&[], &["--fleet", "mysql://fleet-db/fleet"]);
     assert!(!ok);
-    assert!(stderr.contains("fleet.url") && stderr.contains("mysql"), "{stderr}");
+    assert!(
+        stderr.contains("fleet.url") && stderr.contains("mysql"),
+        "{stderr}"
+    );
     let (ok, stderr) = serve(&[("CELLD_FLEET_URL", "fleet-db:5432")], &[]);
     assert!(!ok);
     assert!(stderr.contains("postgres://"), "{stderr}");
@@ -40,5 +43,8 @@ fn a_cell_id_with_spaces_is_refused() {
     let url = "postgres://celld@127.0.0.1:1/fleet";
     let (ok, stderr) = serve(&[("CELLD_CELL_ID", "cell 7")], &["--fleet", url]);
     assert!(!ok);
-    assert!(stderr.contains("service.cell_id") && stderr.contains("` `"), "{stderr}");
+    assert!(
+        stderr.contains("service.cell_id") && stderr.contains("` `"),
+        "{stderr}"
+    );
 }
