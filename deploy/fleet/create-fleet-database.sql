@@ -1,5 +1,5 @@
 -- The fleet's PostgreSQL: one login role and one database for all the cells
--- (docs/fleet-deployment.md). celld makes its own tables in it when it first connects.
+-- (docs/fleet.md). celld makes its own tables in it when it first connects.
 -- Run once as a superuser, with the cells' password:
 --   psql -U postgres -v ON_ERROR_STOP=1 -v password='…' -f deploy/fleet/create-fleet-database.sql
 -- Then let the cells in (pg_hba.conf, their network), for example:

@@ -993,6 +993,55 @@ mod tests {
     }
 
     #[test]
+    fn a_fleet_is_joined_with_a_postgres_url_and_a_cell_id() {
+        let mut config = ServiceConfig::default();
+        assert_eq!(
+            (config.fleet.url.as_deref(), config.cell_id().as_str()),
+            (None, "phi170")
+        );
+        config.cell = Some(PathBuf::from("cells/line 3.toml"));
+        assert_eq!(config.cell_id(), "line-3");
+        config
+            .apply_env(vars(&[
+                ("CELLD_FLEET_URL", "postgresql://celld:secret@db:5432/fleet"),
+                ("CELLD_CELL_ID", "line-3.cell_2"),
+            ]))
+            .unwrap();
+        config.validate().unwrap();
+        assert_eq!(config.cell_id(), "line-3.cell_2");
+
+        config.fleet.url = Some("mysql://celld:secret@db/fleet".into());
+        let error = config.validate().unwrap_err().to_string();
+        assert!(
+            error.contains("fleet.url") && error.contains("mysql"),
+            "{error}"
+        );
+        assert!(!error.contains("secret"), "the password stays out: {error}");
+        config.fleet.url = Some("db:5432".into());
+        assert!(
+            config
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("postgres://")
+        );
+
+        config.fleet.url = None;
+        for (cell_id, why) in [
+            ("cell 7", "` `"),
+            ("", "1 to 64"),
+            (&"c".repeat(65), "1 to 64"),
+        ] {
+            config.service.cell_id = Some(cell_id.to_string());
+            let error = config.validate().unwrap_err().to_string();
+            assert!(
+                error.contains("service.cell_id") && error.contains(why),
+                "{error}"
+            );
+        }
+    }
+
+    #[test]
     fn opcua_listens_on_loopback_unless_told_otherwise() {
         let config = ServiceConfig::default();
         assert_eq!(config.opcua.listen.to_string(), "127.0.0.1:4840");

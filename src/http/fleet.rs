@@ -10,7 +10,7 @@ use super::stats::{Stats, check_time_range, group_by};
 use crate::fleet::reads::{self, FleetCell, FleetJob, FleetJobFilter, FleetPolicy};
 use crate::fleet::registry::{self, Activation};
 use crate::storage::tokens::Role;
-use crate::workflows::fleet::{link, unavailable};
+use crate::workflows::fleet::{check_filter, link, unavailable};
 use crate::workflows::{self, Error};
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -97,6 +97,7 @@ async fn jobs(
     Query(query): Query<FleetJobsQuery>,
 ) -> ApiResult<Json<FleetJobPage>> {
     auth.require(Role::Viewer)?;
+    check_filter(query.cell.as_deref(), &[query.controller.as_deref()])?;
     let local = job_filter(ListQuery {
         status: query.status,
         controller: query.controller,
@@ -160,6 +161,7 @@ async fn stats(
     auth.require(Role::Viewer)?;
     let by = group_by(query.by.as_deref())?;
     check_time_range(&query.since, &query.until)?;
+    check_filter(query.cell.as_deref(), &[])?;
     let link = link(&context)?;
     let (total, groups) = reads::stats(
         &link.fleet,

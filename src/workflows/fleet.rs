@@ -78,9 +78,25 @@ fn unix_ms(text: &str) -> Option<i64> {
     Some((days * 86_400 + h * 3_600 + mi * 60) * 1_000 + (s * 1_000.0).round() as i64)
 }
 
-/// The fleet's database unreachable or refusing, as a request's error.
+/// The fleet's database unreachable (503), or refusing what the cell asked (500), as a
+/// request's error.
 pub fn unavailable(error: FleetError) -> Error {
-    Error::FleetUnavailable(error.to_string())
+    match error {
+        FleetError::Unreachable(_) => Error::FleetUnavailable(error.to_string()),
+        _ => Error::Internal(error.to_string()),
+    }
+}
+
+/// Refuses a `cell` filter that cannot name a cell, and text PostgreSQL cannot hold (NUL).
+pub fn check_filter(cell: Option<&str>, text: &[Option<&str>]) -> Result<()> {
+    if let Some(cell) = cell {
+        crate::config::service::check_cell_id(cell)
+            .map_err(|why| Error::bad_request(format!("cell `{cell}` is not a cell id: {why}")))?;
+    }
+    if text.iter().flatten().any(|t| t.contains('\0')) {
+        return Err(Error::bad_request("a filter holds a NUL character"));
+    }
+    Ok(())
 }
 
 /// The link, or the error that says this cell is in no fleet.

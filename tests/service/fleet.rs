@@ -15,6 +15,7 @@ mod outage;
 mod reads;
 mod registry;
 mod settings;
+mod tls;
 
 /// Long enough for a busy two-core machine to replicate what a test made.
 const CATCH_UP: Duration = Duration::from_secs(120);

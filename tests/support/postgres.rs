@@ -94,6 +94,98 @@ impl Postgres {
         postgres
     }
 
+    /// Turns TLS on: a certificate authority and a server certificate for 127.0.0.1 made with
+    /// `openssl`, and the server restarted with them. Answers the authority's certificate, for
+    /// a client's `sslrootcert`.
+    pub fn enable_tls(&self) -> PathBuf {
+        let dir = self.dir.path();
+        let ca = dir.join("ca.crt");
+        let (server_crt, server_key) = (dir.join("server.crt"), dir.join("server.key"));
+        let openssl = |args: &[&str], what: &str| {
+            run(Command::new("openssl").current_dir(dir).args(args), what);
+        };
+        openssl(
+            &[
+                "req",
+                "-new",
+                "-x509",
+                "-days",
+                "2",
+                "-nodes",
+                "-subj",
+                "/CN=celld test CA",
+                "-keyout",
+                "ca.key",
+                "-out",
+                "ca.crt",
+            ],
+            "openssl: the test CA",
+        );
+        openssl(
+            &[
+                "req",
+                "-new",
+                "-nodes",
+                "-subj",
+                "/CN=127.0.0.1",
+                "-keyout",
+                "server.key",
+                "-out",
+                "server.csr",
+            ],
+            "openssl: the server's key",
+        );
+        std::fs::write(
+            dir.join("server.ext"),
+            "subjectAltName=IP:127.0.0.1\nbasicConstraints=CA:FALSE\n",
+        )
+        .unwrap();
+        openssl(
+            &[
+                "x509",
+                "-req",
+                "-in",
+                "server.csr",
+                "-CA",
+                "ca.crt",
+                "-CAkey",
+                "ca.key",
+                "-CAcreateserial",
+                "-days",
+                "2",
+                "-extfile",
+                "server.ext",
+                "-out",
+                "server.crt",
+            ],
+            "openssl: the server's certificate",
+        );
+        if self.as_postgres {
+            run(
+                Command::new("chown")
+                    .arg("postgres:postgres")
+                    .arg(&server_crt)
+                    .arg(&server_key),
+                "give the server's certificate to user postgres",
+            );
+        }
+        run(
+            Command::new("chmod").arg("600").arg(&server_key),
+            "chmod the server's key",
+        );
+        append(
+            &self.data().join("postgresql.conf"),
+            &format!(
+                "ssl = on\nssl_cert_file = '{}'\nssl_key_file = '{}'\n",
+                server_crt.display(),
+                server_key.display()
+            ),
+        );
+        self.stop();
+        self.start_again();
+        ca
+    }
+
     /// `postgres://postgres@127.0.0.1:PORT/celld`.
     pub fn url(&self) -> String {
         format!("postgres://postgres@127.0.0.1:{}/celld", self.port)
