@@ -121,9 +121,12 @@ impl Fleet {
     }
 
     /// Creates or brings up to date the fleet's schema; cells migrating at once wait for
-    /// each other (sqlx takes an advisory lock).
+    /// each other (sqlx takes an advisory lock). A schema a newer cell already took further
+    /// is accepted: the fleet's migrations only add, so a fleet upgrades one cell at a time.
     pub async fn migrate(&self) -> Result<(), FleetError> {
-        sqlx::migrate!("./migrations_fleet").run(&self.pool).await?;
+        let mut migrator = sqlx::migrate!("./migrations_fleet");
+        migrator.set_ignore_missing(true);
+        migrator.run(&self.pool).await?;
         Ok(())
     }
 }

@@ -13,7 +13,7 @@ use crate::storage::{DbError, audit, policies};
 use serde_json::json;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 /// How often an idle cell looks for new rows to send.
@@ -30,6 +30,8 @@ pub struct FleetLink {
     reachable: AtomicBool,
     /// Every cell's tokens by hash, as last read from the fleet.
     tokens: RwLock<HashMap<String, FleetToken>>,
+    /// The registry's policies this cell refused (too large, unreadable): not fetched again.
+    refused: Mutex<Vec<String>>,
 }
 
 impl FleetLink {
@@ -38,6 +40,7 @@ impl FleetLink {
             fleet,
             reachable: AtomicBool::new(false),
             tokens: RwLock::default(),
+            refused: Mutex::default(),
         })
     }
 
@@ -182,7 +185,7 @@ pub async fn run(context: Context, link: Arc<FleetLink>) {
                 if link.reachable.swap(false, Ordering::SeqCst) || backoff == POLL {
                     let backlog = outbox::backlog(&context.db).await.unwrap_or(-1);
                     tracing::warn!(%error, backlog,
-                        "the fleet's database is unreachable: rows wait on the cell");
+                        "replication to the fleet stopped: rows wait on the cell");
                 }
                 backoff = (backoff * 2).min(MAX_BACKOFF);
             }
@@ -301,19 +304,28 @@ async fn beat(
 /// Registers the registry's policies this cell lacks, and queues each one's evaluation on
 /// this cell (the gate reads only evaluations on the cell's own configuration).
 async fn pull_policies(context: &Context, link: &FleetLink) -> std::result::Result<(), SyncError> {
-    let held = registry::held(&context.db).await?;
-    for file in registry::missing(&link.fleet, &held).await? {
-        let by = format!(
-            "fleet ({})",
-            file.uploaded_by.as_deref().unwrap_or("unknown")
-        );
-        let registered = super::policies::register(&context.db, &file.name, file.file, &by).await;
+    let mut skipped = registry::held(&context.db).await?;
+    skipped.extend(link.refused.lock().map(|r| r.clone()).unwrap_or_default());
+    for file in registry::missing(&link.fleet, &skipped).await? {
+        let by = format!("fleet ({})", file.uploaded_by.as_deref().unwrap_or("unknown"));
+        let max = context.settings.policies.max_parameters;
+        let checked = crate::policy::file::check_parameter_count(&file.file, max)
+            .map_err(|e| Error::unprocessable(e.to_string()));
+        let registered = match checked {
+            Ok(()) => super::policies::register(&context.db, &file.name, file.file, &by).await,
+            Err(refused) => Err(refused),
+        };
         let policy = match registered {
             Ok((policy, _)) => policy,
-            Err(error) => {
-                tracing::warn!(%error, sha256 = %file.sha256, "a policy of the fleet's is refused here");
+            Err(error) if matches!(error, Error::Invalid { .. }) => {
+                tracing::warn!(%error, sha256 = %file.sha256, name = %file.name,
+                    "a policy of the fleet's registry is refused on this cell");
+                if let Ok(mut refused) = link.refused.lock() {
+                    refused.push(file.sha256.clone());
+                }
                 continue;
             }
+            Err(error) => return Err(error.into()),
         };
         audit::record(
             &context.db,

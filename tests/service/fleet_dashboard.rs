@@ -103,7 +103,9 @@ fn the_fleet_view_lists_the_cells_and_filters_jobs_by_cell() {
     let Some((browser, shots)) = browser() else {
         return;
     };
-    let (url, pg) = postgres::fleet_database("fleet_dashboard");
+    // A cluster of its own: the test stops it.
+    let cluster = postgres::Postgres::start();
+    let url = cluster.url();
     let (dir_a, dir_b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let cell_a = fleet_cell(dir_a.path(), &url, "cell-a");
     let cell_b = fleet_cell(dir_b.path(), &url, "cell-b");
@@ -254,7 +256,7 @@ fn the_fleet_view_lists_the_cells_and_filters_jobs_by_cell() {
     // PostgreSQL stops: the view says so; the live page still works.
     browser.goto(&format!("{}/#/fleet", cell_a.base));
     browser.wait_until("the fleet view", WAIT, |b| b.exists(&row));
-    drop(pg);
+    cluster.stop();
     browser.wait_until("the view says the fleet is unavailable", WAIT, |b| {
         text_of(b, "#fleet-status").contains("fleet_unavailable")
     });
@@ -262,7 +264,7 @@ fn the_fleet_view_lists_the_cells_and_filters_jobs_by_cell() {
     browser.screenshot(&shots.join("fleet-4-unavailable.png"));
     browser.goto(&format!("{}/#/live", cell_a.base));
     browser.wait_until("the live page", WAIT, |b| {
-        b.exists("#machine-state[data-state=Idle]")
+        b.exists("#machine-state[data-state=Complete]")
     });
     let (status, cell) = cell_a.get("/api/cell", Some(&cell_a.admin));
     assert_eq!(status, 200, "{cell}");
