@@ -82,13 +82,16 @@ pub async fn leave(db: &Db) -> Result<bool, DbError> {
 }
 
 /// The oldest `limit` entries, in commit order.
-pub async fn oldest(db: &Db, limit: i64) -> Result<Vec<Entry>, DbError> {
+pub async fn oldest(
+    reader: &mut sqlx::SqliteConnection,
+    limit: i64,
+) -> Result<Vec<Entry>, DbError> {
     sqlx::query_as(
         "SELECT seq, table_name, key1, key2, julianday(at) AS at_julian
          FROM fleet_outbox ORDER BY seq LIMIT ?",
     )
     .bind(limit)
-    .fetch_all(&db.reader)
+    .fetch_all(reader)
     .await
 }
 

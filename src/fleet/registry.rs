@@ -9,7 +9,7 @@ use serde::Serialize;
 /// Puts the files of the cell's policies `ids` into the registry, those it lacks (inside the
 /// replication batch that carries their rows).
 pub async fn publish(
-    db: &Db,
+    cell: &mut sqlx::SqliteConnection,
     tx: &mut sqlx::PgConnection,
     cell_id: &str,
     ids: &[i64],
@@ -20,7 +20,7 @@ pub async fn publish(
             "SELECT sha256, name, file, uploaded_by, created_at FROM policies WHERE id = ?",
         )
         .bind(id)
-        .fetch_optional(&db.reader)
+        .fetch_optional(&mut *cell)
         .await?;
         let Some((sha256, name, file, uploaded_by, created_at)) = row else {
             continue;

@@ -105,7 +105,10 @@ pub async fn send_batch(
     fleet: &Fleet,
     tables: &[TableSchema],
 ) -> Result<Option<Sent>, ReplicationError> {
-    let entries = outbox::oldest(db, BATCH_ENTRIES).await?;
+    // One read transaction for the entries and the rows they name: the rows are then at least
+    // as new as the entries, whichever reader connection the pool hands out.
+    let mut snapshot = db.reader.begin().await?;
+    let entries = outbox::oldest(&mut snapshot, BATCH_ENTRIES).await?;
     let Some(last) = entries.last() else {
         return Ok(None);
     };
@@ -125,7 +128,7 @@ pub async fn send_batch(
         let Some(wanted) = keys.get(schema.table.name) else {
             continue;
         };
-        let rows = read_rows(db, schema, wanted).await?;
+        let rows = read_rows(&mut snapshot, schema, wanted).await?;
         let found: BTreeSet<Key> = rows.iter().map(|row| key_of(schema, row)).collect();
         let gone: Vec<Key> = wanted.difference(&found).copied().collect();
         upsert(&mut tx, &fleet.cell_id, schema, &rows)
@@ -136,11 +139,12 @@ pub async fn send_batch(
             .map_err(FleetError::from)?;
         if schema.table.name == "policies" {
             let ids: Vec<i64> = found.iter().map(|(id, _)| *id).collect();
-            super::registry::publish(db, &mut tx, &fleet.cell_id, &ids).await?;
+            super::registry::publish(&mut snapshot, &mut tx, &fleet.cell_id, &ids).await?;
         }
         sent.upserted += rows.len();
         sent.deleted += gone.len();
     }
+    snapshot.rollback().await?;
     tx.commit().await.map_err(FleetError::from)?;
     let now = outbox::julian_now();
     sent.lags_s = entries
@@ -167,7 +171,7 @@ fn column_list(schema: &TableSchema) -> String {
 
 /// The rows of `schema`'s table with the `wanted` keys that the cell still holds.
 async fn read_rows(
-    db: &Db,
+    reader: &mut sqlx::SqliteConnection,
     schema: &TableSchema,
     wanted: &BTreeSet<Key>,
 ) -> Result<Vec<Vec<Value>>, DbError> {
@@ -202,7 +206,7 @@ async fn read_rows(
             }
             [] => unreachable!("a replicated table has a key"),
         }
-        let read = query.build().fetch_all(&db.reader).await?;
+        let read = query.build().fetch_all(&mut *reader).await?;
         for row in read {
             rows.push(values(schema, &row)?);
         }

@@ -307,7 +307,10 @@ async fn pull_policies(context: &Context, link: &FleetLink) -> std::result::Resu
     let mut skipped = registry::held(&context.db).await?;
     skipped.extend(link.refused.lock().map(|r| r.clone()).unwrap_or_default());
     for file in registry::missing(&link.fleet, &skipped).await? {
-        let by = format!("fleet ({})", file.uploaded_by.as_deref().unwrap_or("unknown"));
+        let by = format!(
+            "fleet ({})",
+            file.uploaded_by.as_deref().unwrap_or("unknown")
+        );
         let max = context.settings.policies.max_parameters;
         let checked = crate::policy::file::check_parameter_count(&file.file, max)
             .map_err(|e| Error::unprocessable(e.to_string()));

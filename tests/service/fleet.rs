@@ -49,13 +49,21 @@ fn run_jobs(server: &Server, count: u64) -> Vec<i64> {
     ids
 }
 
-/// Waits until the cell has sent everything, then checks the fleet holds its record exactly;
-/// answers the rows compared.
+/// Waits until the cell has sent everything and the fleet holds its record exactly; answers
+/// the rows compared. (A cell still at work, its bundled policy's first evaluation say, may
+/// change a row between the two reads: they are read again until they agree.)
 fn assert_replicated(url: &str, server: &Server, cell_id: &str) -> usize {
-    fleet_support::wait_caught_up(&server.db, CATCH_UP);
-    fleet_support::compare(url, &server.db, cell_id).unwrap_or_else(|differences| {
-        panic!("the fleet's copy of {cell_id} differs:\n{differences}")
-    })
+    let deadline = std::time::Instant::now() + CATCH_UP;
+    loop {
+        fleet_support::wait_caught_up(&server.db, CATCH_UP);
+        match fleet_support::compare(url, &server.db, cell_id) {
+            Ok(rows) => return rows,
+            Err(differences) if std::time::Instant::now() > deadline => {
+                panic!("the fleet's copy of {cell_id} differs:\n{differences}")
+            }
+            Err(_) => std::thread::sleep(Duration::from_millis(200)),
+        }
+    }
 }
 
 /// GETs `path` as `token` until `done` holds (any status); fails naming `what` after a while.
