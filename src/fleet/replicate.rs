@@ -223,11 +223,18 @@ fn values(schema: &TableSchema, row: &SqliteRow) -> Result<Vec<Value>, DbError> 
             Ok(match kind {
                 Kind::Int => Value::Int(row.try_get(i)?),
                 Kind::Real => Value::Real(row.try_get(i)?),
-                Kind::Text => Value::Text(row.try_get(i)?),
+                Kind::Text => Value::Text(fleet_text(row.try_get_unchecked(i)?)),
                 Kind::Blob => Value::Blob(row.try_get(i)?),
             })
         })
         .collect()
+}
+
+/// A cell's text as PostgreSQL can hold it: SQLite keeps any bytes in a text column, while
+/// PostgreSQL's text is valid UTF-8 without NUL. Each byte sequence that is not UTF-8, and
+/// each NUL, becomes U+FFFD (so the fleet refuses no row); any other text arrives unchanged.
+fn fleet_text(bytes: Option<Vec<u8>>) -> Option<String> {
+    bytes.map(|b| String::from_utf8_lossy(&b).replace('\0', "\u{FFFD}"))
 }
 
 async fn upsert(
@@ -289,4 +296,22 @@ async fn delete(
         query.build().execute(&mut *tx).await?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fleet_text;
+
+    #[test]
+    fn text_postgres_cannot_hold_arrives_as_replacement_characters() {
+        assert_eq!(fleet_text(None), None);
+        assert_eq!(
+            fleet_text(Some("Φ170 ok".into())).as_deref(),
+            Some("Φ170 ok")
+        );
+        assert_eq!(
+            fleet_text(Some(b"a\0b\xffc".to_vec())).as_deref(),
+            Some("a\u{FFFD}b\u{FFFD}c")
+        );
+    }
 }

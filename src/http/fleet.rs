@@ -49,6 +49,7 @@ async fn cells(State(context): State<Context>, auth: Auth) -> ApiResult<Json<Ite
 #[serde(deny_unknown_fields)]
 pub struct FleetJobsQuery {
     /// Only this cell's jobs.
+    #[param(pattern = "^[A-Za-z0-9._-]{1,64}$")]
     cell: Option<String>,
     /// Only jobs in this state.
     #[param(inline, value_type = Option<crate::cell::JobStatus>)]
@@ -128,6 +129,7 @@ async fn jobs(
 #[serde(deny_unknown_fields)]
 pub struct FleetStatsQuery {
     /// Only this cell's jobs.
+    #[param(pattern = "^[A-Za-z0-9._-]{1,64}$")]
     cell: Option<String>,
     /// Jobs created at or after this UTC time (2026-11-22 or 2026-11-22T08:00:00Z).
     #[param(
