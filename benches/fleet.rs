@@ -1,7 +1,7 @@
 //! Fleet figures, printed rather than asserted, on a throwaway PostgreSQL of its own:
 //! - `cells`: eight `celld serve` processes running expert jobs back to back at a 20 ms control
-//!   period (twelve times the camera's rate), first in no fleet, then all replicating into one
-//!   PostgreSQL: the control step's p99 in each case, the replication lag's p99 (each cell's
+//!   period (twelve times the camera's rate) for a minute, in no fleet, then all replicating
+//!   into one PostgreSQL, twice over: the control step's p99 in each case, the replication lag's p99 (each cell's
 //!   `celld_fleet_lag_seconds`, from a row's commit on the cell to its commit in the fleet),
 //!   and whether every row arrived once;
 //! - `outage`: two cells running jobs while PostgreSQL is stopped for ten minutes: whether
@@ -188,28 +188,43 @@ fn step_p99_us(cells: &[Cell]) -> (usize, f64) {
     (times.len(), percentile(&mut times, 0.99))
 }
 
+/// Two rounds of: the cells in no fleet, then in one, so that the machine's drift shows
+/// beside the fleet's cost.
 fn cells(cluster: &postgres::Postgres, count: usize, length: Duration) {
-    let alone: Vec<Cell> = (0..count)
-        .map(|i| Cell::start(&format!("alone-{i}"), None))
-        .collect();
-    let jobs = run_side_by_side(&alone, length);
-    let (steps, alone_p99) = step_p99_us(&alone);
-    println!(
-        "{count} cells in no fleet for {length:?}: {} jobs, {steps} steps, control step p99 {alone_p99:.1} µs",
-        jobs.iter().map(|j| j.0).sum::<u64>()
-    );
-    drop(alone);
-
     let url = cluster.database("bench_cells");
-    let fleet: Vec<Cell> = (0..count)
-        .map(|i| Cell::start(&format!("cell-{i}"), Some(&url)))
-        .collect();
-    let jobs = run_side_by_side(&fleet, length);
-    let (steps, fleet_p99) = step_p99_us(&fleet);
+    let mut p99 = [Vec::new(), Vec::new()];
+    let mut lags = Vec::new();
+    for round in 0..2 {
+        for in_fleet in [false, true] {
+            let cells: Vec<Cell> = (0..count)
+                .map(|i| {
+                    let id = format!("{}-{round}-{i}", if in_fleet { "cell" } else { "alone" });
+                    Cell::start(&id, in_fleet.then_some(url.as_str()))
+                })
+                .collect();
+            let jobs = run_side_by_side(&cells, length);
+            let (steps, step_p99) = step_p99_us(&cells);
+            println!(
+                "round {round}, {count} cells {} for {length:?}: {} jobs, {steps} steps, control step p99 {step_p99:.1} µs",
+                if in_fleet {
+                    "in one fleet"
+                } else {
+                    "in no fleet"
+                },
+                jobs.iter().map(|j| j.0).sum::<u64>()
+            );
+            p99[usize::from(in_fleet)].push(step_p99);
+            if in_fleet {
+                lags.extend(cells.iter().filter_map(|c| c.lag_quantile_s(0.99)));
+                report_arrivals(&url, &cells);
+            }
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let (alone, in_fleet) = (mean(&p99[0]), mean(&p99[1]));
     println!(
-        "{count} cells in one fleet for {length:?}: {} jobs, {steps} steps, control step p99 {fleet_p99:.1} µs ({:+.1}% against no fleet)",
-        jobs.iter().map(|j| j.0).sum::<u64>(),
-        (fleet_p99 / alone_p99 - 1.0) * 100.0
+        "control step p99, mean of the rounds: {alone:.1} µs in no fleet, {in_fleet:.1} µs in one ({:+.1}%)",
+        (in_fleet / alone - 1.0) * 100.0
     );
     let lags: Vec<f64> = fleet
         .iter()
@@ -223,7 +238,6 @@ fn cells(cluster: &postgres::Postgres, count: usize, length: Duration) {
             .join(", "),
         lags.iter().copied().fold(0.0, f64::max)
     );
-    report_arrivals(&url, &fleet);
 }
 
 /// Waits until every cell has sent everything; says whether the fleet holds each one's
