@@ -226,12 +226,8 @@ fn cells(cluster: &postgres::Postgres, count: usize, length: Duration) {
         "control step p99, mean of the rounds: {alone:.1} µs in no fleet, {in_fleet:.1} µs in one ({:+.1}%)",
         (in_fleet / alone - 1.0) * 100.0
     );
-    let lags: Vec<f64> = fleet
-        .iter()
-        .filter_map(|c| c.lag_quantile_s(0.99))
-        .collect();
     println!(
-        "replication lag p99 per cell (bucket upper bounds): {}; the worst {:.3} s",
+        "replication lag p99 per cell and round (bucket upper bounds): {}; the worst {:.3} s",
         lags.iter()
             .map(|l| format!("{l:.3} s"))
             .collect::<Vec<_>>()
