@@ -1,7 +1,7 @@
 //! Fleet figures, printed rather than asserted, on a throwaway PostgreSQL of its own:
 //! - `cells`: eight `celld serve` processes running expert jobs back to back at a 20 ms control
-//!   period (twelve times the camera's rate) for a minute, in no fleet, then all replicating
-//!   into one PostgreSQL, twice over: the control step's p99 in each case, the replication lag's p99 (each cell's
+//!   period (twelve times the camera's rate) for two minutes, in no fleet, then all
+//!   replicating into one PostgreSQL, twice over: the control step's p99 in each case, the replication lag's p99 (each cell's
 //!   `celld_fleet_lag_seconds`, from a row's commit on the cell to its commit in the fleet),
 //!   and whether every row arrived once;
 //! - `outage`: two cells running jobs while PostgreSQL is stopped for ten minutes: whether

@@ -2,7 +2,7 @@
 //! the registry's policies as each cell holds them.
 
 use super::{Fleet, FleetError};
-use crate::storage::jobs::{GroupBy, Job, JobRow, JobStats, StatsRow, summarise};
+use crate::storage::jobs::{GroupBy, Job, JobFilter, JobRow, JobStats, StatsRow, summarise};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -85,17 +85,11 @@ pub struct FleetJob {
     pub job: Job,
 }
 
-/// Which jobs of the fleet: the local filters, plus one cell.
-#[derive(Debug, Clone, Default)]
+/// Which jobs of the fleet: the local filter, plus one cell.
+#[derive(Debug, Clone)]
 pub struct FleetJobFilter {
     pub cell: Option<String>,
-    pub status: Option<String>,
-    pub controller: Option<String>,
-    pub policy_id: Option<i64>,
-    pub since: Option<String>,
-    pub until: Option<String>,
-    pub limit: i64,
-    pub offset: i64,
+    pub jobs: JobFilter,
 }
 
 const CONDITION: &str = "($1::text IS NULL OR cell_id = $1) AND ($2::text IS NULL OR status = $2)
@@ -111,13 +105,14 @@ pub async fn jobs(
         sql: &'q str,
         filter: &FleetJobFilter,
     ) -> sqlx::query::Query<'q, sqlx::Postgres, sqlx::postgres::PgArguments> {
+        let jobs = &filter.jobs;
         sqlx::query(sql)
             .bind(filter.cell.clone())
-            .bind(filter.status.clone())
-            .bind(filter.controller.clone())
-            .bind(filter.policy_id)
-            .bind(filter.since.clone())
-            .bind(filter.until.clone())
+            .bind(jobs.status.map(|s| s.as_str()))
+            .bind(jobs.controller.clone())
+            .bind(jobs.policy_id)
+            .bind(jobs.since.clone())
+            .bind(jobs.until.clone())
     }
     let select = format!(
         "SELECT cell_id, id, status, controller, policy_id, seed, initial_pos_mm,
@@ -132,8 +127,8 @@ pub async fn jobs(
          ORDER BY created_at DESC, cell_id, id DESC LIMIT $7 OFFSET $8"
     );
     let rows = bind(&select, filter)
-        .bind(filter.limit)
-        .bind(filter.offset)
+        .bind(filter.jobs.limit)
+        .bind(filter.jobs.offset)
         .fetch_all(&fleet.pool)
         .await?;
     let mut jobs = Vec::with_capacity(rows.len());

@@ -99,7 +99,7 @@ async fn jobs(
 ) -> ApiResult<Json<FleetJobPage>> {
     auth.require(Role::Viewer)?;
     check_filter(query.cell.as_deref(), &[query.controller.as_deref()])?;
-    let local = job_filter(ListQuery {
+    let jobs = job_filter(ListQuery {
         status: query.status,
         controller: query.controller,
         policy_id: query.policy_id,
@@ -111,13 +111,7 @@ async fn jobs(
     let link = link(&context)?;
     let filter = FleetJobFilter {
         cell: query.cell,
-        status: local.status.map(|s| s.as_str().to_string()),
-        controller: local.controller,
-        policy_id: local.policy_id,
-        since: local.since,
-        until: local.until,
-        limit: local.limit,
-        offset: local.offset,
+        jobs,
     };
     let (items, total) = reads::jobs(&link.fleet, &filter)
         .await

@@ -68,6 +68,21 @@ where
         .unwrap_or(Value::Null)
 }
 
+/// A row as a JSON object of its `columns`.
+fn object<R: Row>(row: &R, columns: &[(String, String)]) -> Value
+where
+    usize: sqlx::ColumnIndex<R>,
+    for<'r> Option<i64>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+    for<'r> Option<f64>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+    for<'r> Option<String>: sqlx::Decode<'r, R::Database> + sqlx::Type<R::Database>,
+{
+    let mut object = Map::new();
+    for (i, (name, declared)) in columns.iter().enumerate() {
+        object.insert(name.clone(), value(row, i, declared));
+    }
+    Value::Object(object)
+}
+
 /// Every row of `table` on the cell, ordered by its key.
 pub fn cell_rows(db: &Path, table: &str, order: &str) -> Vec<Value> {
     runtime().block_on(async {
@@ -78,15 +93,7 @@ pub fn cell_rows(db: &Path, table: &str, order: &str) -> Vec<Value> {
         let names: Vec<&str> = columns.iter().map(|(n, _)| n.as_str()).collect();
         let sql = format!("SELECT {} FROM {table} ORDER BY {order}", names.join(", "));
         let rows = sqlx::query(&sql).fetch_all(&mut connection).await.unwrap();
-        rows.iter()
-            .map(|row| {
-                let mut object = Map::new();
-                for (i, (name, declared)) in columns.iter().enumerate() {
-                    object.insert(name.clone(), value(row, i, declared));
-                }
-                Value::Object(object)
-            })
-            .collect()
+        rows.iter().map(|row| object(row, &columns)).collect()
     })
 }
 
@@ -108,15 +115,7 @@ pub fn fleet_rows(url: &str, db: &Path, cell_id: &str, table: &str, order: &str)
             .fetch_all(&mut fleet)
             .await
             .unwrap();
-        rows.iter()
-            .map(|row| {
-                let mut object = Map::new();
-                for (i, (name, declared)) in columns.iter().enumerate() {
-                    object.insert(name.clone(), value(row, i, declared));
-                }
-                Value::Object(object)
-            })
-            .collect()
+        rows.iter().map(|row| object(row, &columns)).collect()
     })
 }
 
