@@ -7,7 +7,7 @@ use super::{Fleet, FleetError, REPLICATED, Replicated};
 use crate::storage::{Db, DbError};
 use sqlx::postgres::Postgres;
 use sqlx::sqlite::SqliteRow;
-use sqlx::{QueryBuilder, Row};
+use sqlx::{Connection, QueryBuilder, Row};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// Outbox entries per batch: a few seconds of a busy cell's steps, sent in one transaction.
@@ -105,6 +105,9 @@ pub async fn send_batch(
     fleet: &Fleet,
     tables: &[TableSchema],
 ) -> Result<Option<Sent>, ReplicationError> {
+    // A connection to the fleet first: while it is unreachable no read transaction is held
+    // open on the cell (which would keep SQLite from checkpointing its log).
+    let mut fleet_connection = fleet.pool.acquire().await.map_err(FleetError::from)?;
     // One read transaction for the entries and the rows they name: the rows are then at least
     // as new as the entries, whichever reader connection the pool hands out.
     let mut snapshot = db.reader.begin().await?;
@@ -123,7 +126,7 @@ pub async fn send_batch(
         entries: entries.len(),
         ..Sent::default()
     };
-    let mut tx = fleet.pool.begin().await.map_err(FleetError::from)?;
+    let mut tx = fleet_connection.begin().await.map_err(FleetError::from)?;
     for schema in tables {
         let Some(wanted) = keys.get(schema.table.name) else {
             continue;
