@@ -400,8 +400,6 @@ pub fn admin_token_path(db: &Path) -> PathBuf {
     db.with_file_name("admin.token")
 }
 
-/// Makes the first admin token, prints it once and writes it beside the database (mode 0600);
-/// returns the secret for the sign-in URL.
 /// With `fleet.url`: the link to the fleet (connected in the background) and the outbox
 /// filling, with the cell's whole record the first time. Without: no outbox kept.
 async fn join_or_leave_fleet(
@@ -428,6 +426,8 @@ async fn join_or_leave_fleet(
     Ok(Some(workflows::fleet::FleetLink::new(link)))
 }
 
+/// Makes the first admin token, prints it once and writes it beside the database (mode 0600);
+/// returns the secret for the sign-in URL.
 async fn first_admin_token(db: &Db, db_path: &Path) -> Result<String> {
     let token = workflows::tokens::create(
         db,

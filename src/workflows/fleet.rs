@@ -190,8 +190,8 @@ pub async fn run(context: Context, link: Arc<FleetLink>) {
                 }
                 backoff = (backoff * 2).min(MAX_BACKOFF);
             }
-            Err(SyncError::Cell(error)) => {
-                tracing::warn!(%error, "replication cannot read or update the cell's database");
+            Err(error) => {
+                tracing::warn!(%error, "the fleet's work on the cell failed; trying again");
                 backoff = (backoff * 2).min(MAX_BACKOFF);
             }
         }
@@ -208,6 +208,9 @@ enum SyncError {
     Fleet(#[from] FleetError),
     #[error(transparent)]
     Cell(#[from] DbError),
+    /// A workflow it ran on the cell (registering, evaluating, activating) failed.
+    #[error(transparent)]
+    Workflow(#[from] Error),
 }
 
 impl From<replicate::ReplicationError> for SyncError {
@@ -216,12 +219,6 @@ impl From<replicate::ReplicationError> for SyncError {
             replicate::ReplicationError::Cell(e) => SyncError::Cell(e),
             replicate::ReplicationError::Fleet(e) => SyncError::Fleet(e),
         }
-    }
-}
-
-impl From<Error> for SyncError {
-    fn from(error: Error) -> Self {
-        SyncError::Cell(DbError::Protocol(error.to_string()))
     }
 }
 
