@@ -10,7 +10,7 @@ use super::stats::{Stats, check_time_range, group_by};
 use crate::fleet::reads::{self, FleetCell, FleetJob, FleetJobFilter, FleetPolicy};
 use crate::fleet::registry::{self, Activation};
 use crate::storage::tokens::Role;
-use crate::workflows::fleet::{check_filter, link, unavailable};
+use crate::workflows::fleet::{check_cell, link, unavailable};
 use crate::workflows::{self, Error};
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -98,10 +98,11 @@ async fn jobs(
     Query(query): Query<FleetJobsQuery>,
 ) -> ApiResult<Json<FleetJobPage>> {
     auth.require(Role::Viewer)?;
-    check_filter(query.cell.as_deref(), &[query.controller.as_deref()])?;
+    check_cell(query.cell.as_deref())?;
     let jobs = job_filter(ListQuery {
         status: query.status,
-        controller: query.controller,
+        // As replication stores it: PostgreSQL's text holds no NUL.
+        controller: query.controller.map(|c| c.replace('\0', "\u{FFFD}")),
         policy_id: query.policy_id,
         since: query.since,
         until: query.until,
@@ -157,7 +158,7 @@ async fn stats(
     auth.require(Role::Viewer)?;
     let by = group_by(query.by.as_deref())?;
     check_time_range(&query.since, &query.until)?;
-    check_filter(query.cell.as_deref(), &[])?;
+    check_cell(query.cell.as_deref())?;
     let link = link(&context)?;
     let (total, groups) = reads::stats(
         &link.fleet,
