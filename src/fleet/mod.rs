@@ -85,6 +85,9 @@ impl From<sqlx::Error> for FleetError {
     }
 }
 
+/// PostgreSQL's `to_char` format of a UTC time as the cell writes its times (ISO 8601, ms).
+const ISO: &str = r#"'YYYY-MM-DD"T"HH24:MI:SS.MS"Z"'"#;
+
 /// How long a connection to the fleet may take before the attempt counts as an outage.
 pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
 

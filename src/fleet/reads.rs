@@ -1,7 +1,7 @@
 //! What every cell can read of the fleet: the cells, their jobs, the figures over them, and
 //! the registry's policies as each cell holds them.
 
-use super::{Fleet, FleetError};
+use super::{Fleet, FleetError, ISO};
 use crate::storage::jobs::{GroupBy, Job, JobFilter, JobRow, JobStats, StatsRow, summarise};
 use serde::Serialize;
 use serde_json::Value;
@@ -31,8 +31,6 @@ pub struct FleetCell {
     /// Whether this is the cell answering.
     pub this_cell: bool,
 }
-
-const ISO: &str = r#"'YYYY-MM-DD"T"HH24:MI:SS.MS"Z"'"#;
 
 pub async fn cells(fleet: &Fleet) -> Result<Vec<FleetCell>, FleetError> {
     type Row = (

@@ -2,7 +2,7 @@
 //! other), activation requests and their per-cell results, each cell's heartbeat, and the
 //! tokens every cell accepts.
 
-use super::{Fleet, FleetError};
+use super::{Fleet, FleetError, ISO};
 use crate::storage::{Db, DbError};
 use serde::Serialize;
 
@@ -101,8 +101,6 @@ pub struct ActivationResult {
     pub detail: String,
     pub at: String,
 }
-
-const ISO: &str = r#"'YYYY-MM-DD"T"HH24:MI:SS.MS"Z"'"#;
 
 /// Stores a request for every cell.
 pub async fn request_activation(
@@ -226,16 +224,20 @@ pub struct FleetToken {
     pub name: String,
     pub role: String,
     pub expires_at: Option<String>,
+    /// `expires_at` as milliseconds since the Unix epoch, for comparing with the clock.
+    pub expires_unix_ms: Option<i64>,
     pub revoked_at: Option<String>,
 }
 
 /// Every cell's tokens.
 pub async fn tokens(fleet: &Fleet) -> Result<Vec<FleetToken>, FleetError> {
-    Ok(
-        sqlx::query_as(
-            "SELECT token_hash, cell_id, name, role, expires_at, revoked_at FROM tokens",
-        )
-        .fetch_all(&fleet.pool)
-        .await?,
+    Ok(sqlx::query_as(
+        "SELECT token_hash, cell_id, name, role, expires_at,
+                    (EXTRACT(EPOCH FROM expires_at::timestamptz) * 1000)::bigint
+                        AS expires_unix_ms,
+                    revoked_at
+             FROM tokens",
     )
+    .fetch_all(&fleet.pool)
+    .await?)
 }

@@ -58,28 +58,10 @@ impl FleetLink {
         Some(FoundToken {
             caller,
             expires_at: token.expires_at.clone(),
-            expires_unix_ms: token.expires_at.as_deref().and_then(unix_ms),
+            expires_unix_ms: token.expires_unix_ms,
             revoked_at: token.revoked_at.clone(),
         })
     }
-}
-
-/// `2026-12-08T01:02:03.456Z` as milliseconds since the Unix epoch.
-fn unix_ms(text: &str) -> Option<i64> {
-    let (date, time) = text.trim_end_matches('Z').split_once('T')?;
-    let mut ymd = date.split('-').map(|p| p.parse::<i64>().ok());
-    let (y, m, d) = (ymd.next()??, ymd.next()??, ymd.next()??);
-    let mut hms = time.split(':');
-    let (h, mi): (i64, i64) = (hms.next()?.parse().ok()?, hms.next()?.parse().ok()?);
-    let s: f64 = hms.next().unwrap_or("0").parse().ok()?;
-    // Days from the civil date (Howard Hinnant's algorithm).
-    let y = if m <= 2 { y - 1 } else { y };
-    let era = y.div_euclid(400);
-    let yoe = y - era * 400;
-    let doy = (153 * (if m > 2 { m - 3 } else { m + 9 }) + 2) / 5 + d - 1;
-    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
-    let days = era * 146_097 + doe - 719_468;
-    Some((days * 86_400 + h * 3_600 + mi * 60) * 1_000 + (s * 1_000.0).round() as i64)
 }
 
 /// The fleet's database unreachable (503), or refusing what the cell asked (500), as a
@@ -396,18 +378,4 @@ async fn answer_activations(
         }
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::unix_ms;
-
-    #[test]
-    fn iso_times_read_as_unix_milliseconds() {
-        assert_eq!(unix_ms("1970-01-01T00:00:00.000Z"), Some(0));
-        // `date -u -d 2026-12-08T01:02:03.456Z +%s%3N`
-        assert_eq!(unix_ms("2026-12-08T01:02:03.456Z"), Some(1_796_691_723_456));
-        assert_eq!(unix_ms("2000-02-29T12:00:00Z"), Some(951_825_600_000));
-        assert_eq!(unix_ms("not a time"), None);
-    }
 }

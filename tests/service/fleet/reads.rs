@@ -109,6 +109,23 @@ fn a_token_made_on_one_cell_works_on_every_cell_until_revoked() {
     );
     assert_eq!(status, 201, "{job}");
 
+    // One with an expiry is accepted too (the fleet reads its expiry as the cell does).
+    let (status, expiring) = a.post(
+        "/api/tokens",
+        Some(&a.admin),
+        Some(json!({"role": "viewer", "name": "visitor", "expires_in_s": 3600})),
+    );
+    assert_eq!(status, 201, "{expiring}");
+    let visitor = expiring["token"].as_str().unwrap();
+    let me = poll(
+        &b,
+        "/api/me",
+        visitor,
+        "accepted the expiring token",
+        |status, _| status == 200,
+    );
+    assert_eq!(me["role"], "viewer", "{me}");
+
     // Revoked on its cell: refused on every cell.
     let (status, revoked) = a.delete(&format!("/api/tokens/{id}"), &a.admin);
     assert_eq!(status, 200, "{revoked}");
